@@ -1,0 +1,162 @@
+"""The ``gsbench`` command line: argparse sub-commands, each importing its heavy modules lazily.
+
+Errors derived from `GsbenchError` print as one line (what was found, what was expected, the fix)
+and exit with status 2; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+from gsbench.errors import GsbenchError
+
+
+def _set_threads(threads: int | None) -> None:
+    """Set OpenMP and torch intra-op threads (before torch does work)."""
+    if not threads:
+        return
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(threads)
+
+
+def cmd_list(args) -> int:
+    from gsbench.data.builtin import BUILTIN_SCENES
+    from gsbench.registry import EVALUATORS, METHODS
+
+    print("methods:    " + (", ".join(METHODS.names()) or "(none registered yet)"))
+    print("evaluators: " + ", ".join(EVALUATORS.names()))
+    print("scenes:")
+    for scene in BUILTIN_SCENES.values():
+        print(f"  {scene.name:<24} {scene.format:<4} {scene.description}")
+    return 0
+
+
+def cmd_scene_make(args) -> int:
+    from gsbench.data.loader import load_scene, make_scene
+
+    path = make_scene(args.name, fmt=args.format, out=args.out, res=args.res, seed=args.seed)
+    print(f"scene written to {path}")
+    print(json.dumps(load_scene(path, load_images=False).summary(), indent=2))
+    return 0
+
+
+def cmd_scene_check(args) -> int:
+    from gsbench.data.loader import check_scene
+
+    print(json.dumps(check_scene(Path(args.dir)), indent=2, default=str))
+    return 0
+
+
+def cmd_config(args) -> int:
+    import yaml
+
+    from gsbench.config import resolve
+    from gsbench.registry import METHODS
+
+    method_cls = METHODS.get(args.method)
+    cfg = resolve(
+        args.method,
+        args.scene,
+        preset=args.preset,
+        user_files=args.config or (),
+        overrides=args.set or (),
+        method_config_cls=getattr(method_cls, "Config", None),
+        seed=args.seed,
+    )
+    print(f"# run id {cfg.run_id}")
+    print(yaml.safe_dump(cfg.to_dict(), sort_keys=False), end="")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from gsbench.data.loader import load_scene
+    from gsbench.evaluators.run import evaluate_mesh_file, format_results
+    from gsbench.records import write_json_atomic
+
+    scene = load_scene(args.scene)
+    results = evaluate_mesh_file(Path(args.mesh), scene, args.evaluator or None, frame=args.frame)
+    print(format_results(results))
+    if args.out:
+        write_json_atomic(Path(args.out), results)
+        print(f"results written to {args.out}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from gsbench.bench import run_benchmark
+
+    return run_benchmark(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gsbench", description="Benchmark surface-reconstruction Gaussian splatting.")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    parser.add_argument("--threads", type=int, default=None, help="OpenMP / torch threads")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    sub.add_parser("list", help="methods, evaluators and built-in scenes").set_defaults(func=cmd_list)
+
+    scene = sub.add_parser("scene", help="make or check scene folders").add_subparsers(dest="scene_command", required=True)
+    make = scene.add_parser("make", help="generate a built-in synthetic scene")
+    make.add_argument("name", help="e.g. synthetic/spot (see `gsbench list`)")
+    make.add_argument("--format", choices=("dtu", "tnt"), default=None, help="layout (default: the scene's own)")
+    make.add_argument("--out", default=None, help="folder (default: the cache, $GSBENCH_DATA)")
+    make.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), default=None, help="image size")
+    make.add_argument("--seed", type=int, default=0)
+    make.set_defaults(func=cmd_scene_make)
+    check = scene.add_parser("check", help="validate a scene folder and print what was found")
+    check.add_argument("dir")
+    check.set_defaults(func=cmd_scene_check)
+
+    config = sub.add_parser("config", help="print the resolved config of a run")
+    config.add_argument("--method", required=True)
+    config.add_argument("--scene", default="synthetic/spot")
+    config.add_argument("--preset", default="cpu")
+    config.add_argument("--config", action="append", help="user YAML file (repeatable)")
+    config.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. train.iterations=500")
+    config.add_argument("--seed", type=int, default=None)
+    config.set_defaults(func=cmd_config)
+
+    evaluate = sub.add_parser("eval", help="evaluate a mesh against a scene's ground truth")
+    evaluate.add_argument("--mesh", required=True)
+    evaluate.add_argument("--scene", required=True)
+    evaluate.add_argument("--evaluator", action="append", help="evaluator name (repeatable; default by format)")
+    evaluate.add_argument("--frame", choices=("normalised", "gt"), default="normalised", help="frame of the mesh")
+    evaluate.add_argument("--out", default=None, help="write the results JSON here")
+    evaluate.set_defaults(func=cmd_eval)
+
+    bench = sub.add_parser("bench", help="fixed-workload benchmarks")
+    bench.add_argument("target", choices=("raster", "eval"))
+    bench.add_argument("--kernels", nargs="+", default=None)
+    bench.add_argument("--workloads", nargs="+", default=None, help="e.g. 50k-400x300 200k-800x600 (raster)")
+    bench.add_argument("--repeats", type=int, default=5)
+    bench.add_argument("--vertices", type=int, default=1_000_000, help="mesh size (eval)")
+    bench.add_argument("--gt-points", type=int, default=2_000_000, help="GT size (eval)")
+    bench.add_argument("--json", default=None, help="also write the result as JSON")
+    bench.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _set_threads(args.threads)
+    try:
+        return args.func(args)
+    except GsbenchError as exc:
+        if args.debug:
+            raise
+        print(f"gsbench: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("gsbench: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,303 @@
+"""Run configuration: stdlib dataclasses, YAML layering, ``--set a.b=c`` overrides, canonical run id.
+
+Layers, each overriding the previous (DESIGN.md §4):
+
+    code defaults <- configs/methods/<method>.yaml <- configs/datasets/<dataset>.yaml
+                  <- configs/presets/<preset>.yaml <- user YAML files <- --set a.b=c
+
+Keys are strict: an unknown key anywhere is a `ConfigError` with a "did you mean" suggestion.
+The ``method`` section holds the method name plus its hyper-parameters; a plain string
+(``method: 2dgs`` in a sweep base) is shorthand for ``method: {name: 2dgs}``.
+``losses`` maps a loss-term name to ``{weight, start, end}``; the term names are checked against the
+loss registry when training starts.
+The run id is the first 12 hex digits of sha1 over the canonical JSON of the resolved config without
+execution-only fields (``threads``, ``out``), so the same experiment always has the same id.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import hashlib
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from gsbench.errors import ConfigError
+
+CONFIG_ROOT = Path(__file__).resolve().parent.parent / "configs"
+EXECUTION_ONLY_KEYS = ("threads", "out")
+
+
+def config_root() -> Path:
+    """The configs folder: the repository's ``configs/`` or, when installed, ``gsbench.configs``."""
+    if CONFIG_ROOT.is_dir():
+        return CONFIG_ROOT
+    from importlib import resources  # noqa: PLC0415
+
+    return Path(str(resources.files("gsbench.configs")))
+
+
+@dataclass
+class DataConfig:
+    """How the scene is loaded. ``downscale`` divides the image size (DTU/TnT papers use 2)."""
+
+    downscale: float = 1.0
+    use_masks: bool = True
+    holdout_every: int = 0
+    white_background: bool = False
+
+
+@dataclass
+class TrainConfig:
+    """Schedule-independent training settings; method-specific schedules live in ``method``."""
+
+    iterations: int = 30000
+    checkpoint_every: int = 5000
+    log_every: int = 100
+    max_gaussians: int = 0
+
+
+@dataclass
+class RasterConfig:
+    """Rasterizer options; lengths relative to the scene radius (see `gsbench.raster.RasterSettings`)."""
+
+    near_plane: float = 0.2
+    far_plane: float = 100.0
+    antialias2d: float = 0.0
+    sh_degree: int = 3
+
+
+@dataclass
+class MeshConfig:
+    """Mesh extraction; lengths relative to the scene radius unless ``absolute`` is true."""
+
+    extractor: str = "tsdf"
+    depth: str = "median"
+    voxel_size: float = 0.004
+    sdf_trunc: float = 0.016
+    depth_trunc: float = 3.0
+    absolute: bool = False
+    num_clusters: int = 1
+
+
+@dataclass
+class EvalConfig:
+    """Evaluators to run; empty means the default for the scene's format."""
+
+    evaluators: list = field(default_factory=list)
+    dtu_culling: bool = True
+
+
+@dataclass
+class LossTerm:
+    """One weighted, scheduled loss term; ``end`` < 0 means until the last step."""
+
+    weight: float = 0.0
+    start: int = 0
+    end: int = -1
+
+
+@dataclass
+class RunConfig:
+    """The fully resolved description of one run (what the run id hashes)."""
+
+    scene: str = "synthetic/spot"
+    preset: str = "cpu"
+    seed: int = 0
+    threads: int = 0
+    out: str = "runs"
+    method: dict = field(default_factory=lambda: {"name": ""})
+    losses: dict = field(default_factory=dict)
+    data: DataConfig = field(default_factory=DataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    raster: RasterConfig = field(default_factory=RasterConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @property
+    def run_id(self) -> str:
+        return run_id(self.to_dict())
+
+
+def run_id(resolved: dict) -> str:
+    """sha1 of the canonical JSON (sorted keys, no whitespace) minus execution-only keys, 12 hex."""
+    identity = {k: v for k, v in resolved.items() if k not in EXECUTION_ONLY_KEYS}
+    canonical = json.dumps(identity, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha1(canonical.encode()).hexdigest()[:12]
+
+
+def suggest(name: str, choices) -> str:
+    """' (did you mean 'x'?)' for the closest choice, or an empty string."""
+    close = difflib.get_close_matches(str(name), [str(c) for c in choices], n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def load_yaml(path: Path) -> dict:
+    """Read a YAML mapping; a missing file or a non-mapping is a ConfigError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist; check the path")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping of keys, found {type(data).__name__}")
+    return data
+
+
+def parse_override(text: str) -> dict:
+    """``a.b=c`` -> ``{"a": {"b": c}}`` with ``c`` parsed as YAML (numbers, bools, lists)."""
+    if "=" not in text:
+        raise ConfigError(f"override '{text}' must look like key.path=value, e.g. train.iterations=500")
+    key, _, raw = text.partition("=")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"override '{text}': the value is not valid YAML ({exc})") from exc
+    node: dict = {}
+    cursor = node
+    parts = key.strip().split(".")
+    if not all(parts):
+        raise ConfigError(f"override '{text}' has an empty key part")
+    for part in parts[:-1]:
+        cursor = cursor.setdefault(part, {})
+    cursor[parts[-1]] = value
+    return node
+
+
+def _normalise_method(layer: dict) -> dict:
+    if isinstance(layer.get("method"), str):
+        layer = {**layer, "method": {"name": layer["method"]}}
+    return layer
+
+
+def _merge(base: dict, layer: dict) -> dict:
+    """Recursive dict merge; ``layer`` wins; lists and scalars are replaced, not merged."""
+    out = copy.deepcopy(base)
+    for key, value in layer.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+_SCALAR_TYPES = {int: (int,), float: (int, float), bool: (bool,), str: (str,), list: (list,), dict: (dict,)}
+
+
+def _check_value(path: str, value: Any, expected: type) -> Any:
+    """Type-check one leaf; ints are accepted for floats; bools are not accepted as numbers."""
+    allowed = _SCALAR_TYPES.get(expected)
+    if allowed is None:
+        return value
+    if expected in (int, float) and isinstance(value, bool):
+        allowed = ()
+    if not isinstance(value, allowed):
+        raise ConfigError(f"config key '{path}' must be {expected.__name__}, found {value!r}")
+    return float(value) if expected is float else value
+
+
+def _build(cls, data: dict, path: str):
+    """Instantiate dataclass ``cls`` from ``data`` strictly (unknown keys and bad types fail)."""
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in data.items():
+        full = f"{path}{key}"
+        if key not in names:
+            raise ConfigError(f"unknown config key '{full}'{suggest(key, names)}; valid keys: {', '.join(names)}")
+        hint = hints[key]
+        if dataclasses.is_dataclass(hint):
+            if not isinstance(value, dict):
+                raise ConfigError(f"config key '{full}' must be a mapping, found {value!r}")
+            kwargs[key] = _build(hint, value, f"{full}.")
+        else:
+            origin = typing.get_origin(hint) or hint
+            kwargs[key] = _check_value(full, value, origin)
+    return cls(**kwargs)
+
+
+def _build_losses(data: dict) -> dict:
+    terms = {}
+    for name, spec in data.items():
+        if isinstance(spec, (int, float)) and not isinstance(spec, bool):
+            spec = {"weight": spec}
+        if not isinstance(spec, dict):
+            raise ConfigError(f"losses.{name} must be a mapping {{weight, start, end}} or a number, found {spec!r}")
+        terms[name] = dataclasses.asdict(_build(LossTerm, spec, f"losses.{name}."))
+    return terms
+
+
+def _build_method(data: dict, method_config_cls) -> dict:
+    name = data.get("name", "")
+    params = {k: v for k, v in data.items() if k != "name"}
+    if method_config_cls is None:
+        return {"name": name, **params}
+    built = _build(method_config_cls, params, "method.")
+    return {"name": name, **dataclasses.asdict(built)}
+
+
+def dataset_of(scene: str) -> str:
+    """The dataset config name of a scene: ``dtu`` or ``tnt`` (by built-in metadata or folder layout)."""
+    from gsbench.data.builtin import BUILTIN_SCENES  # noqa: PLC0415  (no heavy imports)
+
+    if scene in BUILTIN_SCENES:
+        return BUILTIN_SCENES[scene].format.split("-")[0]
+    folder = Path(scene)
+    if (folder / "cameras.npz").is_file() and not (folder / "sparse").is_dir():
+        return "dtu"
+    if (folder / "sparse").is_dir() and (folder / "mask").is_dir():
+        return "dtu"
+    return "tnt"
+
+
+def resolve(
+    method: str,
+    scene: str,
+    *,
+    preset: str = "cpu",
+    user_files=(),
+    overrides=(),
+    method_config_cls=None,
+    seed: int | None = None,
+) -> RunConfig:
+    """Resolve every layer into a validated `RunConfig`.
+
+    ``method_config_cls`` is the method plugin's ``Config`` dataclass (its defaults are the paper's);
+    when None the method section is taken as given (used before a method is registered).
+    """
+    root = config_root()
+    merged: dict = {"method": {"name": method}, "scene": scene, "preset": preset}
+    layers = [root / "methods" / f"{method}.yaml", root / "datasets" / f"{dataset_of(scene)}.yaml"]
+    preset_file = root / "presets" / f"{preset}.yaml"
+    if not preset_file.is_file():
+        available = sorted(p.stem for p in (root / "presets").glob("*.yaml"))
+        raise ConfigError(f"unknown preset '{preset}'{suggest(preset, available)}; available: {', '.join(available)}")
+    layers.append(preset_file)
+    for layer_path in layers:
+        if layer_path.is_file():
+            merged = _merge(merged, _normalise_method(load_yaml(layer_path)))
+    for user_file in user_files:
+        merged = _merge(merged, _normalise_method(load_yaml(Path(user_file))))
+    for text in overrides:
+        merged = _merge(merged, _normalise_method(parse_override(text)))
+    if seed is not None:
+        merged["seed"] = seed
+    if merged["method"].get("name") != method:
+        raise ConfigError(
+            f"a config layer changed the method to '{merged['method'].get('name')}'; "
+            f"choose the method with --method instead"
+        )
+    merged["method"] = _build_method(merged["method"], method_config_cls)
+    merged["losses"] = _build_losses(merged.get("losses", {}))
+    return _build(RunConfig, merged, "")

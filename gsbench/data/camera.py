@@ -1,0 +1,175 @@
+"""Camera and Scene containers shared by loaders, rasterizer, methods and evaluators.
+
+Conventions (DESIGN.md §3):
+- OpenCV camera: x right, y down, z forward. ``R`` and ``t`` map world to camera: ``x_c = R x_w + t``.
+- ``K`` is the 3x3 pinhole matrix in pixels. Pixel (i, j) (column i, row j) has its centre at
+  ``(i + 0.5, j + 0.5)`` in the coordinates K maps to, so a principal point ``cx = W/2`` is the
+  image centre. The ray through pixel (i, j) in camera space is ``((i+0.5-cx)/fx, (j+0.5-cy)/fy, 1)``.
+- A Scene is normalised for training (object inside a unit-ish sphere); ``normalisation`` holds the
+  similarity back to the dataset's ground-truth frame (DTU: mm world; TnT: the COLMAP frame).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: ``K`` (3x3), world-to-camera ``R`` (3x3), ``t`` (3), image size, name."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+    name: str = ""
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates, ``-Rᵀ t``."""
+        return -self.R.T @ self.t
+
+    @property
+    def world_to_camera(self) -> np.ndarray:
+        """4x4 matrix ``[[R, t], [0, 1]]``."""
+        m = np.eye(4)
+        m[:3, :3] = self.R
+        m[:3, 3] = self.t
+        return m
+
+    @property
+    def camera_to_world(self) -> np.ndarray:
+        """4x4 inverse of `world_to_camera` (the pose written in trajectory ``.log`` files)."""
+        m = np.eye(4)
+        m[:3, :3] = self.R.T
+        m[:3, 3] = self.center
+        return m
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project (N,3) world points; returns continuous pixel coordinates (N,2) and camera z (N,)."""
+        pc = points_world @ self.R.T + self.t
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (pc @ self.K.T)[:, :2] / z[:, None]
+        return uv, z
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by ``factor`` (e.g. 0.5 for half resolution)."""
+        w = max(1, int(round(self.width * factor)))
+        h = max(1, int(round(self.height * factor)))
+        K = self.K.copy()
+        K[0, :] *= w / self.width
+        K[1, :] *= h / self.height
+        return replace(self, K=K, width=w, height=h)
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """Similarity from the normalised training frame to the dataset's GT frame: ``x_gt = s x + c``.
+
+    ``s`` is a scalar scale, ``center`` the translation. ``radius`` is the scene radius in the
+    normalised frame (about 1); length-like hyper-parameters are relative to it.
+    """
+
+    scale: float = 1.0
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    radius: float = 1.0
+
+    @property
+    def to_dataset(self) -> np.ndarray:
+        """4x4 matrix mapping normalised coordinates to the dataset frame."""
+        m = np.eye(4)
+        m[:3, :3] *= self.scale
+        m[:3, 3] = self.center
+        return m
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map (N,3) normalised points to the dataset frame."""
+        return points * self.scale + self.center
+
+    def invert(self, points: np.ndarray) -> np.ndarray:
+        """Map (N,3) dataset-frame points to the normalised frame."""
+        return (points - self.center) / self.scale
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Where a scene's ground truth lives, in the official layouts the evaluators read unchanged.
+
+    kind ``dtu``: ``root/Points/stl/stl{scan:03d}_total.ply``, ``root/ObsMask/ObsMask{scan}_10.mat``,
+    ``root/ObsMask/Plane{scan}.mat``; ``scan`` is the scan number.
+    kind ``tnt``: ``root/{name}.ply``, ``root/{name}.json`` (crop), ``root/{name}_trans.txt``,
+    ``root/{name}_COLMAP_SfM.log``; ``tau`` is the F-score threshold in GT units (metres).
+    ``normal_maps`` (optional): folder of GT normal maps for synthetic scenes (``{image_stem}.npy``,
+    HxWx3 float32, camera-space unit normals, zero outside the object).
+    ``depth_maps`` (optional): likewise, ``{image_stem}.npy`` HxW camera z in the normalised frame.
+    """
+
+    kind: str
+    root: Path
+    name: str
+    scan: int | None = None
+    tau: float | None = None
+    normal_maps: Path | None = None
+    depth_maps: Path | None = None
+
+
+@dataclass
+class Scene:
+    """Everything a method and an evaluator need about one scene.
+
+    ``images``: list of float32 HxWx3 arrays in [0, 1]; ``masks``: list of bool HxW arrays or None;
+    ``points``/``colors``: optional SfM initialisation (N,3) in the normalised frame, colours in [0,1].
+    Cameras are in the normalised frame. ``fmt`` is ``dtu``, ``dtu-colmap`` or ``tnt``.
+    """
+
+    name: str
+    fmt: str
+    root: Path
+    cameras: list[Camera]
+    images: list[np.ndarray]
+    masks: list[np.ndarray] | None = None
+    points: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    normalisation: Normalisation = field(default_factory=Normalisation)
+    gt: GroundTruth | None = None
+    image_names: list[str] = field(default_factory=list)
+
+    @property
+    def radius(self) -> float:
+        return self.normalisation.radius
+
+    def summary(self) -> dict:
+        """A small JSON-able description: counts, image size, normalisation, GT files found."""
+        cam = self.cameras[0]
+        return {
+            "name": self.name,
+            "format": self.fmt,
+            "root": str(self.root),
+            "cameras": len(self.cameras),
+            "image_size": [cam.width, cam.height],
+            "masks": self.masks is not None,
+            "init_points": 0 if self.points is None else int(len(self.points)),
+            "scale_to_gt": self.normalisation.scale,
+            "gt": None if self.gt is None else {"kind": self.gt.kind, "root": str(self.gt.root), "name": self.gt.name},
+        }

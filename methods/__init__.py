@@ -1,0 +1,1 @@
+"""Method plugins (installed as ``gsbench.methods``): one module per method, registered lazily."""

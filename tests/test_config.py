@@ -1,0 +1,92 @@
+"""Config layering, --set overrides, strict keys with suggestions, run-id stability."""
+
+from dataclasses import dataclass
+
+import pytest
+
+from gsbench.config import parse_override, resolve, run_id
+from gsbench.errors import ConfigError
+
+
+@dataclass
+class ToyConfig:
+    knn_k: int = 5
+    lr: float = 0.01
+
+
+def test_layers_apply_in_order(tmp_path):
+    user = tmp_path / "user.yaml"
+    user.write_text("train: {iterations: 777}\nmethod: {knn_k: 7}\n")
+    cfg = resolve("toy", "synthetic/spot", preset="quick", user_files=[user], method_config_cls=ToyConfig)
+    assert cfg.data.downscale == 8.0  # preset beats dataset (2.0)
+    assert cfg.mesh.voxel_size == 0.004  # dataset layer
+    assert cfg.eval.evaluators == ["dtu_chamfer", "normal_similarity"]
+    assert cfg.train.iterations == 777  # user file beats preset
+    assert cfg.method == {"name": "toy", "knn_k": 7, "lr": 0.01}
+    cfg2 = resolve("toy", "synthetic/spot", preset="quick", user_files=[user], overrides=["method.knn_k=9"],
+                   method_config_cls=ToyConfig)
+    assert cfg2.method["knn_k"] == 9  # --set beats everything
+
+
+def test_tnt_scene_takes_tnt_dataset_layer():
+    cfg = resolve("toy", "synthetic/spot-tnt", preset="cpu", method_config_cls=ToyConfig)
+    assert cfg.eval.evaluators[0] == "tnt_f1"
+    assert cfg.data.use_masks is False
+
+
+def test_set_parses_yaml_values():
+    assert parse_override("train.iterations=500") == {"train": {"iterations": 500}}
+    assert parse_override("eval.evaluators=[a, b]") == {"eval": {"evaluators": ["a", "b"]}}
+    assert parse_override("data.use_masks=false") == {"data": {"use_masks": False}}
+    with pytest.raises(ConfigError, match="key.path=value"):
+        parse_override("train.iterations")
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("train.iteratons=5", "did you mean 'iterations'"),
+        ("trian.iterations=5", "did you mean 'train'"),
+        ("method.knn=3", "did you mean 'knn_k'"),
+        ("train.iterations=abc", "must be int"),
+        ("data.use_masks=3", "must be bool"),
+    ],
+)
+def test_unknown_keys_and_bad_types_fail_with_a_suggestion(override, message):
+    with pytest.raises(ConfigError, match=message):
+        resolve("toy", "synthetic/spot", overrides=[override], method_config_cls=ToyConfig)
+
+
+def test_unknown_preset_and_missing_file():
+    with pytest.raises(ConfigError, match="did you mean 'quick'"):
+        resolve("toy", "synthetic/spot", preset="quik")
+    with pytest.raises(ConfigError, match="nope.yaml does not exist"):
+        resolve("toy", "synthetic/spot", user_files=["nope.yaml"])
+
+
+def test_losses_are_weighted_scheduled_terms():
+    cfg = resolve("toy", "synthetic/spot", overrides=["losses.l1=0.8", "losses.depth_distortion.start=300"],
+                  method_config_cls=ToyConfig)
+    assert cfg.losses["l1"] == {"weight": 0.8, "start": 0, "end": -1}
+    assert cfg.losses["depth_distortion"] == {"weight": 0.0, "start": 300, "end": -1}
+    with pytest.raises(ConfigError, match="did you mean 'weight'"):
+        resolve("toy", "synthetic/spot", overrides=["losses.l1.wieght=1"])
+
+
+def test_run_id_is_stable_and_ignores_execution_only_fields():
+    a = resolve("toy", "synthetic/spot", method_config_cls=ToyConfig)
+    b = resolve("toy", "synthetic/spot", overrides=["threads=2", "out=elsewhere"], method_config_cls=ToyConfig)
+    c = resolve("toy", "synthetic/spot", overrides=["method.knn_k=6"], method_config_cls=ToyConfig)
+    assert a.run_id == b.run_id
+    assert a.run_id != c.run_id
+    assert a.run_id == run_id(a.to_dict()) and len(a.run_id) == 12
+    # key order of the input must not matter
+    assert run_id({"x": 1, "y": {"b": 2, "a": 1}}) == run_id({"y": {"a": 1, "b": 2}, "x": 1})
+
+
+def test_seed_argument_and_method_change_guard(tmp_path):
+    assert resolve("toy", "synthetic/spot", seed=3).seed == 3
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("method: other\n")
+    with pytest.raises(ConfigError, match="changed the method"):
+        resolve("toy", "synthetic/spot", user_files=[bad])

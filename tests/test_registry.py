@@ -1,0 +1,40 @@
+"""Lazy registries: listing imports nothing, unknown names suggest, entries import on first use."""
+
+import subprocess
+import sys
+
+import pytest
+
+from gsbench.errors import RegistryError
+from gsbench.registry import EVALUATORS, Registry
+
+
+def test_listing_imports_nothing_heavy():
+    code = (
+        "import sys; from gsbench.registry import METHODS, EVALUATORS; "
+        "from gsbench.data.builtin import BUILTIN_SCENES; "
+        "METHODS.names(); EVALUATORS.names(); "
+        "heavy = [m for m in ('torch', 'open3d', 'trimesh', 'pymeshlab', 'pycolmap', 'scipy') if m in sys.modules]; "
+        "print(','.join(heavy))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
+
+
+def test_unknown_name_suggests():
+    with pytest.raises(RegistryError, match="did you mean 'dtu_chamfer'"):
+        EVALUATORS.get("dtu_chamfr")
+
+
+def test_lazy_string_entries_and_register():
+    reg = Registry("thing", {"path": "os.path:join"}, "gsbench.nothing")
+    assert reg.names() == ["path"]
+    import os.path
+
+    assert reg.get("path") is os.path.join
+    reg.register("obj", dict)
+    assert reg.get("obj") is dict
+    assert reg.path("obj") == "builtins:dict"
+    reg.register("broken", "no_such_module_xyz:Thing")
+    with pytest.raises(RegistryError, match="cannot be imported"):
+        reg.get("broken")
