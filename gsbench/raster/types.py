@@ -41,6 +41,18 @@ Outputs (only the requested ones are computed and stored):
 - ``distortion``   (H,W)   Σ_i Σ_{j<i} w_i w_j (m_i − m_j)², m = far/(far−near)·(1 − near/z),
                            far = settings.far_plane · settings.scene_radius; with
                            ``detach_distortion_weights`` the w's get no gradient (GOF).
+Binning and culling (pinned with the reference, `gsbench.raster.reference` "Decisions"):
+- Pixel (i, j) lies in tile (i // T, j // T). A Gaussian's tile rectangle is the half-open
+  ``[clamp(floor((m − r)/T), 0, grid), clamp(floor((m + r + T − 1)/T), 0, grid))`` with m = means2d
+  (pixel-centre +0.5 convention) and r = radius; a pixel only sees Gaussians whose rectangle holds its
+  tile; an empty rectangle culls the Gaussian. ``visible = radius > 0``; culled Gaussians have
+  means2d = 0.
+- Culled: centre z <= near (every kernel); EWA determinant <= 0 after eps2d/antialias (ewa, rade,
+  raymax); surfel box denominator == 0 or exactly edge-on (μ·n == 0).
+- Densification proxies: for ``raymax`` the mean-2D gradient is GOF's proxy (conic-based ∂α/∂means2d
+  times the per-pixel dL/dα, GOF §1.4) and for ``surfel`` the 2DGS shortcut; the reference gives the
+  true partial derivative instead, so those two are tested against their own formulas.
+
 Also: ``means2d`` (N,2 pixels; its ``.grad`` after backward is dL/dmeans2d), ``radii`` (N,) int,
 ``visible`` (N,) bool, and after backward `RenderOutput.densify_grads()` gives the NDC-unit mean-2D
 gradient (N,2) (pixel gradient × (W/2, H/2)) and the abs-gradient (N,) Σ_pixels |g_x| + |g_y| (NDC).
