@@ -37,19 +37,20 @@ def cmd_list(args) -> int:
 
 
 def cmd_scene_make(args) -> int:
-    from gsbench.data.loader import load_scene, make_scene
+    from gsbench.data.loader import check_scene, make_scene
 
     path = make_scene(args.name, fmt=args.format, out=args.out, res=args.res, seed=args.seed)
     print(f"scene written to {path}")
-    print(json.dumps(load_scene(path, load_images=False).summary(), indent=2))
+    print(json.dumps(check_scene(path), indent=2, default=str))
     return 0
 
 
 def cmd_scene_check(args) -> int:
     from gsbench.data.loader import check_scene
 
-    print(json.dumps(check_scene(Path(args.dir)), indent=2, default=str))
-    return 0
+    report = check_scene(Path(args.dir))
+    print(json.dumps(report, indent=2, default=str))
+    return 0 if report["ok"] else 1
 
 
 def cmd_config(args) -> int:
@@ -104,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     scene = sub.add_parser("scene", help="make or check scene folders").add_subparsers(dest="scene_command", required=True)
     make = scene.add_parser("make", help="generate a built-in synthetic scene")
     make.add_argument("name", help="e.g. synthetic/spot (see `gsbench list`)")
-    make.add_argument("--format", choices=("dtu", "tnt"), default=None, help="layout (default: the scene's own)")
+    make.add_argument("--format", choices=("dtu", "dtu-colmap", "tnt"), default=None, help="layout (default: the scene's own)")
     make.add_argument("--out", default=None, help="folder (default: the cache, $GSBENCH_DATA)")
     make.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), default=None, help="image size")
     make.add_argument("--seed", type=int, default=0)

@@ -1,0 +1,324 @@
+"""Built-in synthetic scenes with exact ground truth, written in the official DTU or TnT layouts.
+
+A scene is planned (`plan_scene`: object, cameras, frames, normalisation; deterministic from the seed)
+and then written (`write_scene`). Frames, all similarities composed in float64:
+
+    object frame (shapes.py: z up, extent 1)  --obj_to_gt-->  GT frame (DTU: mm world; TnT: metres)
+    GT frame  --gt_to_dataset-->  dataset frame (DTU: the same; TnT: the COLMAP frame)
+    normalised training frame  --normalisation-->  dataset frame
+
+Rendering happens in the object frame (small coordinates, float32-safe even for ``spot-km``).
+
+DTU layout (``dtu``; ``dtu-colmap`` writes the 2DGS variant: ``images/`` + ``sparse/0`` instead of
+``image/``): ``image/000000.png``, ``mask/000.png``, ``cameras.npz`` (world_mat_i in mm, integer
+pixel centres; scale_mat_i with ``s = 1.1 x`` the object's bounding-sphere radius, centre = the
+object's bounding-box centre), and GT ``Points/stl/stl{scan:03d}_total.ply`` (surface samples 0.2 mm
+apart; the object is 100 mm long, which gives about 160-250 thousand points),
+``ObsMask/ObsMask{scan}_10.mat`` (``Res`` = 1 mm; surface samples 0.5 mm apart seen by >= 2 views,
+dilated by 4 mm) and
+``ObsMask/Plane{scan}.mat`` (``P`` = z > lowest GT point - 1 mm; the GT frame is z up). Scan numbers
+are 1001 + the scene's index in `BUILTIN_SCENES`.
+
+TnT layout (``tnt``): ``images/000000.png``, ``sparse/0`` (PINHOLE, points3D = 10,000 noisy surface
+samples with their albedo), ``{name}.ply`` (GT samples tau/2 apart), ``{name}.json`` (crop: the convex
+hull of the GT in xy grown by 2% of the object size, z range likewise), ``{name}_trans.txt``
+(COLMAP -> GT), ``{name}_COLMAP_SfM.log`` (camera-to-world, COLMAP frame, image-name order).
+tau = 0.5% of the object size (GT units), stored in the meta file.
+
+Both layouts also get ``gt_depth/{stem}.npy`` (camera z, normalised frame) and ``gt_normal/{stem}.npy``
+(camera-space unit normals) per view, and the ``gsbench_scene.json`` meta file.
+
+Resolution: ``res`` None (default 0.25 of the full 1600x1200 DTU / 1920x1080 TnT size), a float
+factor of the full size, or an explicit ``(W, H)``; fx = fy = focal x W, principal point at the image
+centre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gsbench.data.builtin import BUILTIN_SCENES
+from gsbench.data.camera import Camera, Normalisation
+from gsbench.data.shapes import Surface, make_surface
+from gsbench.data.similarity import decompose, similarity, transform_camera, transform_points
+from gsbench.errors import DataError
+
+GENERATOR_VERSION = 1
+DEFAULT_RES = 0.25
+SCAN_BASE = 1001
+DTU_GT_SPACING = 0.2
+DTU_OBS_RES = 1.0
+DTU_OBS_DILATION = 4.0
+TAU_FRACTION = 0.005
+INIT_POINTS = 10_000
+INIT_NOISE = 0.004
+CROP_MARGIN = 0.02
+
+
+@dataclass(frozen=True)
+class FormatDefaults:
+    """Per-layout defaults: full image size, views, fx/W, rig, distance in object radii, object size
+    and position in the GT frame, rotation of the object about GT z (degrees), GT units."""
+
+    full_size: tuple[int, int]
+    views: int
+    focal: float
+    rig: str
+    distance: float
+    size: float
+    offset: tuple[float, float, float]
+    yaw: float
+    units: str
+
+
+FORMATS = {
+    "dtu": FormatDefaults((1600, 1200), 49, 1.1, "cap", 3.5, 100.0, (30.0, -20.0, 600.0), 0.0, "mm"),
+    "tnt": FormatDefaults((1920, 1080), 48, 0.6, "ring", 4.0, 1.5, (2.0, -1.0, 0.5), 30.0, "m"),
+}
+
+
+@dataclass(frozen=True)
+class SyntheticSpec:
+    """What makes a built-in scene special; None fields take the layout's `FormatDefaults`.
+
+    ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
+    rotation ``colmap_euler`` (xyz degrees), object centre at ``colmap_center``) apply only when the
+    scene is written in its own layout ``fmt``.
+    """
+
+    shape: str = "spot"
+    albedo: str = "texture"
+    fmt: str = "dtu"
+    rig: str | None = None
+    distance: float | None = None
+    specular: float = 0.0
+    size: float | None = None
+    offset: tuple[float, float, float] | None = None
+    units: str | None = None
+    colmap_scale: float = 0.4
+    colmap_euler: tuple[float, float, float] = (20.0, -35.0, 110.0)
+    colmap_center: tuple[float, float, float] = (0.3, -1.2, 2.0)
+
+
+SPECS = {
+    "synthetic/spot": SyntheticSpec(),
+    "synthetic/spot-tnt": SyntheticSpec(fmt="tnt"),
+    "synthetic/thin-plate": SyntheticSpec(shape="plate", albedo="procedural", rig="band"),
+    "synthetic/textureless": SyntheticSpec(albedo="uniform"),
+    "synthetic/spot-far": SyntheticSpec(distance=12.0),
+    "synthetic/spot-km": SyntheticSpec(fmt="tnt", size=1500.0, offset=(512_300.0, 4_205_700.0, 850.0),
+                                       units="m (km-scale object, UTM-like coordinates)", colmap_scale=1e-3,
+                                       colmap_center=(1200.0, -800.0, 40.0)),
+}
+
+
+@dataclass
+class ScenePlan:
+    """Everything needed to write a synthetic scene (see the module docstring for the frames)."""
+
+    name: str
+    fmt: str
+    seed: int
+    spec: SyntheticSpec
+    surface: Surface
+    cameras: list[Camera]
+    obj_to_gt: np.ndarray
+    gt_to_dataset: np.ndarray
+    normalisation: Normalisation
+    units: str
+    scan: int | None = None
+    tau: float | None = None
+
+    @property
+    def obj_to_dataset(self) -> np.ndarray:
+        return self.gt_to_dataset @ self.obj_to_gt
+
+    @property
+    def dataset_cameras(self) -> list[Camera]:
+        return [transform_camera(c, self.obj_to_dataset) for c in self.cameras]
+
+    @property
+    def normalised_cameras(self) -> list[Camera]:
+        """The cameras a loader must recover, in the normalised training frame."""
+        norm = self.normalisation
+        to_norm = similarity(1.0 / norm.scale, None, -norm.center / norm.scale) @ self.obj_to_dataset
+        return [transform_camera(c, to_norm) for c in self.cameras]
+
+    @property
+    def depth_scale(self) -> float:
+        """Object-frame lengths -> normalised-frame lengths."""
+        return decompose(self.obj_to_dataset)[0] / self.normalisation.scale
+
+    @property
+    def short_name(self) -> str:
+        return self.name.split("/", 1)[-1]
+
+
+def _image_size(full: tuple[int, int], res) -> tuple[int, int]:
+    if res is None:
+        res = DEFAULT_RES
+    if isinstance(res, (int, float)):
+        if res <= 0:
+            raise DataError(f"resolution factor must be positive, got {res}; fix: e.g. --res 400 300")
+        return max(8, int(round(full[0] * res))), max(8, int(round(full[1] * res)))
+    w, h = (int(v) for v in res)
+    if w < 8 or h < 8:
+        raise DataError(f"image size {w}x{h} is too small; fix: at least 8x8")
+    return w, h
+
+
+def canonical_name(name: str) -> str:
+    """``spot`` or ``synthetic/spot`` -> ``synthetic/spot``; unknown names raise with the known list."""
+    full = name if name.startswith("synthetic/") else f"synthetic/{name}"
+    if full not in SPECS:
+        from gsbench.errors import RegistryError  # noqa: PLC0415
+
+        raise RegistryError(f"unknown built-in scene {name!r}; expected one of {sorted(SPECS)}")
+    return full
+
+
+def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0) -> ScenePlan:
+    """Plan a built-in scene: object, cameras, frames and normalisation (no rendering)."""
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415
+
+    from gsbench.data.rigs import make_rig  # noqa: PLC0415
+    from gsbench.data.tnt import nerfpp_normalisation  # noqa: PLC0415
+
+    name = canonical_name(name)
+    spec = SPECS[name]
+    fmt = fmt or spec.fmt
+    if fmt not in ("dtu", "dtu-colmap", "tnt"):
+        raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
+    base = fmt.split("-")[0]
+    d = FORMATS[base]
+    own = base == spec.fmt
+    size = spec.size if own and spec.size else d.size
+    offset = spec.offset if own and spec.offset else d.offset
+    width, height = _image_size(d.full_size, res)
+    f = d.focal * width
+    K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    surface = make_surface(spec.shape, spec.albedo, seed)
+    r = surface.radius
+    poses = make_rig(spec.rig or d.rig, d.views, (spec.distance or d.distance) * r, 0.03 * r, np.random.default_rng(seed))
+    cameras = [Camera(K=K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png") for k, (R, t) in enumerate(poses)]
+    obj_to_gt = similarity(size, Rotation.from_euler("z", d.yaw, degrees=True).as_matrix(), offset)
+    plan = ScenePlan(name=name, fmt=fmt, seed=seed, spec=spec, surface=surface, cameras=cameras, obj_to_gt=obj_to_gt,
+                     gt_to_dataset=np.eye(4), normalisation=Normalisation(), units=(spec.units if own else None) or d.units)
+    if base == "dtu":
+        plan.normalisation = Normalisation(scale=1.1 * r * size, center=np.asarray(offset, dtype=np.float64), radius=1.0)
+        plan.scan = SCAN_BASE + list(BUILTIN_SCENES).index(name)
+    else:
+        cs = spec.colmap_scale if own else SyntheticSpec.colmap_scale
+        rot = Rotation.from_euler("xyz", spec.colmap_euler, degrees=True).as_matrix()
+        center = np.asarray(spec.colmap_center if own else SyntheticSpec.colmap_center)
+        plan.gt_to_dataset = similarity(cs, rot, center - cs * rot @ np.asarray(offset))
+        plan.normalisation = nerfpp_normalisation(np.array([c.center for c in plan.dataset_cameras]))
+        plan.tau = TAU_FRACTION * size
+    return plan
+
+
+def plan_meta(plan: ScenePlan) -> dict:
+    """The ``gsbench_scene.json`` content of a plan (compared to skip re-generation)."""
+    cam = plan.cameras[0]
+    meta = {"name": plan.short_name, "builtin": plan.name, "format": plan.fmt, "seed": plan.seed,
+            "resolution": [cam.width, cam.height], "units": plan.units, "generator_version": GENERATOR_VERSION,
+            "description": BUILTIN_SCENES[plan.name].description}
+    if plan.scan is not None:
+        meta["scan"] = plan.scan
+    if plan.tau is not None:
+        meta["tau"] = plan.tau
+    return meta
+
+
+def write_scene(plan: ScenePlan, out: Path) -> None:
+    """Render every view and write images, masks, GT maps, cameras and GT files into ``out``."""
+    from tqdm import tqdm  # noqa: PLC0415
+
+    from gsbench.data.images import write_mask, write_rgb  # noqa: PLC0415
+    from gsbench.data.meta import write_meta  # noqa: PLC0415
+    from gsbench.data.render import Renderer  # noqa: PLC0415
+
+    out = Path(out)
+    image_dir = out / ("image" if plan.fmt == "dtu" else "images")
+    dirs = [image_dir, out / "gt_depth", out / "gt_normal"] + ([out / "mask"] if plan.fmt != "tnt" else [])
+    for folder in dirs:
+        folder.mkdir(parents=True, exist_ok=True)
+    renderer = Renderer(plan.surface, specular=plan.spec.specular)
+    depths = []
+    for k, cam in enumerate(tqdm(plan.cameras, desc=f"rendering {plan.name}", unit="view", disable=None)):
+        view = renderer.render(cam)
+        stem = Path(cam.name).stem
+        write_rgb(image_dir / cam.name, view.rgb)
+        if plan.fmt != "tnt":
+            write_mask(out / "mask" / f"{k:03d}.png", view.mask)
+        np.save(out / "gt_depth" / f"{stem}.npy", (view.depth * plan.depth_scale).astype(np.float32))
+        np.save(out / "gt_normal" / f"{stem}.npy", view.normal)
+        depths.append(view.depth)
+    if plan.fmt == "tnt":
+        _write_tnt(plan, out)
+    else:
+        _write_dtu(plan, out, depths)
+    write_meta(out, plan_meta(plan))
+
+
+def _init_points(plan: ScenePlan, to_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SfM-like init points (noisy surface samples with albedo colours) mapped into ``to_frame``."""
+    from gsbench.data.groundtruth import sample_init_points  # noqa: PLC0415
+
+    points, colors = sample_init_points(plan.surface, INIT_POINTS, INIT_NOISE, plan.seed)
+    return transform_points(to_frame, points), colors
+
+
+def _write_dtu(plan: ScenePlan, out: Path, depths: list[np.ndarray]) -> None:
+    from scipy.io import savemat  # noqa: PLC0415
+
+    from gsbench.data.colmap import write_colmap_model  # noqa: PLC0415
+    from gsbench.data.dtu import write_cameras_npz  # noqa: PLC0415
+    from gsbench.data.groundtruth import observation_mask, sample_surface, visible_counts, write_point_cloud  # noqa: PLC0415
+
+    size = decompose(plan.obj_to_gt)[0]
+    points_obj = sample_surface(plan.surface, DTU_GT_SPACING / size, plan.seed)
+    points_mm = transform_points(plan.obj_to_gt, points_obj)
+    write_point_cloud(out / "Points" / "stl" / f"stl{plan.scan:03d}_total.ply", points_mm)
+    coarse = sample_surface(plan.surface, DTU_OBS_RES / 2 / size, plan.seed)  # ObsMask needs only ~voxel density
+    seen = visible_counts(coarse, plan.cameras, depths, tol=TAU_FRACTION) >= 2
+    obs, bb = observation_mask(transform_points(plan.obj_to_gt, coarse), seen, DTU_OBS_RES, DTU_OBS_DILATION)
+    (out / "ObsMask").mkdir()
+    savemat(out / "ObsMask" / f"ObsMask{plan.scan}_10.mat", {"ObsMask": obs, "BB": bb, "Res": np.array([[DTU_OBS_RES]])},
+            do_compression=True)
+    plane = np.array([[0.0], [0.0], [1.0], [-(points_mm[:, 2].min() - 1.0)]])
+    savemat(out / "ObsMask" / f"Plane{plan.scan}.mat", {"P": plane})
+    norm = plan.normalisation
+    scale_mat = similarity(norm.scale, None, norm.center)
+    write_cameras_npz(out / "cameras.npz", plan.dataset_cameras, scale_mat)
+    if plan.fmt == "dtu-colmap":
+        to_norm = np.linalg.inv(scale_mat) @ plan.obj_to_dataset
+        points, colors = _init_points(plan, to_norm)
+        write_colmap_model(out / "sparse" / "0", plan.normalised_cameras, points, colors)
+
+
+def _write_tnt(plan: ScenePlan, out: Path) -> None:
+    from scipy.spatial import ConvexHull  # noqa: PLC0415
+
+    from gsbench.data.colmap import write_colmap_model  # noqa: PLC0415
+    from gsbench.data.groundtruth import sample_surface, write_point_cloud  # noqa: PLC0415
+    from gsbench.data.tnt import write_crop_json, write_log  # noqa: PLC0415
+
+    name = plan.short_name
+    size = decompose(plan.obj_to_gt)[0]
+    points_gt = transform_points(plan.obj_to_gt, sample_surface(plan.surface, plan.tau / 2 / size, plan.seed))
+    write_point_cloud(out / f"{name}.ply", points_gt)
+    xy = points_gt[:, :2]
+    hull = xy[ConvexHull(xy).vertices]
+    centre = hull.mean(axis=0)
+    grown = centre + (hull - centre) * (1.0 + CROP_MARGIN * size / np.linalg.norm(hull - centre, axis=1, keepdims=True))
+    margin = CROP_MARGIN * size
+    write_crop_json(out / f"{name}.json", grown, points_gt[:, 2].min() - margin, points_gt[:, 2].max() + margin)
+    np.savetxt(out / f"{name}_trans.txt", np.linalg.inv(plan.gt_to_dataset))
+    cameras = plan.dataset_cameras
+    write_log(out / f"{name}_COLMAP_SfM.log", [c.camera_to_world for c in cameras])
+    points, colors = _init_points(plan, plan.obj_to_dataset)
+    write_colmap_model(out / "sparse" / "0", cameras, points, colors)

@@ -1,0 +1,131 @@
+"""Tanks-and-Temples scenes: COLMAP ``sparse/0`` + ``images/`` with the official GT files beside them.
+
+Layout (one folder per scene; GT files live in the scene folder itself, prefixed by the scene name)::
+
+    {scene}/images/*                      undistorted views; sorted by name = trajectory order
+    {scene}/sparse/0/                     COLMAP model (PINHOLE / SIMPLE_PINHOLE / zero distortion)
+    {scene}/{scene}.ply                   GT points (GT frame, metres)
+    {scene}/{scene}.json                  crop volume (open3d SelectionPolygonVolume, GT frame)
+    {scene}/{scene}_trans.txt             4x4 similarity COLMAP frame -> GT frame
+    {scene}/{scene}_COLMAP_SfM.log        reference trajectory (camera-to-world, COLMAP frame)
+
+``{scene}`` is the meta file's ``name``, else the prefix of the ``*_COLMAP_SfM.log`` found, else the
+folder name. tau is the meta file's ``tau``, else the official value for the scene name (config.py of
+the TnT toolbox), else None.
+
+Normalisation (3DGS ``getNerfppNorm``): centre = mean of the camera centres, extent = 1.1 x the largest
+distance of a centre to it. The training frame is ``x = (x_colmap - centre) / extent`` so every
+camera lies inside the unit sphere (object usually well inside): ``Normalisation(scale=extent,
+center=centre, radius=1.0)``, whose dataset frame is the COLMAP frame.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
+from gsbench.data.meta import optional_dir, read_meta
+from gsbench.data.similarity import similarity, transform_camera
+from gsbench.errors import DataError
+
+TNT_TAU = {"Barn": 0.01, "Caterpillar": 0.005, "Church": 0.025, "Courthouse": 0.025, "Ignatius": 0.003,
+           "Meetingroom": 0.01, "Truck": 0.005}
+GT_SUFFIXES = (".ply", ".json", "_trans.txt", "_COLMAP_SfM.log")
+
+
+def nerfpp_normalisation(centers: np.ndarray) -> Normalisation:
+    """3DGS ``getNerfppNorm``: centre = mean camera centre, scale = 1.1 x max distance to it."""
+    centers = np.asarray(centers, dtype=np.float64)
+    center = centers.mean(axis=0)
+    extent = 1.1 * float(np.max(np.linalg.norm(centers - center, axis=1)))
+    if not np.isfinite(extent) or extent <= 0:
+        raise DataError(f"camera centres span no volume (extent {extent}); fix: a scene needs cameras at distinct positions")
+    return Normalisation(scale=extent, center=center, radius=1.0)
+
+
+def normalise_cameras(cameras: list[Camera], norm: Normalisation) -> list[Camera]:
+    """Cameras in the dataset frame -> the training frame ``(x - center) / scale``."""
+    to_norm = similarity(1.0 / norm.scale, None, -norm.center / norm.scale)
+    return [transform_camera(c, to_norm) for c in cameras]
+
+
+def write_log(path: Path, camera_to_world: list[np.ndarray]) -> None:
+    """TnT trajectory ``.log``: per frame a line ``i i 0`` then the 4x4 camera-to-world matrix."""
+    lines = []
+    for i, pose in enumerate(camera_to_world):
+        lines.append(f"{i} {i} 0")
+        lines.extend(" ".join(f"{v:.12g}" for v in row) for row in np.asarray(pose))
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_log(path: Path) -> np.ndarray:
+    """(N,4,4) camera-to-world poses of a TnT ``.log`` file (5 lines per frame)."""
+    try:
+        lines = [ln.split() for ln in Path(path).read_text().splitlines() if ln.strip()]
+        if len(lines) % 5:
+            raise ValueError(f"{len(lines)} non-empty lines is not a multiple of 5")
+        poses = np.array([[[float(v) for v in row] for row in lines[k + 1:k + 5]] for k in range(0, len(lines), 5)])
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise ValueError("each frame needs a 4x4 matrix")
+    except (OSError, ValueError) as exc:
+        raise DataError(f"{path}: unreadable trajectory ({exc}); fix: 5 lines per frame ('i i 0' and a 4x4 matrix)") from exc
+    return poses
+
+
+def write_crop_json(path: Path, polygon_xy: np.ndarray, z_min: float, z_max: float) -> None:
+    """open3d ``SelectionPolygonVolume`` (orthogonal axis Z) as read by ``read_selection_polygon_volume``."""
+    volume = {
+        "class_name": "SelectionPolygonVolume",
+        "orthogonal_axis": "Z",
+        "axis_min": float(z_min),
+        "axis_max": float(z_max),
+        "bounding_polygon": [[float(x), float(y), 0.0] for x, y in polygon_xy],
+        "version_major": 1,
+        "version_minor": 0,
+    }
+    Path(path).write_text(json.dumps(volume, indent=1) + "\n")
+
+
+def scene_gt_name(root: Path, meta: dict) -> str:
+    """The GT file prefix (see the module docstring)."""
+    if meta.get("name"):
+        return str(meta["name"])
+    logs = sorted(root.glob("*_COLMAP_SfM.log"))
+    return logs[0].name[: -len("_COLMAP_SfM.log")] if logs else root.name
+
+
+def gt_files(root: Path, name: str) -> dict[str, Path]:
+    """The four official GT paths of a scene (they may not exist)."""
+    return {suffix: root / f"{name}{suffix}" for suffix in GT_SUFFIXES}
+
+
+def load_tnt(root: Path, *, downscale: float = 1.0, load_images: bool = True) -> Scene:
+    """Load a TnT-layout scene (see the module docstring); cameras and SfM points are normalised."""
+    from gsbench.data.colmap import colmap_image_paths, read_colmap_model  # noqa: PLC0415
+    from gsbench.data.images import read_views  # noqa: PLC0415
+
+    root = Path(root)
+    model = read_colmap_model(root / "sparse" / "0")
+    paths = colmap_image_paths(root, model.cameras)
+    images, _ = read_views(paths, None, [(c.width, c.height) for c in model.cameras], downscale, load_images)
+    norm = nerfpp_normalisation(np.array([c.center for c in model.cameras]))
+    cameras = normalise_cameras(model.cameras, norm)
+    if downscale != 1.0:
+        cameras = [c.scaled(1.0 / downscale) for c in cameras]
+    meta = read_meta(root)
+    name = scene_gt_name(root, meta)
+    files = gt_files(root, name)
+    gt = None
+    if all(p.is_file() for p in files.values()):
+        gt = GroundTruth(kind="tnt", root=root, name=name, tau=meta.get("tau", TNT_TAU.get(name)),
+                         normal_maps=optional_dir(root / "gt_normal"), depth_maps=optional_dir(root / "gt_depth"))
+    has_points = len(model.points) > 0
+    return Scene(
+        name=meta.get("name", root.name), fmt="tnt", root=root, cameras=cameras, images=images, masks=None,
+        points=norm.invert(model.points) if has_points else None, colors=model.colors if has_points else None,
+        normalisation=norm, gt=gt, image_names=[p.name for p in paths],
+    )
+
