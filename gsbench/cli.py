@@ -76,12 +76,14 @@ def cmd_config(args) -> int:
 
 def cmd_eval(args) -> int:
     from gsbench.data.loader import load_scene
-    from gsbench.evaluators.run import evaluate_mesh_file, format_results
+    from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file, format_table
     from gsbench.records import write_json_atomic
 
     scene = load_scene(args.scene)
-    results = evaluate_mesh_file(Path(args.mesh), scene, args.evaluator or None, frame=args.frame)
-    print(format_results(results))
+    names = args.evaluator or default_evaluators(scene)
+    options = {name: {"frame": args.frame} for name in names}
+    results = evaluate_mesh_file(Path(args.mesh), scene, names, options)
+    print(format_table(results))
     if args.out:
         write_json_atomic(Path(args.out), results)
         print(f"results written to {args.out}")
@@ -127,7 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--mesh", required=True)
     evaluate.add_argument("--scene", required=True)
     evaluate.add_argument("--evaluator", action="append", help="evaluator name (repeatable; default by format)")
-    evaluate.add_argument("--frame", choices=("normalised", "gt"), default="normalised", help="frame of the mesh")
+    evaluate.add_argument("--frame", choices=("normalised", "dataset"), default="normalised",
+                          help="frame of the mesh: normalised (what gsbench methods write) or dataset (DTU mm world, TnT COLMAP)")
     evaluate.add_argument("--out", default=None, help="write the results JSON here")
     evaluate.set_defaults(func=cmd_eval)
 

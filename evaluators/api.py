@@ -1,0 +1,60 @@
+"""Entry points for the CLI (``gsbench eval``): look up evaluators, score a mesh file, print a table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from gsbench.data.camera import Scene
+from gsbench.errors import RegistryError
+from gsbench.registry import EVALUATORS
+from gsbench.evaluators.base import Evaluator
+
+# Mesh evaluators that apply to a scene by its GroundTruth kind.
+DEFAULT_FOR_KIND: dict[str, tuple[str, ...]] = {
+    "dtu": ("dtu_chamfer", "normal_similarity"),
+    "tnt": ("tnt_f1", "normal_similarity"),
+}
+
+
+def get_evaluator(name: str) -> Evaluator:
+    """An instance of the registered evaluator ``name``; RegistryError with a suggestion otherwise."""
+    return EVALUATORS.get(name)()
+
+
+def default_evaluators(scene: Scene) -> tuple[str, ...]:
+    """The mesh evaluators for the scene's GT kind (``normal_similarity`` for other kinds)."""
+    return DEFAULT_FOR_KIND.get(scene.gt.kind if scene.gt else "", ("normal_similarity",))
+
+
+def evaluate_mesh_file(mesh_path, scene: Scene, names=None, options: dict | None = None) -> dict:
+    """Score one mesh with each evaluator in ``names`` (default: `default_evaluators`).
+
+    ``options`` maps an evaluator name to its keyword options. Returns
+    ``{"mesh": path, "scene": name, "results": {evaluator: {"metrics", "protocol", "diagnostics"}}}``.
+    Every evaluator is validated first, so a missing GT file fails before any long computation.
+    """
+    names = tuple(names) if names else default_evaluators(scene)
+    evaluators = {n: get_evaluator(n) for n in names}
+    for ev in evaluators.values():
+        if "mesh" not in ev.requires:
+            raise RegistryError(f"evaluator '{ev.name}' needs {ev.requires}, not a mesh file")
+        ev.validate(scene)
+    results = {n: ev.evaluate(mesh_path, scene, **(options or {}).get(n, {})) for n, ev in evaluators.items()}
+    return {"mesh": str(Path(mesh_path)), "scene": scene.name, "results": results}
+
+
+def format_table(report: dict) -> str:
+    """A small fixed-width text table of an `evaluate_mesh_file` report, warnings listed below it."""
+    rows = [("evaluator", "metric", "value", "unit", "better")]
+    warnings = []
+    for name, res in report["results"].items():
+        info = get_evaluator(name).metrics
+        for metric, value in res["metrics"].items():
+            mi = info[metric]
+            rows.append((f"{name}@{res['protocol']['version']}", metric, f"{value:.4f}", mi.unit,
+                         "higher" if mi.higher_is_better else "lower"))
+        warnings += [f"warning ({name}): {w}" for w in res["diagnostics"].get("warnings", [])]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(f"{c:<{w}}" for c, w in zip(r, widths)).rstrip() for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines + warnings)

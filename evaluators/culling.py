@@ -1,0 +1,100 @@
+"""Mask culling before DTU evaluation, on CPU (2DGS ``scripts/eval_dtu/evaluate_single_scene.py``).
+
+Reference steps (evaluation.md §1.3) and how gsbench maps them:
+
+1. Cameras: the reference decomposes ``cameras.npz`` into normalised-frame K and pose; gsbench uses
+   the scene's cameras, which are in the same normalised frame.
+2. Masks are dilated with ``skimage.morphology.disk(24)``. The reference works on 1600-px-wide
+   images; gsbench scales the radius with the mask width: ``round(dilation * width / reference_width)``
+   (defaults 24 and 1600, both protocol parameters). The dilation is computed exactly as
+   "Euclidean distance to the nearest mask pixel <= radius" (``distance_transform_edt`` inside the mask's bounding
+   box grown by the radius), which equals a binary dilation by ``disk(radius)`` (the set of integer
+   offsets with norm <= radius) and is O(pixels).
+3. Image size: the reference hard-codes W, H = 1600, 1200; gsbench uses each camera's own
+   ``width``/``height`` (a deliberate deviation: identical for full-resolution DTU, correct otherwise).
+4. Projection: the reference computes ``uv = (K X_cam)_xy / (z + 1e-6)`` with **no z > 0 test**
+   (reproduced), in the IDR pixel convention where pixel centres are integers, normalises by
+   ``W-1``/``H-1`` to [-1, 1], calls a point *valid* strictly inside (-1, 1) and samples the mask with
+   ``grid_sample(nearest, align_corners=True)``. gsbench cameras put pixel centres at ``i + 0.5``, so
+   ``u_ref = u - 0.5``: valid iff ``0.5 < u < W - 0.5`` (likewise v), and the sampled pixel is
+   ``rint(u - 0.5)`` (round half to even, like ``nearbyint`` in grid_sample).
+5. A vertex is kept if in **every** view it is outside the frame or on the dilated mask; a face is
+   kept if its three vertices are kept. Kept vertices stay even when no kept face uses them (the
+   reference exports ``update_vertices(mask)``, which keeps them and the evaluator reads every vertex).
+6. The caller maps the result to the dataset frame with ``scene.normalisation`` (reference:
+   ``v * scale_mat[0,0] + scale_mat[:3,3]``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from tqdm.auto import tqdm
+
+from gsbench.data.camera import Camera, Scene
+from gsbench.errors import EvaluationError
+
+
+def dilate_mask(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary dilation of ``mask`` by ``skimage.morphology.disk(radius)``, via the distance transform."""
+    mask = np.asarray(mask, dtype=bool)
+    if radius <= 0 or not mask.any():
+        return mask.copy()
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    r0, r1 = max(0, rows[0] - radius), min(mask.shape[0], rows[-1] + radius + 1)
+    c0, c1 = max(0, cols[0] - radius), min(mask.shape[1], cols[-1] + radius + 1)
+    out = np.zeros_like(mask)  # nothing farther than radius from the mask's bounding box is reached
+    out[r0:r1, c0:c1] = distance_transform_edt(~mask[r0:r1, c0:c1]) <= radius
+    return out
+
+
+def dilation_radius(width: int, dilation: float, reference_width: int) -> int:
+    """The disk radius for an image ``width`` px wide: ``round(dilation * width / reference_width)``."""
+    return int(round(dilation * width / reference_width))
+
+
+def keep_in_view(vertices: np.ndarray, camera: Camera, dilated: np.ndarray) -> np.ndarray:
+    """Per-vertex keep flag for one view: outside the frame, or on the dilated mask (steps 4-5)."""
+    P = camera.K @ np.c_[camera.R, camera.t]  # 3x4; explicit columns: (N,3)@(3,3) BLAS calls are slow here
+    x, y, z = (vertices[:, 0] * P[i, 0] + vertices[:, 1] * P[i, 1] + vertices[:, 2] * P[i, 2] + P[i, 3] for i in range(3))
+    z = z + 1e-6  # reference: xy / (z + 1e-6), no z > 0 test
+    u, v = x / z, y / z
+    w, h = camera.width, camera.height
+    valid = (u > 0.5) & (u < w - 0.5) & (v > 0.5) & (v < h - 0.5)
+    keep = ~valid
+    col = np.rint(u[valid] - 0.5).astype(np.int64)
+    row = np.rint(v[valid] - 0.5).astype(np.int64)
+    keep[valid] = dilated[row, col]
+    return keep
+
+
+def cull_vertices(vertices: np.ndarray, scene: Scene, dilation: float = 24, reference_width: int = 1600,
+                  ) -> np.ndarray:
+    """Keep flag per vertex (normalised frame) over all of the scene's views (steps 1-5)."""
+    if scene.masks is None:
+        raise EvaluationError(
+            f"culling needs object masks but scene '{scene.name}' has none "
+            f"(fix: provide mask/*.png in the scene folder, or evaluate with cull=False)"
+        )
+    if len(scene.masks) != len(scene.cameras):
+        raise EvaluationError(
+            f"scene '{scene.name}' has {len(scene.masks)} masks for {len(scene.cameras)} cameras; expected one per camera"
+        )
+    keep = np.ones(len(vertices), dtype=bool)
+    views = tqdm(zip(scene.cameras, scene.masks), total=len(scene.cameras), desc="cull", disable=None, leave=False)
+    for cam, mask in views:
+        if mask.shape[:2] != (cam.height, cam.width):
+            raise EvaluationError(
+                f"mask of camera '{cam.name}' is {mask.shape[1]}x{mask.shape[0]}, camera is {cam.width}x{cam.height}"
+            )
+        dilated = dilate_mask(mask, dilation_radius(cam.width, dilation, reference_width))
+        alive = np.flatnonzero(keep)  # vertices culled by an earlier view need no more tests
+        keep[alive] = keep_in_view(vertices[alive], cam, dilated)
+    return keep
+
+
+def kept_faces(faces: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Faces whose three vertices are all kept, re-indexed to the kept vertices (step 5)."""
+    new_index = np.cumsum(keep) - 1
+    f = faces[keep[faces].all(axis=1)]
+    return new_index[f]

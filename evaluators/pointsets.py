@@ -1,0 +1,218 @@
+"""Point sets from meshes and nearest-neighbour queries, vectorised and chunked for memory.
+
+All KD-tree work uses ``scipy.spatial.cKDTree``: nearest-neighbour queries run in chunks with
+``workers=-1`` (temporaries bounded by the chunk size); radius pairs are found slab by slab with the
+dual-tree ``query_pairs`` and kept as compact integer arrays (memory O(points + pairs), a few bytes
+per pair, never a per-point list of neighbours as in the reference's ``radius_neighbors``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm.auto import tqdm
+
+from gsbench.errors import EvaluationError
+
+QUERY_CHUNK = 500_000  # query points per KD-tree call
+PAIR_BUDGET = 4_000_000  # (query x k) entries per KNN call
+
+
+def _chunks(n: int, size: int, desc: str | None = None):
+    starts = range(0, n, size)
+    if desc is not None and n > size:
+        starts = tqdm(starts, desc=desc, disable=None, leave=False)
+    for start in starts:
+        yield start, min(n, start + size)
+
+
+def barycentric_grid_samples(vertices: np.ndarray, faces: np.ndarray, density: float = 0.2,
+                             max_points: int | None = None) -> np.ndarray:
+    """Per-triangle barycentric grid samples (DTUeval-python eval.py step 1, mesh -> points).
+
+    For triangle (A, B, C): v1 = B-A, v2 = C-A, l1 = |v1|, l2 = |v2|, area2 = |v1 x v2|;
+    ``thr = density * sqrt(l1 l2 / area2)``, ``n1 = floor(l1/thr)``, ``n2 = floor(l2/thr)``;
+    samples ``A + k1 v1 + k2 v2`` for ``k1 = (i+0.5)/n1`` (i = 0..n1), ``k2 = (j+0.5)/n2`` (j = 0..n2)
+    with ``k1 + k2 < 1``. A divisor of 0 becomes 1e-7 (no samples); zero-area triangles are dropped.
+    Vectorised by grouping triangles with the same (n1, n2): the grid of one group is built once;
+    the output is in triangle order (the order of the reference's per-triangle loop).
+    The vertices are not included (the caller concatenates them, as the reference does).
+    Raises EvaluationError before allocating when the sample count bound ``sum (n1+1)(n2+1)/2``
+    exceeds ``max_points`` (a mesh in the wrong units would otherwise exhaust memory).
+    """
+    tri = vertices[faces]
+    a = tri[:, 0]
+    v1 = tri[:, 1] - a
+    v2 = tri[:, 2] - a
+    l1 = np.linalg.norm(v1, axis=1)
+    l2 = np.linalg.norm(v2, axis=1)
+    area2 = np.linalg.norm(np.cross(v1, v2), axis=1)
+    nz = area2 != 0
+    a, v1, v2, l1, l2, area2 = a[nz], v1[nz], v2[nz], l1[nz], l2[nz], area2[nz]
+    thr = density * np.sqrt(l1 * l2 / area2)
+    n1 = np.floor(l1 / thr).astype(np.int64)
+    n2 = np.floor(l2 / thr).astype(np.int64)
+    has = (n1 > 0) & (n2 > 0)  # a zero count divides by 1e-7: every k >= 5e6, no sample passes
+    a, v1, v2, n1, n2 = a[has], v1[has], v2[has], n1[has], n2[has]
+    if len(a) == 0:
+        return np.zeros((0, 3))
+    bound = int(((n1 + 1) * (n2 + 1)).sum() // 2)
+    if max_points is not None and bound > max_points:
+        raise EvaluationError(
+            f"the mesh would give ~{bound:,} samples at density {density} (limit {max_points:,}): its surface "
+            f"area is {area2.sum() / 2:.4g} squared units, implausible for the GT; wrong units or frame?"
+        )
+    key = n1 * (int(n2.max()) + 1) + n2
+    order = np.argsort(key, kind="stable")
+    uniq, first = np.unique(key[order], return_index=True)
+    bounds = np.append(first, len(order))
+    grids, count = [], np.zeros(len(a), np.int64)
+    for g in range(len(uniq)):
+        idx = order[bounds[g]:bounds[g + 1]]
+        g1, g2 = int(n1[idx[0]]), int(n2[idx[0]])
+        k1, k2 = np.broadcast_arrays((np.arange(g1 + 1)[:, None] + 0.5) / g1, (np.arange(g2 + 1)[None, :] + 0.5) / g2)
+        inside = (k1 + k2) < 1
+        grids.append((idx, k1[inside], k2[inside]))
+        count[idx] = inside.sum()
+    start = np.cumsum(count) - count  # samples are written in triangle order, as a per-triangle loop would
+    out = np.empty((int(count.sum()), 3))
+    for idx, k1, k2 in grids:
+        pts = a[idx, None, :] + k1[None, :, None] * v1[idx, None, :] + k2[None, :, None] * v2[idx, None, :]
+        out[(start[idx, None] + np.arange(len(k1))).ravel()] = pts.reshape(-1, 3)
+    return out
+
+
+def radius_pairs(points: np.ndarray, radius: float, chunk: int = 500_000) -> tuple[np.ndarray, np.ndarray]:
+    """All pairs (i < j) with ``|p_i - p_j| <= radius``, as two int arrays, computed slab by slab.
+
+    Points are sorted along their widest axis and cut into slabs of ``chunk`` points; each slab plus
+    a ``radius``-wide halo gets its own KD-tree and ``query_pairs`` (dual-tree, much faster than
+    per-point queries), and keeps the pairs whose lower sorted position lies in the slab, so every
+    pair is found once and per-slab temporaries stay bounded. The result is O(pairs) int32/int64.
+    """
+    n = len(points)
+    itype = np.int32 if n < 2**31 else np.int64
+    axis = int(np.argmax(np.ptp(points, axis=0))) if n else 0
+    order = np.argsort(points[:, axis], kind="stable")
+    xs = points[order, axis]
+    lo, hi = [], []
+    for a, b in _chunks(n, chunk, desc="radius pairs"):
+        c = int(np.searchsorted(xs, xs[b - 1] + radius, side="right"))
+        local = order[a:c]
+        pairs = cKDTree(points[local]).query_pairs(radius, output_type="ndarray")
+        pairs = pairs[pairs[:, 0] < b - a]  # query_pairs returns i < j: the lower position is i
+        gi, gj = local[pairs[:, 0]], local[pairs[:, 1]]
+        lo.append(np.minimum(gi, gj).astype(itype))
+        hi.append(np.maximum(gi, gj).astype(itype))
+    if not lo:
+        return np.zeros(0, itype), np.zeros(0, itype)
+    return np.concatenate(lo), np.concatenate(hi)
+
+
+def greedy_downsample(points: np.ndarray, radius: float, seed: int, chunk: int = 500_000) -> np.ndarray:
+    """Greedy radius downsampling in a seeded random order (DTUeval-python eval.py steps 2-3).
+
+    Reference semantics: shuffle; walk the points in order; a point still kept removes every other
+    point within ``radius`` (inclusive) and stays. That is the lexicographically-first maximal
+    independent set of the radius graph in the shuffled order: a point is kept iff none of its
+    *earlier* neighbours is kept. Computed exactly from the radius pairs (`radius_pairs`) by rounds
+    of "keep every undecided point whose earlier neighbours are all removed, then remove every
+    undecided point with a kept earlier neighbour"; the earliest undecided point is always decided,
+    and for a random order a few dozen rounds suffice. The reference's shuffle is unseeded; here the
+    order is ``np.random.default_rng(seed).permutation``. Returns the kept points in shuffled order.
+    """
+    n = len(points)
+    pts = points[np.random.default_rng(seed).permutation(n)]
+    s, d = radius_pairs(pts, radius, chunk)  # s < d: s is the earlier point of each pair
+    status = np.zeros(n, np.int8)  # 0 undecided, 1 kept, 2 removed
+    while True:
+        live = status[d] == 0
+        s, d = s[live], d[live]
+        undecided = status == 0
+        if not undecided.any():
+            break
+        blocked = np.zeros(n, bool)
+        blocked[d[status[s] != 2]] = True
+        status[undecided & ~blocked] = 1
+        hit = np.zeros(n, bool)
+        hit[d[status[s] == 1]] = True
+        status[(status == 0) & hit] = 2
+    return pts[status == 1]
+
+
+def nn_distances(queries: np.ndarray, tree: cKDTree, upper: float = np.inf, desc: str | None = None,
+                 workers: int = -1) -> np.ndarray:
+    """Distance from every query point to its nearest neighbour in ``tree``, in chunks.
+
+    Distances ``>= upper`` come back as ``inf`` (cKDTree's strict ``distance_upper_bound``), which
+    prunes the search when the caller drops them anyway.
+    """
+    out = np.empty(len(queries))
+    for start, stop in _chunks(len(queries), QUERY_CHUNK, desc=desc):
+        out[start:stop], _ = tree.query(queries[start:stop], k=1, distance_upper_bound=upper, workers=workers)
+    return out
+
+
+def nn_indices(queries: np.ndarray, tree: cKDTree, workers: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-neighbour distance and index for every query point, in chunks."""
+    dist = np.empty(len(queries))
+    idx = np.empty(len(queries), np.int64)
+    for start, stop in _chunks(len(queries), QUERY_CHUNK):
+        dist[start:stop], idx[start:stop] = tree.query(queries[start:stop], k=1, workers=workers)
+    return dist, idx
+
+
+def vertices_and_centroids(vertices: np.ndarray, faces: np.ndarray | None) -> np.ndarray:
+    """Vertices followed by face centroids (the 2DGS/GOF/RaDe-GS TnT point set); vertices alone if no faces."""
+    if faces is None or len(faces) == 0:
+        return vertices
+    return np.concatenate([vertices, vertices[faces].mean(axis=1)], axis=0)
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit face normals (M,3) and face areas (M,); degenerate faces get a zero normal and area."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(cross, axis=1)
+    normals = np.divide(cross, norm[:, None], out=np.zeros_like(cross), where=norm[:, None] > 0)
+    return normals, 0.5 * norm
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int):
+    """``n`` area-uniform random points on a mesh with their face normals (seeded).
+
+    Faces are drawn with probability proportional to area; inside a face, (u, v) uniform on the unit
+    square is folded into the triangle (u + v > 1 -> 1-u, 1-v). Returns (points, normals).
+    """
+    normals, area = face_normals(vertices, faces)
+    total = area.sum()
+    if total <= 0:
+        raise ValueError("mesh has zero total area")
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(faces), size=n, p=area / total)
+    uv = rng.random((n, 2))
+    fold = uv.sum(axis=1) > 1
+    uv[fold] = 1 - uv[fold]
+    tri = vertices[faces[face]]
+    pts = tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
+    return pts, normals[face]
+
+
+def pca_normals(reference: np.ndarray, queries: np.ndarray, k: int = 20, workers: int = -1) -> np.ndarray:
+    """Unoriented PCA normals at ``queries`` from their ``k`` nearest ``reference`` points.
+
+    The normal is the eigenvector of the smallest eigenvalue of the neighbours' covariance, as in
+    open3d ``estimate_normals(KDTreeSearchParamKNN(k))``; neighbours are taken from the full
+    reference cloud even when ``queries`` is a subsample of it.
+    """
+    tree = cKDTree(reference)
+    k = min(k, len(reference))
+    out = np.empty((len(queries), 3))
+    for start, stop in _chunks(len(queries), max(1, PAIR_BUDGET // k)):
+        _, idx = tree.query(queries[start:stop], k=k, workers=workers)
+        nb = reference[idx.reshape(len(idx), -1)]
+        centred = nb - nb.mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", centred, centred)
+        _, vecs = np.linalg.eigh(cov)
+        out[start:stop] = vecs[:, :, 0]
+    return out

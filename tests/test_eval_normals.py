@@ -1,0 +1,62 @@
+"""normal_similarity (mesh NC, evaluation.md §3 B) and rendered_normal_similarity (§3 A)."""
+
+import numpy as np
+import pytest
+import trimesh
+
+import eval_fixtures as F
+from gsbench.errors import EvaluationError
+from gsbench.evaluators.normal_similarity import NormalSimilarity, rendered_normal_similarity
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return F.dtu_scene(F.make_dtu_gt(tmp_path_factory.mktemp("dtu_n")))
+
+
+def test_sphere_against_pca_normals_is_consistent(scene):
+    res = NormalSimilarity().evaluate(F.dtu_sphere_mesh(), scene, n_samples=30_000)
+    m, d = res["metrics"], res["diagnostics"]
+    assert m["normal_consistency"] > 0.999 and m["normal_consistency_ungated"] > 0.999
+    assert d["gt_normals"].startswith("PCA") and d["accuracy_pairs_fraction"] == 1.0
+    assert 0.5 < d["max_dist"] < 1.5  # 5 x the ~0.2 mm GT sample spacing
+    again = NormalSimilarity().evaluate(F.dtu_sphere_mesh(), scene, n_samples=30_000)
+    assert again["metrics"] == m
+
+
+def test_noise_lowers_nc_and_gate_ignores_a_floater(scene, tmp_path):
+    rng = np.random.default_rng(0)
+    noisy = F.dtu_sphere_mesh(subdivisions=4)
+    noisy.vertices += rng.normal(0, 0.3 / F.DTU_SCALE, noisy.vertices.shape)
+    assert NormalSimilarity().evaluate(noisy, scene, n_samples=20_000)["metrics"]["normal_consistency"] < 0.97
+    box = trimesh.creation.box(extents=[0.2, 0.2, 0.2])  # a floater 5 mm ... 10 mm from the sphere
+    box.apply_translation([1.0, 0, 0])
+    with_floater = trimesh.util.concatenate([F.dtu_sphere_mesh(), box])
+    m = NormalSimilarity().evaluate(with_floater, scene, n_samples=30_000)["metrics"]
+    assert m["normal_consistency"] > 0.999 > m["normal_consistency_ungated"]
+
+
+def test_gt_mesh_option_and_errors(scene, tmp_path):
+    gt = tmp_path / "gt_mesh.ply"
+    mesh = F.dtu_sphere_mesh(subdivisions=4)
+    mesh.export(gt)
+    m = NormalSimilarity().evaluate(mesh, scene, gt_mesh=str(gt), frame="dataset", n_samples=5_000, max_dist=0.1)
+    assert m["metrics"]["normal_consistency"] > 0.999 and m["diagnostics"]["gt_normals"] == "mesh samples"
+    with pytest.raises(EvaluationError, match="no NN pair"):
+        NormalSimilarity().evaluate(mesh, scene, frame="dataset", n_samples=5_000)  # normalised mesh read as mm
+    with pytest.raises(EvaluationError, match="not found: .*nope.ply"):
+        NormalSimilarity().evaluate(mesh, scene, gt_mesh=str(tmp_path / "nope.ply"))
+
+
+def test_rendered_normal_similarity():
+    n = np.zeros((4, 5, 3))
+    n[..., 2] = 1.0
+    tilted = n.copy()
+    tilted[:2, :, 0] = 1.0  # 45 degrees in the top two rows (unnormalised on purpose)
+    mask = np.ones((4, 5), bool)
+    assert rendered_normal_similarity(n, n) == pytest.approx(1.0)
+    assert rendered_normal_similarity(tilted, n, mask) == pytest.approx((1 + np.sqrt(0.5)) / 2)
+    mask[:2] = False
+    assert rendered_normal_similarity(tilted, n, mask) == pytest.approx(1.0)
+    with pytest.raises(EvaluationError):
+        rendered_normal_similarity(n, n, np.zeros((4, 5), bool))
