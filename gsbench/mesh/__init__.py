@@ -1,0 +1,12 @@
+"""Mesh extractors (DESIGN.md "Mesh extractors"): `tsdf` (open3d fusion of rendered depth), `tets`,
+`poisson`; shared clean-up in `gsbench.mesh.cleanup`.
+
+An empty or degenerate mesh is a `MeshError`, never a silent file; its message names the parameters
+that produced it.
+"""
+
+from gsbench.errors import GsbenchError
+
+
+class MeshError(GsbenchError):
+    """Mesh extraction produced nothing usable (empty, degenerate, non-finite) or got unusable inputs."""

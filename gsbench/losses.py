@@ -1,0 +1,303 @@
+"""The loss-term registry: named, weighted, scheduled terms (DESIGN.md "Loss terms").
+
+A term is ``fn(render, batch, state, **params) -> scalar tensor`` registered as a `TermSpec` with the
+render outputs it reads (``requires``) and its parameters with their defaults (``params``).
+
+- ``render``: the `gsbench.raster.RenderOutput` of this step.
+- ``batch``: a `Batch` (GT image, optional mask, camera, step).
+- ``state``: a dict the method owns; terms that need more than the render read it
+  (``state["gaussians"]`` for ``flatten``).
+
+Config (``losses.<name>: {weight, start, end}``, `gsbench.config.LossTerm`) decides *whether* and *how
+much*; a term is active at ``step`` iff ``weight != 0`` and ``start <= step`` and (``end < 0`` or
+``step < end``). A weight of 0 removes the term and its outputs from the step. Unknown names are
+`ConfigError` with a "did you mean".
+
+Term parameters (e.g. which depth ``normal_consistency`` differentiates) are method hyper-parameters,
+not schedule: the method passes ``params={name: {key: value}}`` to `active_terms`, which binds them
+(`TermSpec.bind`, unknown keys are errors) so ``requires`` follows them (``depth_ratio`` 1 needs
+``median_depth``, 0 needs ``depth``). The bound spec is called as ``spec(render, batch, state)``.
+Methods with their own terms (IBGS ``eigval``, SuGaR ``sdf``) either `register_term` them or pass
+them as ``extra`` to `active_terms`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+
+from gsbench.config import suggest
+from gsbench.data.camera import Camera
+from gsbench.errors import ConfigError
+from gsbench.raster.types import OUTPUTS, RenderOutput
+from gsbench.ssim import ssim
+
+ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), §5
+
+
+@dataclass
+class Batch:
+    """The ground truth of one training view: ``image`` (H,W,3) float in [0,1], ``mask`` (H,W) bool or
+    None, the `Camera` it was taken with, and the training ``step``."""
+
+    image: torch.Tensor
+    mask: torch.Tensor | None
+    camera: Camera
+    step: int
+
+
+@dataclass(frozen=True)
+class TermSpec:
+    """A registered loss term: ``fn(render, batch, state, **params) -> scalar``.
+
+    ``requires`` is the set of render outputs (`gsbench.raster.OUTPUTS`) the term reads with its
+    current ``params``; ``requires_fn(params)``, when given, recomputes it on `bind`.
+    """
+
+    name: str
+    fn: Callable[..., torch.Tensor]
+    requires: frozenset
+    doc: str = ""
+    params: Mapping = field(default_factory=lambda: MappingProxyType({}))
+    requires_fn: Callable[[Mapping], frozenset] | None = None
+
+    def bind(self, **overrides) -> TermSpec:
+        """The same term with ``overrides`` merged into its parameters (unknown keys are ConfigError)."""
+        for key in overrides:
+            if key not in self.params:
+                raise ConfigError(f"loss term '{self.name}' has no parameter '{key}'{suggest(key, self.params)}; "
+                                  f"parameters: {', '.join(self.params) or '(none)'}")
+        params = MappingProxyType({**self.params, **overrides})
+        requires = self.requires_fn(params) if self.requires_fn else self.requires
+        return dataclasses.replace(self, params=params, requires=frozenset(requires))
+
+    def __call__(self, render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+        return self.fn(render, batch, state, **self.params)
+
+
+class ActiveTerm(NamedTuple):
+    """One term in use at a step: its name, config weight and bound spec."""
+
+    name: str
+    weight: float
+    spec: TermSpec
+
+
+_REGISTRY: dict[str, TermSpec] = {}
+
+
+def register_term(name: str, fn: Callable[..., torch.Tensor], requires=(), doc: str | None = None,
+                  params: Mapping | None = None, requires_fn: Callable[[Mapping], frozenset] | None = None,
+                  *, replace: bool = False) -> TermSpec:
+    """Add a term to the registry; the doc defaults to ``fn``'s docstring. Re-registering needs ``replace``."""
+    requires = frozenset(requires)
+    unknown = requires - set(OUTPUTS)
+    if unknown:
+        raise ConfigError(f"loss term '{name}' requires unknown render outputs {sorted(unknown)}; "
+                          f"valid outputs: {', '.join(OUTPUTS)}")
+    if name in _REGISTRY and not replace:
+        raise ConfigError(f"loss term '{name}' is already registered; pass replace=True to override it")
+    spec = TermSpec(name, fn, requires, doc if doc is not None else (fn.__doc__ or "").strip(),
+                    MappingProxyType(dict(params or {})), requires_fn)
+    if requires_fn is not None:
+        spec = spec.bind()
+    _REGISTRY[name] = spec
+    return spec
+
+
+def term_names() -> list[str]:
+    """Names of the registered terms, sorted."""
+    return sorted(_REGISTRY)
+
+
+def get_term(name: str, extra: Mapping[str, TermSpec] | None = None) -> TermSpec:
+    """The spec of ``name`` (``extra`` first, then the registry); unknown names are ConfigError."""
+    table = {**_REGISTRY, **(extra or {})}
+    if name not in table:
+        raise ConfigError(f"unknown loss term '{name}'{suggest(name, table)}; known terms: {', '.join(sorted(table))}")
+    return table[name]
+
+
+def _schedule_value(cfg, key: str, default):
+    return cfg.get(key, default) if isinstance(cfg, Mapping) else getattr(cfg, key, default)
+
+
+def active_terms(loss_cfg: Mapping, step: int, params: Mapping[str, Mapping] | None = None,
+                 extra: Mapping[str, TermSpec] | None = None) -> list[ActiveTerm]:
+    """The terms in use at ``step``: ``loss_cfg`` maps name -> {weight, start, end} (dict or LossTerm).
+
+    Every name and parameter is checked (also of inactive terms), so a typo fails at the first step. Weight 0 removes
+    the term; active iff ``start <= step`` and (``end < 0`` or ``step < end``). ``params`` binds term
+    parameters (see the module docstring); params for a name not in ``loss_cfg`` are an error too.
+    """
+    params = dict(params or {})
+    for name in params:
+        if name not in loss_cfg:
+            raise ConfigError(f"parameters given for loss term '{name}', which is not in the loss config"
+                              f"{suggest(name, loss_cfg)}; configured terms: {', '.join(loss_cfg) or '(none)'}")
+    active = []
+    for name, cfg in loss_cfg.items():
+        spec = get_term(name, extra).bind(**params.get(name, {}))
+        weight = float(_schedule_value(cfg, "weight", 0.0))
+        start = int(_schedule_value(cfg, "start", 0))
+        end = int(_schedule_value(cfg, "end", -1))
+        if weight == 0.0 or step < start or (end >= 0 and step >= end):
+            continue
+        active.append(ActiveTerm(name, weight, spec))
+    return active
+
+
+def required_outputs(active: list[ActiveTerm]) -> frozenset:
+    """Union of the render outputs the active terms read."""
+    out: frozenset = frozenset()
+    for term in active:
+        out |= term.spec.requires
+    return out
+
+
+def total_loss(active: list[ActiveTerm], render: RenderOutput, batch: Batch, state: dict
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """(Σ weight·value, {name: unweighted value}); with no active term the loss is a constant 0."""
+    total = torch.zeros(())
+    values: dict[str, float] = {}
+    for term in active:
+        value = term.spec(render, batch, state)
+        values[term.name] = float(value.detach())
+        total = total + term.weight * value
+    return total, values
+
+
+# ---- built-in terms -----------------------------------------------------------------------------
+
+
+def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Mean of (H,W,...) ``x`` over the (H,W) ``mask`` (all pixels if None); 0 for an empty mask."""
+    if mask is None:
+        return x.mean()
+    m = mask.to(x.dtype).reshape(mask.shape + (1,) * (x.dim() - mask.dim()))
+    count = m.sum() * (x.numel() // mask.numel())
+    return (x * m).sum() / count.clamp(min=1)
+
+
+def l1_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = False) -> torch.Tensor:
+    """L1 = mean |rgb − image| over H×W×3 (3DGS §1.7, ``l1_loss``).
+
+    ``use_mask``: the mean over ``batch.mask`` pixels only (0 for an empty mask); off in 3DGS/2DGS.
+    """
+    diff = (render.rgb - batch.image.to(render.rgb.dtype)).abs()
+    return _masked_mean(diff, batch.mask if use_mask else None)
+
+
+def dssim_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = False) -> torch.Tensor:
+    """D-SSIM = 1 − SSIM(rgb, image), SSIM as `gsbench.ssim` (3DGS §1.7, λ_dssim = 0.2 in configs).
+
+    ``use_mask``: SSIM averaged over ``batch.mask`` pixels only (empty mask → 0).
+    """
+    return 1.0 - ssim(render.rgb, batch.image.to(render.rgb.dtype), batch.mask if use_mask else None)
+
+
+def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+    """L_d = mean over pixels of the distortion map Σ_i Σ_{j<i} w_i w_j (m_i − m_j)² (2DGS §2.4, §2.7)."""
+    return render.distortion.mean()
+
+
+def pixel_rays(camera: Camera, dtype=torch.float32) -> torch.Tensor:
+    """(H,W,3) camera-space rays ((i+0.5−cx)/fx, (j+0.5−cy)/fy, 1) of the pixel centres (camera.py)."""
+    j, i = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
+                          torch.arange(camera.width, dtype=torch.float64), indexing="ij")
+    x = (i + 0.5 - camera.cx) / camera.fx
+    y = (j + 0.5 - camera.cy) / camera.fy
+    return torch.stack([x, y, torch.ones_like(x)], -1).to(dtype)
+
+
+def depth_to_normal(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """Unit camera-space normals (H,W,3) from a camera-z depth map (2DGS ``depth_to_normal``, §2.4).
+
+    X = depth · ray; dx = X[r+1,c] − X[r−1,c], dy = X[r,c+1] − X[r,c−1] (central differences);
+    n = normalize(dx × dy), which faces the camera (y down); the 1-pixel border is 0. Camera space
+    rather than world space: the consistency dot product is rotation invariant. Rays use the
+    camera's pixel-centre convention (cx = W/2 is the centre), not 2DGS's half-pixel-shifted
+    integer pixels (§6 item 10).
+    """
+    points = depth[..., None] * pixel_rays(camera, depth.dtype)
+    dx = points[2:, 1:-1] - points[:-2, 1:-1]
+    dy = points[1:-1, 2:] - points[1:-1, :-2]
+    n = F.normalize(torch.cross(dx, dy, dim=-1), dim=-1)
+    return F.pad(n.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+
+
+def _check_depth_ratio(depth_ratio: float) -> float:
+    if not 0.0 <= float(depth_ratio) <= 1.0:
+        raise ConfigError(f"normal_consistency depth_ratio must be in [0, 1] (0 expected, 1 median depth), "
+                          f"got {depth_ratio}")
+    return float(depth_ratio)
+
+
+def surface_depth(render: RenderOutput, depth_ratio: float) -> torch.Tensor:
+    """2DGS surf_depth = (1 − r)·expected + r·median (§2.4); only the needed maps are read."""
+    r = _check_depth_ratio(depth_ratio)
+    if r == 1.0:
+        return render.median_depth
+    if r == 0.0:
+        return render.depth
+    return (1 - r) * render.depth + r * render.median_depth
+
+
+def normal_consistency_term(render: RenderOutput, batch: Batch, state: dict, depth_ratio: float = 1.0
+                            ) -> torch.Tensor:
+    """L_n = mean over all H×W pixels of 1 − n_r · (n_d · stopgrad(alpha)) (2DGS §2.7).
+
+    n_r: the rendered normal (unnormalised, length ≈ alpha); n_d = `depth_to_normal` of the surface
+    depth (1 − r)·expected + r·median with r = ``depth_ratio`` (2DGS ``depth_ratio``; its code default
+    is 0, its DTU/TnT scripts use 1). As in 2DGS, background and the 1-pixel border (n_d = 0)
+    contribute a constant 1 each, which carries no gradient.
+    """
+    n_d = depth_to_normal(surface_depth(render, depth_ratio), batch.camera) * render.alpha.detach()[..., None]
+    return (1.0 - (render.normal * n_d).sum(-1)).mean()
+
+
+def _normal_consistency_requires(params: Mapping) -> frozenset:
+    r = _check_depth_ratio(params["depth_ratio"])
+    depths = {"depth"} if r == 0.0 else {"median_depth"} if r == 1.0 else {"depth", "median_depth"}
+    return frozenset({"normal", "alpha"} | depths)
+
+
+def _gaussians(state: dict, term: str):
+    if "gaussians" not in state:
+        raise ConfigError(f"loss term '{term}' needs the Gaussians in state['gaussians']; this method does not "
+                          f"provide them, so remove losses.{term} or set its weight to 0")
+    return state["gaussians"]
+
+
+def flatten_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+    """L_s = mean over Gaussians of min(s_1, s_2, s_3) (NeuSG / IBGS flattening loss); 0 if none."""
+    scales = _gaussians(state, "flatten").scales
+    if scales.shape[0] == 0:
+        return scales.sum()
+    return scales.min(dim=-1).values.mean()
+
+
+def opacity_entropy_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+    """SuGaR entropy: mean over visible Gaussians of −o log(o + ε) − (1−o) log(1 − o + ε), ε = 1e-10
+    (SuGaR coarse stage, §3.2; "visible" = radii > 0 in this render); 0 if none is visible."""
+    o = _gaussians(state, "opacity_entropy").opacities
+    if render.visible is not None:
+        o = o[render.visible]
+    if o.numel() == 0:
+        return o.sum()
+    return (-o * torch.log(o + ENTROPY_EPS) - (1 - o) * torch.log(1 - o + ENTROPY_EPS)).mean()
+
+
+register_term("l1", l1_term, {"rgb"}, params={"use_mask": False})
+register_term("dssim", dssim_term, {"rgb"}, params={"use_mask": False})
+register_term("depth_distortion", depth_distortion_term, {"distortion"})
+register_term("normal_consistency", normal_consistency_term, params={"depth_ratio": 1.0},
+              requires_fn=_normal_consistency_requires)
+register_term("flatten", flatten_term)
+register_term("opacity_entropy", opacity_entropy_term)

@@ -1,0 +1,118 @@
+"""TSDF fusion (gsbench.mesh.tsdf) and mesh clean-up (gsbench.mesh.cleanup)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from gsbench.config import MeshConfig
+from gsbench.data.loader import load_scene, make_scene
+from gsbench.mesh import MeshError
+from gsbench.mesh.cleanup import keep_largest_clusters
+from gsbench.mesh.tsdf import fusion_parameters, tsdf_fusion
+
+VOXEL = 0.02
+CFG = MeshConfig(voxel_size=VOXEL, sdf_trunc=4 * VOXEL, depth_trunc=5.0, num_clusters=0)
+
+
+@pytest.fixture(scope="module")
+def spot(tmp_path_factory):
+    """synthetic/spot at 96x72: scene, GT depth maps, GT points (normalised frame) seen by >= 1 view."""
+    scene = load_scene(make_scene("synthetic/spot", out=tmp_path_factory.mktemp("scenes") / "spot", res=(96, 72)))
+    depths = [np.load(scene.gt.depth_maps / f"{Path(name).stem}.npy") for name in scene.image_names]
+    stl = scene.gt.root / "Points" / "stl" / f"stl{scene.gt.scan:03d}_total.ply"
+    points = scene.normalisation.invert(np.asarray(trimesh.load(stl).vertices))[::5]
+    seen = np.zeros(len(points), dtype=bool)
+    for cam, depth in zip(scene.cameras, depths):
+        uv, z = cam.project(points)
+        pix = np.floor(uv).astype(int)
+        inside = (pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0) & (pix[:, 1] < cam.height) & (z > 0)
+        d = np.zeros(len(points))
+        d[inside] = depth[pix[inside, 1], pix[inside, 0]]
+        seen |= inside & (d > 0) & (np.abs(d - z) < VOXEL)
+    return scene, depths, points, points[seen]
+
+
+def test_gt_depth_fusion_reproduces_the_surface(spot):
+    scene, depths, points, seen = spot
+    mesh = tsdf_fusion(depths, scene.cameras, CFG, scene.radius, colors=scene.images, masks=scene.masks)
+    assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) > 1000
+    to_gt = cKDTree(points).query(mesh.vertices)[0].mean()
+    from_gt = cKDTree(mesh.vertices).query(seen)[0].mean()
+    assert to_gt < VOXEL and from_gt < 1.5 * VOXEL, (to_gt, from_gt)
+    assert mesh.visual.vertex_colors[:, :3].std() > 5  # colours were fused
+
+
+def test_relative_parameters_are_scale_invariant(spot):
+    scene, depths, _, _ = spot
+    views = slice(0, 49, 4)
+    cams, ds = scene.cameras[views], depths[views]
+    base = tsdf_fusion(ds, cams, CFG, 1.0)
+    for s in (1e-3, 1e3):  # the same scene in "millimetres" and "kilometres"
+        scaled_cams = [replace(c, t=c.t * s) for c in cams]
+        mesh = tsdf_fusion([d * s for d in ds], scaled_cams, CFG, scene_radius=s)
+        assert abs(len(mesh.faces) - len(base.faces)) <= 0.01 * len(base.faces)
+        d = cKDTree(base.vertices).query(mesh.vertices / s)[0]
+        assert d.max() < 0.05 * VOXEL, (s, d.max())
+    absolute = fusion_parameters(replace(CFG, absolute=True), scene_radius=1e3)
+    assert absolute["voxel_size"] == VOXEL
+
+
+def test_masks_and_alpha_remove_depth(spot):
+    """One view, left half masked in: the mesh lies in the left half of that view (alpha likewise)."""
+    scene, depths, _, _ = spot
+    cam, depth = scene.cameras[0], depths[0]
+    left = np.zeros(depth.shape, bool)
+    left[:, : cam.width // 2] = True
+    full = tsdf_fusion([depth], [cam], CFG, scene.radius)
+    half = tsdf_fusion([depth], [cam], CFG, scene.radius, masks=[left])
+    low_alpha = tsdf_fusion([depth], [cam], CFG, scene.radius, alphas=[np.where(left, 0.9, 0.1)])
+    assert len(half.faces) < 0.8 * len(full.faces)
+    assert len(low_alpha.faces) == len(half.faces)
+    assert cam.project(full.vertices)[0][:, 0].max() > cam.width / 2 + 5
+    assert cam.project(half.vertices)[0][:, 0].max() < cam.width / 2 + 1
+
+
+def test_empty_and_mismatched_inputs_are_mesh_errors(spot):
+    scene, depths, _, _ = spot
+    cams, ds = scene.cameras[:3], depths[:3]
+    with pytest.raises(MeshError, match="voxel_size=0.02.*alpha_threshold=0.5"):
+        tsdf_fusion(ds, cams, CFG, 1.0, alphas=[np.zeros_like(d) for d in ds])
+    with pytest.raises(MeshError, match="depth_trunc=0.5"):
+        tsdf_fusion(ds, cams, replace(CFG, depth_trunc=0.5), 1.0)
+    with pytest.raises(MeshError, match="2 depths for 3 cameras"):
+        tsdf_fusion(ds[:2], cams, CFG, 1.0)
+    with pytest.raises(MeshError, match="expected \\(72, 96\\)"):
+        tsdf_fusion([d[:, :-1] for d in ds], cams, CFG, 1.0)
+    with pytest.raises(MeshError, match="positive"):
+        tsdf_fusion(ds, cams, replace(CFG, voxel_size=0.0), 1.0)
+    nan_depths = [np.full_like(d, np.nan) for d in ds]
+    with pytest.raises(MeshError, match="no depth"):
+        tsdf_fusion(nan_depths, cams, CFG, 1.0)
+
+
+def _o3d_spheres(counts):
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh()
+    for i, resolution in enumerate(counts):
+        sphere = o3d.geometry.TriangleMesh.create_sphere(radius=0.1, resolution=resolution)
+        mesh += sphere.translate((i, 0.0, 0.0))
+    return mesh
+
+
+def test_keep_largest_clusters():
+    sizes = [len(_o3d_spheres([r]).triangles) for r in (10, 6, 2)]
+    assert sizes[2] < 50 < sizes[1] < sizes[0]
+    assert len(keep_largest_clusters(_o3d_spheres([6, 10, 2]), 1).triangles) == sizes[0]
+    assert len(keep_largest_clusters(_o3d_spheres([6, 10, 2]), 2).triangles) == sizes[0] + sizes[1]
+    # the 50-triangle floor drops the small sphere even when 3 clusters are asked for
+    kept = keep_largest_clusters(_o3d_spheres([6, 10, 2]), 3)
+    assert len(kept.triangles) == sizes[0] + sizes[1]
+    assert len(np.asarray(kept.vertices)) == len(np.unique(np.asarray(kept.triangles)))
+    assert len(keep_largest_clusters(_o3d_spheres([6, 10, 2]), 0).triangles) == sum(sizes)
