@@ -248,17 +248,12 @@ def _build_method(data: dict, method_config_cls) -> dict:
 
 
 def dataset_of(scene: str) -> str:
-    """The dataset config name of a scene: ``dtu`` or ``tnt`` (by built-in metadata or folder layout)."""
-    from gsbench.data.builtin import BUILTIN_SCENES  # noqa: PLC0415  (no heavy imports)
+    """The dataset config name of a scene, ``dtu`` or ``tnt``: from the built-in table or the folder layout."""
+    from gsbench.data.loader import BUILTIN_SCENES, detect_format  # noqa: PLC0415  (no heavy imports)
 
     if scene in BUILTIN_SCENES:
-        return BUILTIN_SCENES[scene].format.split("-")[0]
-    folder = Path(scene)
-    if (folder / "cameras.npz").is_file() and not (folder / "sparse").is_dir():
-        return "dtu"
-    if (folder / "sparse").is_dir() and (folder / "mask").is_dir():
-        return "dtu"
-    return "tnt"
+        return BUILTIN_SCENES[scene].format
+    return detect_format(Path(scene)).split("-")[0]
 
 
 def resolve(
