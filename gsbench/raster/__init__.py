@@ -1,9 +1,10 @@
 """The shared differentiable CPU rasterizer (see `gsbench.raster.types` for the contract).
 
-``rasterize(gaussians, camera, kernel=..., outputs=...)`` projects the Gaussians in PyTorch
-(`gsbench.raster.projection`) and composites them with the C++/OpenMP tile kernel
-(``csrc/raster.cpp``, compiled on first use by `gsbench.raster.build`); a `torch.autograd.Function`
-connects the two. ``integrate(...)`` evaluates GOF's opacity field at 3D points (no gradient).
+``rasterize(gaussians, camera, kernel=..., outputs=...)`` projects the Gaussians
+(`gsbench.raster.projection`: fused C++ for ewa/rade, PyTorch for raymax/surfel or with
+``GSBENCH_PROJECTION=torch``), sorts the visible ones by depth and bins them into tiles in C++, and
+composites them with the C++/OpenMP tile kernel (``csrc/raster.cpp``, compiled on first use by
+`gsbench.raster.build`); a `torch.autograd.Function` connects projection and compositing. ``integrate(...)`` evaluates GOF's opacity field at 3D points (no gradient).
 
 ``GSBENCH_RASTER=reference`` switches to the slow dense reference (`gsbench.raster.reference`).
 """
@@ -52,6 +53,8 @@ def _check_finite(name: str, x: torch.Tensor | None) -> None:
     if not isinstance(x, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
     if x.is_floating_point():
+        if x.numel() and bool(torch.isfinite(x.detach().sum())):
+            return  # one pass: a sum of finite values is finite unless it overflows (then the exact check runs)
         finite = torch.isfinite(x.detach())
         if not bool(finite.all()):
             bad = ~finite
@@ -198,7 +201,7 @@ class _RasterFn(torch.autograd.Function):
         n, npar = state.n, int(a.n_params)
         gp = torch.zeros(n, npar, dtype=dt)
         absg = torch.zeros(n, dtype=dt)
-        proxy = torch.zeros(n, 2, dtype=dt)
+        proxy = torch.zeros(n, 2, dtype=dt) if state.kernel == "raymax" else torch.zeros(1, 2, dtype=dt)  # raymax only
         a.grad_params = gp.data_ptr()
         a.absgrad = absg.data_ptr()
         a.proxy = proxy.data_ptr()
@@ -277,15 +280,22 @@ def rasterize(
     t0 = time.perf_counter()
     tiles_x = (W + ts - 1) // ts
     tiles_y = (H + ts - 1) // ts
-    vis_idx = torch.nonzero(proj.visible).reshape(-1)
-    order = vis_idx[torch.sort(proj.depth[vis_idx], stable=True).indices].contiguous()
+    # visible ids by (depth, id) (C++ radix sort) with their tile rectangles in that order, then per-tile lists
     rect = proj.rect.contiguous()
-    areas = (rect[:, 1] - rect[:, 0]).long() * (rect[:, 3] - rect[:, 2]).long()
-    capacity = int(areas.sum())
+    depth_sort = proj.depth.to(dtype).contiguous()
+    visible_u8 = proj.visible.contiguous().view(torch.uint8)
+    order = torch.empty(n, dtype=torch.int32)
+    rect_sorted = torch.empty(n, 4, dtype=torch.int32)
+    cap = ctypes.c_int64(0)
+    m_vis = lib.gs_depth_order(
+        n, _ptr(visible_u8), _ptr(depth_sort), 0 if dtype == torch.float32 else 1, _ptr(rect), _ptr(order),
+        _ptr(rect_sorted), ctypes.byref(cap),
+    )
+    capacity = int(cap.value)
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int32)
     tile_list = torch.empty(max(capacity, 1), dtype=torch.int32)
-    got = lib.gs_bin(
-        order.numel(), _ptr(order), _ptr(rect), tiles_x, tiles_y, _ptr(offsets), _ptr(tile_list), capacity,
+    got = lib.gs_bin_sorted(
+        m_vis, _ptr(order), _ptr(rect_sorted), tiles_x, tiles_y, _ptr(offsets), _ptr(tile_list), capacity,
         max(1, torch.get_num_threads()),
     )
     if got < 0:
@@ -294,7 +304,7 @@ def rasterize(
 
     want = {o: (o in outs) for o in OUTPUTS}
     bounds = proj.bounds.contiguous()
-    depth_key = proj.depth.to(dtype).contiguous()
+    depth_key = depth_sort
     a = GsArgs()
     a.kernel = KERNEL_ID[kernel]
     a.dtype = 0 if dtype == torch.float32 else 1

@@ -176,8 +176,16 @@ def run_raster_benchmark(
     threads: int | None = None,
     reference_case: tuple[int, int, int] | None = (1000, 80, 60),
 ) -> dict:
-    """Benchmark ``kernels`` × ``workloads`` (names of `STANDARD_WORKLOADS` or dicts n/width/height/opacity)."""
+    """Benchmark ``kernels`` × ``workloads`` (names of `STANDARD_WORKLOADS` or dicts n/width/height/opacity).
+
+    ``None`` for ``kernels`` or ``workloads`` means all of them (the CLI passes None when a flag is omitted).
+    """
     from gsbench.raster.build import load_library  # noqa: PLC0415
+
+    if kernels is None:
+        kernels = ("ewa", "rade", "raymax", "surfel")
+    if workloads is None:
+        workloads = tuple(STANDARD_WORKLOADS)
 
     load_library()
     old_threads = torch.get_num_threads()

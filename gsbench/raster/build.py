@@ -1,6 +1,7 @@
 """Compile (on first use) and load the C++/OpenMP rasterizer.
 
-The extension is one translation unit with a plain C ABI, compiled with
+The extension has a plain C ABI (raster.cpp: binning and compositing; integrate.cpp; project.cpp: the
+fused EWA-family projection), compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)
 and called through ctypes. The library name carries a hash of the sources, the flags and the CPU, so
 an edit or another machine triggers a rebuild. The first build prints one line.
@@ -20,7 +21,7 @@ from pathlib import Path
 from gsbench.errors import BuildError
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ["raster.cpp", "integrate.cpp"]
+SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp"]
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -57,6 +58,25 @@ class GsArgs(ctypes.Structure):
             "grad_params", "absgrad", "proxy",
         )
     ] + [("pairs", ctypes.c_int64)]
+
+
+class ProjArgs(ctypes.Structure):
+    """Mirror of ``struct ProjArgs`` in csrc/project.cpp (8-byte fields and fixed double arrays only)."""
+
+    _fields_ = [
+        (name, ctypes.c_int64)
+        for name in ("n", "dtype", "kernel", "sh_degree", "sh_k", "has_filter", "width", "height", "tile", "gx", "gy",
+                     "nthreads")
+    ] + [(name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "near_z", "eps2d", "aa", "limx", "limy")] + [
+        ("R", ctypes.c_double * 9), ("t", ctypes.c_double * 3), ("C", ctypes.c_double * 3), ("L", ctypes.c_double * 16),
+    ] + [
+        (name, ctypes.c_void_p)
+        for name in (
+            "means", "quats", "scales", "opac", "sh", "filter3d",
+            "params", "means2d", "radii", "visible", "depth", "bounds", "rect", "rect_radius",
+            "g_params", "g_means", "g_quats", "g_scales", "g_opac", "g_sh",
+        )
+    ]
 
 
 def cache_dir() -> Path:
@@ -152,7 +172,17 @@ def load_library() -> ctypes.CDLL:
             ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64,
         ]
         lib.gs_bin.restype = ctypes.c_int64
+        lib.gs_depth_order.argtypes = [
+            ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p,
+            ctypes.c_void_p, ctypes.POINTER(ctypes.c_int64),
+        ]
+        lib.gs_depth_order.restype = ctypes.c_int64
+        lib.gs_bin_sorted.argtypes = lib.gs_bin.argtypes
+        lib.gs_bin_sorted.restype = ctypes.c_int64
         lib.gs_integrate.argtypes = [ctypes.c_void_p]
         lib.gs_integrate.restype = ctypes.c_int
+        for fn in (lib.gs_project_forward, lib.gs_project_backward):
+            fn.argtypes = [ctypes.POINTER(ProjArgs)]
+            fn.restype = ctypes.c_int
         _lib = lib
         return lib

@@ -1,6 +1,10 @@
-"""Per-Gaussian quantities of one view, vectorised in PyTorch (autograd does their chain rules).
+"""Per-Gaussian quantities of one view: vectorised PyTorch (autograd) and, for ewa/rade, a fused C++ pass.
 
-`project(gaussians, camera, kernel, settings)` returns a `Projection`: the per-Gaussian *payload*
+`project(gaussians, camera, kernel, settings)` returns a `Projection`. For ``ewa`` and ``rade`` it runs
+`project_fused` (csrc/project.cpp: one OpenMP pass over the Gaussians forward, a hand-written backward,
+double precision inside) unless ``GSBENCH_PROJECTION=torch`` or ``projection.IMPL = "torch"``;
+`project_torch` (below) is the PyTorch version, used for raymax and surfel and as the fused path's oracle
+(tests/test_raster_projection.py). A `Projection` holds the per-Gaussian *payload*
 (one (N, P) tensor the C++ compositor reads, column layout below), the screen radius, visibility,
 centre depth (the per-tile sort key), the tile rectangle and a conservative pixel box outside which
 the Gaussian's alpha is certainly < 1/255 (used to skip rows and tiles; it never changes a result).
@@ -21,7 +25,9 @@ neither tiny nor huge scales overflow float32. Mathematically identical to the c
 
 from __future__ import annotations
 
+import ctypes
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,9 +138,137 @@ def _tile_rect(lo_x, hi_x, lo_y, hi_y, tile: int, gx: int, gy: int) -> torch.Ten
     return torch.stack([x0, x1, y0, y1], -1)
 
 
-def project(
+FUSED_KERNELS = ("ewa", "rade")
+
+# Which projection `project` uses for the EWA family: "fused" (C++, csrc/project.cpp) or "torch" (this
+# module's vectorised PyTorch, also the oracle of the fused one). None = the GSBENCH_PROJECTION
+# environment variable, default "fused". raymax and surfel always use the PyTorch projection.
+IMPL: str | None = None
+
+
+def projection_impl(kernel: str) -> str:
+    """"fused" or "torch": the projection `project` will use for ``kernel``."""
+    impl = IMPL if IMPL is not None else os.environ.get("GSBENCH_PROJECTION", "fused")
+    impl = impl.strip().lower() or "fused"
+    if impl not in ("fused", "torch"):
+        raise ValueError(f"GSBENCH_PROJECTION / projection.IMPL must be 'fused' or 'torch', got '{impl}'")
+    return impl if kernel in FUSED_KERNELS else "torch"
+
+
+def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: RasterSettings) -> Projection:
+    """Per-Gaussian projection of one view (fused C++ for ewa/rade unless disabled, else PyTorch)."""
+    if projection_impl(kernel) == "fused":
+        return project_fused(gaussians, camera, kernel, settings)
+    return project_torch(gaussians, camera, kernel, settings)
+
+
+class _FusedProjectFn(torch.autograd.Function):
+    """Fused EWA-family projection (csrc/project.cpp): (means, quats, scales[:, :3], opacities, sh) -> payload."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, sh, cfg):  # noqa: D401
+        lib, args, n, npar, filter3d = cfg
+        dtype = means.dtype
+        ins = [t.detach().contiguous() for t in (means, quats, scales, opacities, sh)]
+        params = torch.empty(n, npar, dtype=dtype)
+        means2d = torch.empty(n, 2, dtype=dtype)
+        radii = torch.empty(n, dtype=torch.int64)
+        visible = torch.empty(n, dtype=torch.bool)
+        depth = torch.empty(n, dtype=dtype)
+        bounds = torch.empty(n, 4, dtype=dtype)
+        rect = torch.empty(n, 4, dtype=torch.int32)
+        rect_radius = torch.empty(n, 4, dtype=torch.int32)
+        args.means, args.quats, args.scales, args.opac, args.sh = (t.data_ptr() for t in ins)
+        args.filter3d = None if filter3d is None else filter3d.data_ptr()
+        args.params, args.means2d, args.radii, args.visible = (
+            params.data_ptr(), means2d.data_ptr(), radii.data_ptr(), visible.data_ptr())
+        args.depth, args.bounds, args.rect, args.rect_radius = (
+            depth.data_ptr(), bounds.data_ptr(), rect.data_ptr(), rect_radius.data_ptr())
+        rc = lib.gs_project_forward(ctypes.byref(args))
+        if rc != 0:
+            raise RuntimeError(f"gsbench fused projection forward failed (code {rc})")
+        ctx.cfg = cfg
+        ctx.ins = ins
+        ctx.set_materialize_grads(False)
+        ctx.mark_non_differentiable(means2d, radii, visible, depth, bounds, rect, rect_radius)
+        return params, means2d, radii, visible, depth, bounds, rect, rect_radius
+
+    @staticmethod
+    def backward(ctx, g_params, *_unused):
+        if g_params is None:
+            return None, None, None, None, None, None
+        lib, args, n, npar, filter3d = ctx.cfg
+        means, quats, scales, opac, sh = ctx.ins
+        dtype = means.dtype
+        g_params = g_params.to(dtype).contiguous()
+        g_means = torch.empty_like(means)
+        g_quats = torch.empty_like(quats)
+        g_scales = torch.empty_like(scales)
+        g_opac = torch.empty_like(opac)
+        g_sh = torch.zeros_like(sh)
+        args.means, args.quats, args.scales, args.opac, args.sh = (t.data_ptr() for t in (means, quats, scales, opac, sh))
+        args.filter3d = None if filter3d is None else filter3d.data_ptr()
+        args.g_params = g_params.data_ptr()
+        args.g_means, args.g_quats, args.g_scales, args.g_opac, args.g_sh = (
+            t.data_ptr() for t in (g_means, g_quats, g_scales, g_opac, g_sh))
+        rc = lib.gs_project_backward(ctypes.byref(args))
+        if rc != 0:
+            raise RuntimeError(f"gsbench fused projection backward failed (code {rc})")
+        need = ctx.needs_input_grad
+        grads = (g_means, g_quats, g_scales, g_opac, g_sh)
+        return tuple(g if need[k] else None for k, g in enumerate(grads)) + (None,)
+
+
+def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: RasterSettings) -> Projection:
+    """`project_torch` for ``ewa``/``rade`` in one C++/OpenMP pass with a hand-written backward."""
+    from gsbench.raster.build import ProjArgs, load_library  # noqa: PLC0415
+
+    if kernel not in FUSED_KERNELS:
+        raise ValueError(f"the fused projection supports {FUSED_KERNELS}, not '{kernel}'")
+    if not 0 <= settings.sh_degree <= 3:
+        raise ValueError(f"SH degree must be in 0..3, got {settings.sh_degree}")
+    lib = load_library()
+    dtype = gaussians.means.dtype
+    n = len(gaussians)
+    sh = gaussians.sh.to(dtype)
+    k_need = (settings.sh_degree + 1) ** 2
+    if sh.shape[1] < k_need:
+        raise ValueError(f"sh has {sh.shape[1]} coefficients per colour, degree {settings.sh_degree} needs {k_need}")
+    W, H = int(camera.width), int(camera.height)
+    ts = int(settings.tile_size)
+    a = ProjArgs()
+    a.n, a.dtype, a.kernel = n, 0 if dtype == torch.float32 else 1, FUSED_KERNELS.index(kernel)
+    a.sh_degree, a.sh_k = int(settings.sh_degree), int(sh.shape[1])
+    a.width, a.height, a.tile = W, H, ts
+    a.gx, a.gy = (W + ts - 1) // ts, (H + ts - 1) // ts
+    a.nthreads = max(1, torch.get_num_threads())
+    a.fx, a.fy, a.cx, a.cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+    a.near_z = float(settings.near)
+    a.eps2d = float(settings.eps2d_for(kernel))
+    a.aa = float(settings.antialias2d)
+    a.limx = 1.3 * (0.5 * W) / camera.fx
+    a.limy = 1.3 * (0.5 * H) / camera.fy
+    a.R[:] = [float(x) for x in np.asarray(camera.R, dtype=np.float64).reshape(9)]
+    a.t[:] = [float(x) for x in np.asarray(camera.t, dtype=np.float64).reshape(3)]
+    a.C[:] = [float(x) for x in np.asarray(camera.center, dtype=np.float64).reshape(3)]
+    a.L[:] = [float(x) for x in _left_mult(camera, torch.float64).numpy().reshape(16)]
+    f3 = None
+    if gaussians.filter3d is not None:
+        f3 = gaussians.filter3d.detach().reshape(-1).to(dtype).contiguous()
+        a.has_filter = 1
+    npar = NUM_PARAMS[kernel]
+    params, means2d, radii, visible, depth, bounds, rect, rect_radius = _FusedProjectFn.apply(
+        gaussians.means, gaussians.quats.to(dtype), gaussians.scales[:, :3].to(dtype),
+        gaussians.opacities.reshape(-1).to(dtype), sh, (lib, a, n, npar, f3),
+    )
+    return Projection(params=params, means2d=means2d, radii=radii, visible=visible, depth=depth, bounds=bounds,
+                      rect=rect, rect_radius=rect_radius)
+
+
+def project_torch(
     gaussians: RasterGaussians, camera: Camera, kernel: str, settings: RasterSettings
 ) -> Projection:
+    """The vectorised PyTorch projection (autograd does the chain rules); every kernel."""
     dtype = gaussians.means.dtype
     n = len(gaussians)
     W, H = int(camera.width), int(camera.height)
@@ -417,4 +551,5 @@ def pixel_rays(camera: Camera, dtype=torch.float64) -> torch.Tensor:
     return torch.stack([xx, yy, torch.ones_like(xx)], -1)
 
 
-__all__ = ["NUM_PARAMS", "Projection", "project", "quat_to_rotmat", "pixel_rays", "math"]
+__all__ = ["NUM_PARAMS", "Projection", "project", "project_fused", "project_torch", "projection_impl", "quat_to_rotmat",
+           "pixel_rays", "math"]
