@@ -74,6 +74,19 @@ def cmd_config(args) -> int:
     return 0
 
 
+def cmd_run(args) -> int:
+    from gsbench.runner import resolve_run, run
+
+    cfg = resolve_run(args.method, args.scene, preset=args.preset, user_files=args.config or (),
+                      overrides=args.set or (), seed=args.seed)
+    if args.out is not None:
+        cfg.out = args.out
+    if args.threads is not None:
+        cfg.threads = args.threads
+    run(cfg)
+    return 0
+
+
 def cmd_eval(args) -> int:
     from gsbench.data.loader import load_scene
     from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file, format_table
@@ -124,6 +137,17 @@ def build_parser() -> argparse.ArgumentParser:
     config.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. train.iterations=500")
     config.add_argument("--seed", type=int, default=None)
     config.set_defaults(func=cmd_config)
+
+    run = sub.add_parser("run", help="train a method on a scene, extract its mesh, evaluate it, write the record")
+    run.add_argument("--method", required=True, help="e.g. 2dgs (see `gsbench list`)")
+    run.add_argument("--scene", required=True, help="built-in name (synthetic/spot) or a scene folder")
+    run.add_argument("--preset", default="cpu", help="budget: quick, cpu (default) or paper")
+    run.add_argument("--config", action="append", help="user YAML file (repeatable)")
+    run.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. train.iterations=500")
+    run.add_argument("--out", default=None, help="runs folder (default: the config's out, runs/)")
+    run.add_argument("--seed", type=int, default=None)
+    run.add_argument("--threads", type=int, default=argparse.SUPPRESS, help="OpenMP / torch threads (0 = all)")
+    run.set_defaults(func=cmd_run)
 
     evaluate = sub.add_parser("eval", help="evaluate a mesh against a scene's ground truth")
     evaluate.add_argument("--mesh", required=True)

@@ -69,7 +69,14 @@ class Registry:
         return obj
 
 
-METHODS = Registry("method", {}, "gsbench.methods")
+METHODS = Registry(
+    "method",
+    {
+        "3dgs": "gsbench.methods.gs3d:GS3D",
+        "2dgs": "gsbench.methods.gs2d:GS2D",
+    },
+    "gsbench.methods",
+)
 
 EVALUATORS = Registry(
     "evaluator",

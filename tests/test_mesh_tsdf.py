@@ -116,3 +116,15 @@ def test_keep_largest_clusters():
     assert len(kept.triangles) == sizes[0] + sizes[1]
     assert len(np.asarray(kept.vertices)) == len(np.unique(np.asarray(kept.triangles)))
     assert len(keep_largest_clusters(_o3d_spheres([6, 10, 2]), 0).triangles) == sum(sizes)
+
+
+@pytest.mark.parametrize("pixel", [(1, 1), (2, 3), (5, 7)])
+def test_a_view_with_a_few_stray_pixels_is_skipped_not_a_crash(spot, pixel):
+    """open3d allocates blocks from a subsampled pixel grid; a view whose only valid pixel falls
+    between the samples (a thin plate seen edge-on) must add nothing instead of raising."""
+    scene, depths, _, _ = spot
+    stray = np.zeros_like(depths[0])
+    stray[pixel[1], pixel[0]] = depths[0][depths[0] > 0].min()
+    mesh = tsdf_fusion([depths[0], stray], scene.cameras[:2], CFG, scene.radius)
+    alone = tsdf_fusion([depths[0]], scene.cameras[:1], CFG, scene.radius)
+    assert len(mesh.faces) > 100 and abs(len(mesh.faces) - len(alone.faces)) <= 0.01 * len(alone.faces)

@@ -105,12 +105,19 @@ def tsdf_fusion(depths: Sequence[np.ndarray], cameras: Sequence[Camera], cfg: Me
         used = int(((depth > 0) & (depth <= p["depth_trunc"])).sum())
         if used == 0:
             continue
-        valid_pixels += used
         K = np.array([[cam.fx, 0.0, cam.cx - 0.5], [0.0, cam.fy, cam.cy - 0.5], [0.0, 0.0, 1.0]])
         intrinsic = o3c.Tensor(K, o3c.float64)
         extrinsic = o3c.Tensor(cam.world_to_camera, o3c.float64)
         depth_image = o3d.t.geometry.Image(depth)
-        blocks = volume.compute_unique_block_coordinates(depth_image, intrinsic, extrinsic, **fusion)
+        try:
+            blocks = volume.compute_unique_block_coordinates(depth_image, intrinsic, extrinsic, **fusion)
+        except RuntimeError as exc:
+            # open3d allocates blocks from a subsampled pixel grid: a view whose few valid pixels (a thin
+            # plate seen edge-on) all fall between the samples touches no block and adds nothing.
+            if "No block is touched" not in str(exc):
+                raise
+            continue
+        valid_pixels += used
         if color is None:
             volume.integrate(blocks, depth_image, intrinsic, extrinsic, **fusion)
         else:

@@ -1,0 +1,308 @@
+"""The one training loop (DESIGN.md §3 "Method": the Trainer owns the loop, methods declare data).
+
+Per step ``t = 1 … train.iterations`` (3DGS ``train.py`` order, methods-3dgs-2dgs-sugar.md §1.8):
+
+1. ``method.update_schedules(t, scale)`` — position lr decay and SH degree;
+2. next camera from a seeded shuffled stack, refilled when empty (one epoch = one pass, §0);
+3. active terms = `gsbench.losses.active_terms` of the scaled loss config with the method's term
+   parameters; the render computes only their `required_outputs` (weight 0 removes a term's outputs);
+4. L = Σ weight·term; non-finite L is a `NumericalError` naming the terms and the step;
+5. backward; ``strategy.step_post_backward`` (densify / prune / opacity reset);
+6. Adam step (skipped on the last step, as 3DGS); non-finite parameters → `NumericalError` naming
+   the parameter and the step.
+
+Schedule scaling — the one place presets change the schedule: every step-valued setting of the
+paper's 30 000-step run (loss ``start``/``end``, the densification window/interval/opacity reset via
+`DefaultStrategy.scaled`, the position-lr decay length and the SH interval via
+``method.update_schedules``) is multiplied by ``scale = train.iterations / 30000`` with `scale_step`
+(rounded, at least 1; 0 and negative "unset" values stay), except the refinement interval, which
+stays 100 steps (`scaled_strategy` says why). A 3 000-step cpu run therefore densifies every 100
+steps over steps 50–1500, resets opacity every 300 steps, starts λ_d at 300 and λ_n at 700: the same
+fractions of the run as the paper's 30 000 steps.
+
+Masks (``data.use_masks`` with a scene that has masks): the GT image is composited over the render
+background, ``gt' = mask·gt + (1 − mask)·bg`` (the 2023 3DGS intent, §0 "Masks", §6 item 16), so
+background pixels ask for empty space: Gaussians there only raise the loss and are pruned instead of
+spawned. ``batch.mask`` is also passed to the terms (their ``use_mask`` parameter, off by default).
+
+Checkpoints (``checkpoint.pt`` every ``train.checkpoint_every`` steps, ``checkpoint-final.pt`` at the
+end, both written atomically) hold the method state (parameters, Adam moments), the strategy state,
+the python/numpy/torch RNG states, the camera stack and the step, so a resumed run is bit-identical
+to an uninterrupted one with the same seed and thread count. ``metrics.jsonl`` gets one line every
+``train.log_every`` steps: step, each term (unweighted), total, num_gaussians, it/s. Training time
+(`TrainResult.seconds`, summed over resumes) counts the steps and logging, not checkpoint writes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import random
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gsbench.config import RunConfig
+from gsbench.data.camera import Scene
+from gsbench.errors import ConfigError, NumericalError
+from gsbench.losses import Batch, active_terms, required_outputs, total_loss
+from gsbench.strategy import REFERENCE_ITERATIONS
+
+CHECKPOINT = "checkpoint.pt"
+FINAL_CHECKPOINT = "checkpoint-final.pt"
+METRICS = "metrics.jsonl"
+
+
+def scale_step(value: int, scale: float) -> int:
+    """A paper step count scaled to this run: ``max(1, round(value·scale))``; values <= 0 unchanged."""
+    return int(value) if value <= 0 else max(1, round(value * scale))
+
+
+def schedule_scale(iterations: int) -> float:
+    """iterations / 30000: the factor every step-valued setting is multiplied by (module docstring)."""
+    return iterations / REFERENCE_ITERATIONS
+
+
+def scaled_losses(losses: dict, scale: float) -> dict:
+    """The loss config with ``start`` and ``end`` scaled (weights unchanged): the effective terms."""
+    return {name: {"weight": float(t["weight"]), "start": scale_step(t["start"], scale),
+                   "end": scale_step(t["end"], scale)} for name, t in losses.items()}
+
+
+def scaled_strategy(strategy, iterations: int):
+    """The strategy's schedule for this run (module docstring, "Schedule scaling").
+
+    `DefaultStrategy.scaled` scales the window and the reset interval; the refinement interval keeps
+    the paper's absolute value and the reset interval is rounded to a multiple of it, because both
+    are counts of Adam steps, not fractions of the run: a reset sets o <= 0.01 and the next
+    refinement, ``refine_every`` steps later, prunes o < ``prune_opacity`` (0.05 for 2DGS), which Adam
+    (opacity lr 0.05 per step on the logit) can only climb back above after ~40+ steps. Scaling the
+    interval to 10 steps (cpu preset) would prune every 2DGS surfel after every reset.
+    """
+    if not hasattr(strategy, "scaled"):
+        return strategy
+    every = strategy.refine_every
+    scaled = strategy.scaled(iterations)
+    return dataclasses.replace(scaled, refine_every=every,
+                               reset_every=every * max(1, round(scaled.reset_every / every)))
+
+
+def split_views(n_views: int, holdout_every: int) -> tuple[list[int], list[int]]:
+    """(training, held-out) view indices: every ``holdout_every``-th view (``i % k == 0``) is held out
+    when ``holdout_every > 0`` (3DGS ``--eval`` with k = 8, methods-3dgs-2dgs-sugar.md §0)."""
+    held = [i for i in range(n_views) if holdout_every > 0 and i % holdout_every == 0]
+    return [i for i in range(n_views) if not (holdout_every > 0 and i % holdout_every == 0)], held
+
+
+def set_threads(threads: int) -> int:
+    """``torch.set_num_threads`` and ``OMP_NUM_THREADS`` from the run config (0 = all cores).
+
+    ``OMP_WAIT_POLICY=PASSIVE`` is set when gsbench is imported (see `gsbench/__init__.py`).
+    """
+    n = threads if threads > 0 else (os.cpu_count() or 1)
+    os.environ["OMP_NUM_THREADS"] = str(n)
+    torch.set_num_threads(n)
+    return n
+
+
+def seed_everything(seed: int) -> None:
+    """One seed for python, numpy and torch (DESIGN.md §5)."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def save_atomic(obj, path: Path) -> None:
+    """``torch.save`` to a temp file in the same folder, then ``os.replace``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: Path) -> dict:
+    """Read a checkpoint written by `Trainer` (our own file: numpy RNG state needs full unpickling)."""
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+class CameraSampler:
+    """Views drawn without replacement from a shuffled stack, refilled each epoch (seeded, §0)."""
+
+    def __init__(self, indices, seed: int):
+        self.indices = list(indices)
+        self.rng = random.Random(seed)
+        self.stack: list[int] = []
+
+    def next(self) -> int:
+        if not self.stack:
+            self.stack = list(self.indices)
+            self.rng.shuffle(self.stack)
+        return self.stack.pop()
+
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.getstate(), "stack": list(self.stack)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rng.setstate(state["rng"])
+        self.stack = list(state["stack"])
+
+
+@dataclass
+class TrainResult:
+    """What training produced: steps done in total, seconds spent (over all resumes), it/s, final N."""
+
+    steps: int
+    seconds: float
+    it_per_s: float
+    num_gaussians: int
+    resumed_from: int = 0
+
+
+def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list]:
+    """GT tensors per view, composited over ``background`` outside the mask when masks are used."""
+    bg = torch.tensor(background, dtype=torch.float32)
+    use = cfg.data.use_masks and scene.masks is not None
+    images, masks = [], []
+    for i, img in enumerate(scene.images):
+        image = torch.as_tensor(np.asarray(img, dtype=np.float32))
+        mask = torch.as_tensor(np.asarray(scene.masks[i], dtype=bool)) if use else None
+        if mask is not None:
+            image = torch.where(mask[..., None], image, bg)
+        images.append(image)
+        masks.append(mask)
+    return images, masks
+
+
+class Trainer:
+    """Runs ``method`` (already `setup`) on ``scene`` for ``cfg.train.iterations`` steps in ``run_dir``."""
+
+    def __init__(self, method, scene: Scene, cfg: RunConfig, run_dir):
+        self.method, self.scene, self.cfg = method, scene, cfg
+        self.threads = set_threads(cfg.threads)
+        self.run_dir = Path(run_dir)
+        self.iterations = int(cfg.train.iterations)
+        if self.iterations < 1:
+            raise ConfigError(f"train.iterations must be >= 1, got {self.iterations}")
+        self.scale = schedule_scale(self.iterations)
+        self.losses = scaled_losses(cfg.losses, self.scale)
+        self.strategy = scaled_strategy(method.strategy(), self.iterations)
+        self.strategy_state = self.strategy.init_state(len(method.gaussians))
+        self.views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        self.sampler = CameraSampler(self.views, cfg.seed)
+        self.images, self.masks = _target_images(scene, cfg, method.background)
+        self.step = 0
+        self.seconds = 0.0
+        active_terms(self.losses, 0, method.term_params(), method.loss_terms())  # validate names now
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"step": self.step, "seconds": self.seconds, "method": self.method.state_dict(),
+                "strategy": {k: v.clone() for k, v in self.strategy_state.items()},
+                "sampler": self.sampler.state_dict(),
+                "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.method.load_state_dict(state["method"])
+        self.strategy_state = {k: v.clone() for k, v in state["strategy"].items()}
+        self.sampler.load_state_dict(state["sampler"])
+        random.setstate(state["rng"]["python"])
+        np.random.set_state(state["rng"]["numpy"])
+        torch.set_rng_state(state["rng"]["torch"])
+        self.step, self.seconds = int(state["step"]), float(state["seconds"])
+
+    def _truncate_metrics(self) -> None:
+        """Drop metrics lines past the resumed step (written after the last checkpoint)."""
+        path = self.run_dir / METRICS
+        if path.is_file():
+            lines = [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] <= self.step]
+            path.write_text("".join(ln + "\n" for ln in lines))
+
+    # ---- the loop -----------------------------------------------------------------------------
+    def train_step(self, step: int) -> dict[str, float]:
+        """One optimisation step (module docstring); returns the unweighted term values and the total."""
+        m = self.method
+        m.update_schedules(step, self.scale)
+        idx = self.sampler.next()
+        camera = self.scene.cameras[idx]
+        active = active_terms(self.losses, step, m.term_params(), m.loss_terms())
+        if not active:
+            raise ConfigError(f"step {step}: no loss term is active (all weights 0 or outside start/end); "
+                              f"configured: {self.losses}")
+        try:
+            render = m.render(camera, required_outputs(active))
+        except NumericalError as exc:
+            raise NumericalError(f"step {step}: {exc}") from exc
+        loss, values = total_loss(active, render, Batch(self.images[idx], self.masks[idx], camera, step),
+                                  m.loss_state())
+        if not torch.isfinite(loss):
+            bad = [k for k, v in values.items() if not np.isfinite(v)] or ["(weighted sum)"]
+            raise NumericalError(f"step {step}: the loss is not finite (terms {bad}, view {idx}); lower the "
+                                 "learning rates or the term weights, or resume from an earlier checkpoint")
+        self.strategy.step_pre_backward(render)
+        loss.backward()
+        self.strategy.step_post_backward(m.gaussians, m.optimizer, self.strategy_state, step, render)
+        if len(m.gaussians) == 0:
+            raise NumericalError(f"step {step}: densification pruned every Gaussian (prune opacity "
+                                 f"{getattr(self.strategy, 'prune_opacity', '?')}); check the schedule and the data")
+        if step < self.iterations:
+            m.optimizer.step()
+        m.optimizer.zero_grad(set_to_none=True)
+        try:
+            m.gaussians.check_finite()
+        except NumericalError as exc:
+            raise NumericalError(f"step {step}: {exc}") from exc
+        values["total"] = float(loss.detach())
+        return values
+
+    def fit(self) -> TrainResult:
+        """Train (resuming from ``checkpoint.pt`` when present) and write ``checkpoint-final.pt``."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        resume = self.run_dir / CHECKPOINT
+        if resume.is_file():
+            self.load_state_dict(load_checkpoint(resume))
+        else:
+            seed_everything(self.cfg.seed)
+        resumed_from = self.step
+        self._truncate_metrics()
+        t_cfg = self.cfg.train
+        bar = tqdm(total=self.iterations, initial=self.step, desc=f"train {self.method.name}", unit="it",
+                   disable=None, dynamic_ncols=True)
+        window_start, window_steps = time.perf_counter(), 0
+        with open(self.run_dir / METRICS, "a") as log:
+            while self.step < self.iterations:
+                t0 = time.perf_counter()
+                values = self.train_step(self.step + 1)
+                self.step += 1
+                window_steps += 1
+                bar.update(1)
+                n = len(self.method.gaussians)
+                if self.step % max(1, t_cfg.log_every) == 0 or self.step == self.iterations:
+                    rate = window_steps / max(time.perf_counter() - window_start, 1e-9)
+                    log.write(json.dumps({"step": self.step, **values, "num_gaussians": n, "it_per_s": rate}) + "\n")
+                    log.flush()
+                    bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()} | {"N": n}, refresh=False)
+                    window_start, window_steps = time.perf_counter(), 0
+                self.seconds += time.perf_counter() - t0
+                every = t_cfg.checkpoint_every
+                if self.step < self.iterations and every > 0 and self.step % every == 0:
+                    save_atomic(self.state_dict(), resume)
+        bar.close()
+        save_atomic(self.state_dict(), self.run_dir / FINAL_CHECKPOINT)
+        resume.unlink(missing_ok=True)
+        return self.result(resumed_from)
+
+    def result(self, resumed_from: int = 0) -> TrainResult:
+        return TrainResult(steps=self.step, seconds=self.seconds, it_per_s=self.step / max(self.seconds, 1e-9),
+                           num_gaussians=len(self.method.gaussians), resumed_from=resumed_from)

@@ -1,0 +1,258 @@
+"""The method interface: a method declares data (config, kernel, outputs, terms), the Trainer runs the loop.
+
+`Method` implements everything the 3DGS family shares (methods-3dgs-2dgs-sugar.md §1, DESIGN.md §3
+"Method"); a subclass sets ``Config`` (its paper defaults) and ``INFO`` and overrides what differs.
+
+- ``setup(scene, cfg)``: Gaussians from ``scene.points`` (SfM, all of them unless ``max_init_points``)
+  or, without points (DTU IDR layout), ``random_init_points`` uniform in the scene sphere (§1.1;
+  3DGS uses 100 000 random points for Blender scenes); never more than ``train.max_gaussians``.
+  Adam with eps 1e-15 and one group per parameter, ``group["name"]`` = `Gaussians.params` key (§1.8):
+  means ``position_lr_init·extent``, sh_dc ``feature_lr``, sh_rest ``feature_lr/20``, opacity
+  ``opacity_lr``, log-scales ``scaling_lr``, quaternions ``rotation_lr``.
+- ``extent`` is 3DGS ``cameras_extent``: 1.1 × the largest distance of a training camera centre from
+  their mean (§0); it scales the position lr and the densification size tests.
+- Schedules (`update_schedules`, called by the Trainer every step with the preset's schedule
+  ``scale`` = iterations / 30000, `gsbench.train.scale_step`): position lr
+  ``exp((1−t) ln lr0 + t ln lr1)`` with t = min(step / (position_lr_max_steps·scale), 1) (§1.8, no
+  delay); SH degree ``min(raster.sh_degree, step // (sh_interval·scale))`` (§1.1: +1 every 1000 steps).
+- ``extract_mesh``: TSDF fusion (`gsbench.mesh.tsdf.tsdf_fusion`, §1.10/§2.9) of the depth named by
+  ``mesh.depth`` (``expected`` → the ``depth`` output, ``median`` → ``median_depth``) rendered from
+  every training camera, alpha < 0.5 and (with ``data.use_masks``) pixels outside the mask dropped;
+  TSDF lengths are relative to the scene radius; ``mesh.num_clusters`` largest components are kept.
+- ``state_dict`` / ``load_state_dict``: parameters, Adam state (moments and step counts) and the
+  active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gsbench.config import RunConfig
+from gsbench.data.camera import Scene
+from gsbench.errors import ConfigError
+from gsbench.gaussians import Gaussians
+from gsbench.losses import TermSpec
+from gsbench.mesh.tsdf import tsdf_fusion
+from gsbench.raster import RasterSettings, RenderOutput, rasterize
+from gsbench.strategy import DefaultStrategy, Strategy
+from gsbench.train import scale_step, split_views
+
+ADAM_EPS = 1e-15  # §1.8 / §5
+DEPTH_OUTPUTS = {"expected": "depth", "median": "median_depth"}  # mesh.depth -> render output
+
+
+@dataclass(frozen=True)
+class MethodInfo:
+    """What a method declares: primitive (``3d``|``2d``), rasterizer kernel, the render outputs it may
+    request, its mesh extractor and the depth that extractor fuses by default (``expected``|``median``,
+    the method yaml sets ``mesh.depth`` to it), and the loss terms it configures."""
+
+    primitive: str
+    kernel: str
+    outputs: tuple[str, ...]
+    mesh_extractor: str
+    mesh_depth: str
+    loss_terms: tuple[str, ...]
+
+
+@dataclass
+class GSConfig:
+    """3DGS 2023 hyper-parameters (§1.1, §1.8); step-valued fields are for a 30 000-step run and are
+    scaled by the Trainer to the configured iterations."""
+
+    position_lr_init: float = 0.00016
+    position_lr_final: float = 0.0000016
+    position_lr_max_steps: int = 30000
+    feature_lr: float = 0.0025
+    feature_rest_divisor: float = 20.0
+    opacity_lr: float = 0.05
+    scaling_lr: float = 0.005
+    rotation_lr: float = 0.001
+    sh_interval: int = 1000
+    init_opacity: float = 0.1
+    random_init_points: int = 100_000
+    max_init_points: int = 0
+    densify_grad_threshold: float = 0.0002
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    densify_from: int = 500
+    densify_until: int = 15000
+    densify_every: int = 100
+    opacity_reset_every: int = 3000
+    opacity_reset_value: float = 0.01
+    prune_screen_size: bool = False
+
+
+def cameras_extent(cameras) -> float:
+    """3DGS ``getNerfppNorm`` radius: 1.1 × max distance of a camera centre from the centres' mean (§0)."""
+    centres = np.stack([c.center for c in cameras])
+    return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max())
+
+
+def expon_lr(t: float, lr0: float, lr1: float) -> float:
+    """log-linear interpolation exp((1−t) ln lr0 + t ln lr1), t clamped to [0, 1] (§1.8)."""
+    t = min(max(t, 0.0), 1.0)
+    return math.exp((1 - t) * math.log(lr0) + t * math.log(lr1))
+
+
+def _export_atomic(mesh, out_path: Path) -> None:
+    """Export a trimesh to a temp file in the target folder, then ``os.replace`` it into place."""
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.stem}.", suffix=out_path.suffix, dir=out_path.parent)
+    os.close(fd)
+    try:
+        mesh.export(tmp)
+        os.replace(tmp, out_path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+class Method:
+    """Base class of the 3DGS-family methods (see the module docstring)."""
+
+    name = ""
+    Config = GSConfig
+    INFO: MethodInfo
+
+    def __init__(self):
+        self.gaussians: Gaussians | None = None
+        self.optimizer: torch.optim.Optimizer | None = None
+        self.sh_degree = 0
+        self.extent = 1.0
+
+    @classmethod
+    def info(cls) -> MethodInfo:
+        return cls.INFO
+
+    # ---- setup --------------------------------------------------------------------------------
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        """Create the Gaussians and the optimizer for ``scene`` under the resolved ``cfg``."""
+        self.cfg = cfg
+        self.params = self.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
+        self.scene_radius = scene.radius
+        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        self.extent = cameras_extent([scene.cameras[i] for i in views])
+        self.background = (1.0, 1.0, 1.0) if cfg.data.white_background else (0.0, 0.0, 0.0)
+        if cfg.mesh.depth not in DEPTH_OUTPUTS:
+            raise ConfigError(f"mesh.depth must be one of {sorted(DEPTH_OUTPUTS)}, got '{cfg.mesh.depth}'")
+        self.gaussians = self.initial_gaussians(scene, cfg)
+        self.optimizer = self.make_optimizer(self.gaussians)
+        self.sh_degree = 0
+
+    def initial_gaussians(self, scene: Scene, cfg: RunConfig) -> Gaussians:
+        """SfM points (seeded subsample to the caps) or ``random_init_points`` in the scene sphere (§1.1)."""
+        p, dims = self.params, 2 if self.info().primitive == "2d" else 3
+        rng = np.random.default_rng(cfg.seed)
+        if scene.points is not None and len(scene.points):
+            points, colors = np.asarray(scene.points), scene.colors
+            cap = min(x for x in (p.max_init_points, cfg.train.max_gaussians, len(points)) if x > 0)
+            if cap < len(points):
+                keep = np.sort(rng.choice(len(points), cap, replace=False))
+                points, colors = points[keep], None if colors is None else np.asarray(colors)[keep]
+            return Gaussians.from_points(points, colors, dims=dims, max_sh_degree=cfg.raster.sh_degree,
+                                         init_opacity=p.init_opacity, seed=cfg.seed)
+        n = p.random_init_points if cfg.train.max_gaussians <= 0 else min(p.random_init_points, cfg.train.max_gaussians)
+        if n <= 0:
+            raise ConfigError(f"scene '{scene.name}' has no SfM points, so method.random_init_points must be > 0")
+        g = Gaussians.random_in_sphere(n, scene.radius, dims=dims, max_sh_degree=cfg.raster.sh_degree, seed=cfg.seed)
+        g.params["opacity_logits"].data.fill_(math.log(p.init_opacity / (1 - p.init_opacity)))
+        return g
+
+    def learning_rates(self) -> dict[str, float]:
+        """Initial lr per parameter group (§1.8)."""
+        p = self.params
+        return {"means": p.position_lr_init * self.extent, "log_scales": p.scaling_lr, "quats": p.rotation_lr,
+                "opacity_logits": p.opacity_lr, "sh_dc": p.feature_lr, "sh_rest": p.feature_lr / p.feature_rest_divisor}
+
+    def make_optimizer(self, gaussians: Gaussians) -> torch.optim.Optimizer:
+        lrs = self.learning_rates()
+        groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()]
+        return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
+
+    # ---- what the Trainer asks for ------------------------------------------------------------
+    def strategy(self) -> Strategy:
+        """3DGS densification (§1.8) at the paper's 30k-step schedule; the Trainer scales it."""
+        p = self.params
+        return DefaultStrategy(
+            grad_threshold=p.densify_grad_threshold, percent_dense=p.percent_dense, prune_opacity=p.prune_opacity,
+            refine_start=p.densify_from, refine_stop=p.densify_until, refine_every=p.densify_every,
+            reset_every=p.opacity_reset_every, reset_value=p.opacity_reset_value,
+            prune_screen_size=p.prune_screen_size, white_background=self.cfg.data.white_background,
+            scene_extent=self.extent, max_gaussians=self.cfg.train.max_gaussians)
+
+    def loss_terms(self) -> dict[str, TermSpec]:
+        """The method's own terms not in the global registry (none for 3DGS/2DGS)."""
+        return {}
+
+    def term_params(self) -> dict[str, dict]:
+        """Parameters bound to registered terms (`gsbench.losses.active_terms` ``params``)."""
+        return {}
+
+    def loss_state(self) -> dict:
+        """The ``state`` argument of the loss terms."""
+        return {"gaussians": self.gaussians}
+
+    def update_schedules(self, step: int, scale: float) -> None:
+        """Position lr decay and SH degree for ``step`` (module docstring); ``scale`` = iterations/30000."""
+        p = self.params
+        t = step / scale_step(p.position_lr_max_steps, scale)
+        lr = expon_lr(t, p.position_lr_init * self.extent, p.position_lr_final * self.extent)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = lr
+        self.sh_degree = min(self.cfg.raster.sh_degree, step // scale_step(p.sh_interval, scale))
+
+    def render(self, camera, outputs) -> RenderOutput:
+        """Rasterize the current Gaussians with the method's kernel; only ``outputs`` are computed."""
+        r = self.cfg.raster
+        settings = RasterSettings(sh_degree=self.sh_degree, background=self.background, near_plane=r.near_plane,
+                                  far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d)
+        return rasterize(self.gaussians.raster_input(self.sh_degree), camera, kernel=self.info().kernel,
+                         outputs=tuple(sorted(outputs)), settings=settings)
+
+    # ---- mesh ---------------------------------------------------------------------------------
+    @torch.no_grad()
+    def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
+        """TSDF-fuse ``mesh.depth`` of every training view into ``out_path`` (.ply); returns its size."""
+        if cfg.mesh.extractor != "tsdf":
+            raise ConfigError(f"method '{self.name}' supports mesh.extractor 'tsdf', got '{cfg.mesh.extractor}'")
+        depth_key = DEPTH_OUTPUTS[cfg.mesh.depth]
+        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        depths, colors, alphas = [], [], []
+        for i in tqdm(views, desc="extract", unit="view", disable=None, leave=False):
+            out = self.render(scene.cameras[i], {depth_key, "alpha", "rgb"})
+            depths.append(getattr(out, depth_key).numpy())
+            colors.append(out.rgb.clamp(0, 1).numpy())
+            alphas.append(out.alpha.numpy())
+        masks = [scene.masks[i] for i in views] if cfg.data.use_masks and scene.masks is not None else None
+        mesh = tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
+                           alphas=alphas, masks=masks)
+        _export_atomic(mesh, Path(out_path))
+        return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))}
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"params": {k: v.detach().clone() for k, v in self.gaussians.params.items()},
+                "max_sh_degree": self.gaussians.max_sh_degree, "optimizer": self.optimizer.state_dict(),
+                "sh_degree": self.sh_degree}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Replace Gaussians and optimizer by the checkpointed ones (after `setup`)."""
+        if set(state["params"]) != set(self.gaussians.params):
+            raise ConfigError(f"checkpoint of method '{self.name}' holds parameters {sorted(state['params'])}, "
+                              f"expected {sorted(self.gaussians.params)}; was it written by another method?")
+        self.gaussians = Gaussians(**{k: v.clone() for k, v in state["params"].items()},
+                                   max_sh_degree=state["max_sh_degree"])
+        self.optimizer = self.make_optimizer(self.gaussians)
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.sh_degree = int(state["sh_degree"])

@@ -1,0 +1,20 @@
+"""3DGS (Kerbl et al. 2023), methods-3dgs-2dgs-sugar.md §1.
+
+EWA splatting of 3D Gaussians (``ewa`` kernel), L = 0.8·L1 + 0.2·(1 − SSIM) (§1.7, weights in
+``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.strategy.DefaultStrategy`, §1.8)
+with prune opacity 0.005, identity rotations at init (§1.1). 3DGS has no mesh extractor of its own;
+the benchmark fuses the *expected* depth Σ wᵢzᵢ / Σ wᵢ with the 2DGS TSDF settings (§1.10, §6 item 22).
+"""
+
+from __future__ import annotations
+
+from gsbench.methods.base import GSConfig, Method, MethodInfo
+
+
+class GS3D(Method):
+    """3D Gaussian Splatting; every hyper-parameter is `GSConfig` (the 2023 release defaults)."""
+
+    name = "3dgs"
+    Config = GSConfig
+    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"), mesh_extractor="tsdf",
+                      mesh_depth="expected", loss_terms=("l1", "dssim"))

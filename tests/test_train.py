@@ -1,0 +1,167 @@
+"""The Trainer (gsbench.train): schedule scaling, camera sampling, bit-exact resume, outputs that follow
+the active terms, numerical errors, masks, metrics log."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import gsbench.methods.base as method_base
+from gsbench.data.loader import load_scene, make_scene
+from gsbench.errors import NumericalError
+from gsbench.registry import METHODS
+from gsbench.runner import resolve_run
+from gsbench.strategy import DefaultStrategy
+from gsbench.train import (CHECKPOINT, FINAL_CHECKPOINT, METRICS, CameraSampler, Trainer, _target_images,
+                           load_checkpoint, scale_step, scaled_losses, scaled_strategy)
+
+# Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection, before
+# any test loads the rasterizer extension.
+TINY = ["data.downscale=1", "method.random_init_points=400", "train.log_every=5"]
+
+
+@pytest.fixture(scope="session")
+def tiny_spot(tmp_path_factory):
+    """synthetic/spot at 64x48, generated once per session (shared by the method test files)."""
+    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
+
+
+def make_trainer(method, scene_dir, run_dir, *overrides):
+    cfg = resolve_run(method, str(scene_dir), preset="quick", overrides=[*TINY, *overrides])
+    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
+    m = METHODS.get(method)()
+    m.setup(scene, cfg)
+    return Trainer(m, scene, cfg, run_dir)
+
+
+# ---- schedule scaling ---------------------------------------------------------------------------
+
+
+def test_scale_step_keeps_unset_values_and_rounds_to_at_least_one():
+    assert scale_step(7000, 0.1) == 700
+    assert scale_step(3000, 1 / 300) == 10
+    assert scale_step(1, 1e-4) == 1
+    assert scale_step(0, 0.1) == 0 and scale_step(-1, 0.1) == -1
+
+
+def test_losses_scale_start_and_end_but_not_weights():
+    losses = {"normal_consistency": {"weight": 0.05, "start": 7000, "end": -1},
+              "depth_distortion": {"weight": 1000, "start": 3000, "end": 20000}}
+    assert scaled_losses(losses, 0.1) == {"normal_consistency": {"weight": 0.05, "start": 700, "end": -1},
+                                          "depth_distortion": {"weight": 1000.0, "start": 300, "end": 2000}}
+
+
+def test_strategy_window_scales_but_refine_interval_stays_and_resets_align_with_it():
+    s = scaled_strategy(DefaultStrategy(), 3000)
+    assert (s.refine_start, s.refine_stop, s.refine_every, s.reset_every) == (50, 1500, 100, 300)
+    paper = scaled_strategy(DefaultStrategy(), 30000)
+    assert paper == DefaultStrategy()
+    short = scaled_strategy(DefaultStrategy(), 300)
+    assert short.reset_every % short.refine_every == 0 and short.refine_every == 100
+
+
+def test_camera_sampler_draws_every_view_once_per_epoch_and_is_seeded():
+    a, b = CameraSampler(range(7), seed=3), CameraSampler(range(7), seed=3)
+    draws = [a.next() for _ in range(21)]
+    assert draws == [b.next() for _ in range(21)]
+    for epoch in range(3):
+        assert sorted(draws[7 * epoch:7 * epoch + 7]) == list(range(7))
+    state = a.state_dict()
+    ahead = [a.next() for _ in range(5)]
+    a.load_state_dict(state)
+    assert [a.next() for _ in range(5)] == ahead
+
+
+# ---- the loop -------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def restore_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def test_resume_gives_bit_identical_parameters(tiny_spot, tmp_path, monkeypatch, restore_threads):
+    """24 steps straight vs 12 + crash + resume + 12, with densification (every 4 steps) in between.
+
+    One thread: the fast rasterizer's backward hands tiles to threads dynamically and sums per-thread
+    gradient buffers, so with more threads the last bits vary from run to run (reported upstream)."""
+    overrides = ("threads=1", "train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
+                 "method.densify_until=30000", "method.opacity_reset_every=30000")
+    straight = make_trainer("3dgs", tiny_spot, tmp_path / "a", *overrides)
+    straight.fit()
+
+    interrupted = make_trainer("3dgs", tiny_spot, tmp_path / "b", *overrides)
+    step = interrupted.train_step
+
+    def crash_after_checkpoint(t):
+        if t == 13:
+            raise KeyboardInterrupt
+        return step(t)
+
+    monkeypatch.setattr(interrupted, "train_step", crash_after_checkpoint)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.fit()
+    assert (tmp_path / "b" / CHECKPOINT).is_file() and not (tmp_path / "b" / FINAL_CHECKPOINT).exists()
+    monkeypatch.undo()
+    resumed = make_trainer("3dgs", tiny_spot, tmp_path / "b", *overrides)
+    result = resumed.fit()
+    assert result.resumed_from == 12 and result.steps == 24
+    assert not (tmp_path / "b" / CHECKPOINT).exists()
+    assert len(straight.method.gaussians) != 400, "densification should have changed the count"
+    for name, param in straight.method.gaussians.params.items():
+        assert torch.equal(param, resumed.method.gaussians.params[name]), name
+    a = load_checkpoint(tmp_path / "a" / FINAL_CHECKPOINT)["method"]["optimizer"]["state"]
+    b = load_checkpoint(tmp_path / "b" / FINAL_CHECKPOINT)["method"]["optimizer"]["state"]
+    assert all(torch.equal(a[k]["exp_avg_sq"], b[k]["exp_avg_sq"]) for k in a)
+    steps = [json.loads(line)["step"] for line in (tmp_path / "b" / METRICS).read_text().splitlines()]
+    assert steps == [5, 10, 15, 20, 24]
+
+
+def test_render_requests_only_the_outputs_of_active_terms(tiny_spot, tmp_path, monkeypatch):
+    """2DGS with normal_consistency weight 0: never 'normal'; 'distortion' only from its (scaled) start."""
+    calls = []
+    real = method_base.rasterize
+
+    def spy(*args, outputs, **kwargs):
+        calls.append(frozenset(outputs))
+        return real(*args, outputs=outputs, **kwargs)
+
+    monkeypatch.setattr(method_base, "rasterize", spy)
+    trainer = make_trainer("2dgs", tiny_spot, tmp_path, "train.iterations=20", "losses.normal_consistency.weight=0",
+                           "losses.depth_distortion.start=15000")  # scaled start: step 10
+    trainer.fit()
+    assert len(calls) == 20
+    assert all("normal" not in c and "median_depth" not in c for c in calls)
+    assert calls[:9] == [frozenset({"rgb"})] * 9
+    assert calls[9:] == [frozenset({"rgb", "distortion"})] * 11
+
+
+def test_non_finite_parameter_is_a_numerical_error_naming_it_and_the_step(tiny_spot, tmp_path):
+    trainer = make_trainer("3dgs", tiny_spot, tmp_path, "train.iterations=10")
+
+    def poison(optimizer, args, kwargs):
+        trainer.method.gaussians.params["sh_dc"].data[3, 0, 1] = math.nan
+
+    trainer.method.optimizer.register_step_post_hook(poison)
+    with pytest.raises(NumericalError, match=r"step 1: parameter 'sh_dc'"):
+        trainer.fit()
+
+
+def test_masked_targets_show_the_background_outside_the_mask(tiny_spot):
+    cfg = resolve_run("2dgs", str(tiny_spot), preset="quick", overrides=TINY)
+    scene = load_scene(cfg.scene, downscale=1)
+    scene.images = [np.full_like(img, 0.7) for img in scene.images]
+    images, masks = _target_images(scene, cfg, (0.0, 0.0, 1.0))
+    mask = masks[0]
+    assert mask is not None and mask.any() and (~mask).any()
+    assert torch.equal(images[0][~mask], torch.tensor([0.0, 0.0, 1.0]).expand(int((~mask).sum()), 3))
+    assert torch.allclose(images[0][mask], torch.tensor(0.7))
+    cfg.data.use_masks = False
+    images, masks = _target_images(scene, cfg, (0.0, 0.0, 1.0))
+    assert masks[0] is None and torch.allclose(images[0], torch.tensor(0.7))
