@@ -4,9 +4,9 @@ Written for clarity, not speed: every (pixel, Gaussian) pair is evaluated as a (
 (P = H·W pixels in row-major order, N Gaussians), Gaussians are sorted once globally by centre
 camera z (stable, ties by index), and compositing uses cumulative products over the sorted axis.
 Gradients come from autograd; the dtype follows ``gaussians.means`` (float64 for gradchecks).
-The contract is the docstring of `gsbench.raster.types`; doc references below are to
-``/work/shared/docs/methods-3dgs-2dgs-sugar.md`` ("3DGS §", "2DGS §") and
-``/work/shared/docs/methods-gof-radegs-ibgs.md`` ("GOF §", "RaDe §").
+The contract is the docstring of `gsbench.raster.types`; doc references below are to the project's
+method specs ``methods-3dgs-2dgs-sugar.md`` ("3DGS §", "2DGS §") and ``methods-gof-radegs-ibgs.md``
+("GOF §", "RaDe §").
 
 Decisions (where the contract leaves room; the fast path must match these):
 
