@@ -714,6 +714,61 @@ int dispatch_kernel(GsArgs& A, bool fwd) {
     }
 }
 
+// Counting sort of M depth-ordered entries into per-tile lists, shared by gs_bin and gs_bin_sorted:
+// per-thread tile counts, a prefix sum into ``offsets`` (ntiles + 1), then each thread fills the tiles
+// of its own band of tile rows (bands hold about equal pair counts), reading the entries in depth
+// order so every tile list stays front to back. ``rect_of(j)`` gives entry j's x0 x1 y0 y1 (exclusive
+// ends), ``id_of(j)`` its Gaussian id. Returns the pair count, or -1 if it exceeds ``capacity``.
+template <class RectOf, class IdOf>
+int64_t bin_entries(int64_t M, RectOf rect_of, IdOf id_of, int64_t tiles_x, int64_t tiles_y, int32_t* offsets,
+                    int32_t* list, int64_t capacity, int64_t nthreads) {
+    const int64_t ntiles = tiles_x * tiles_y;
+    const int nt = (int)std::max<int64_t>(1, nthreads);
+    std::vector<std::vector<int32_t>> counts(nt, std::vector<int32_t>(ntiles, 0));
+#pragma omp parallel num_threads(nt)
+    {
+        auto& c = counts[omp_get_thread_num()];
+#pragma omp for schedule(static)
+        for (int64_t j = 0; j < M; ++j) {
+            const int32_t* r = rect_of(j);
+            for (int y = r[2]; y < r[3]; ++y)
+                for (int x = r[0]; x < r[1]; ++x) c[y * tiles_x + x]++;
+        }
+    }
+    std::vector<int32_t> cursor(ntiles + 1, 0);
+    for (int64_t t = 0; t < ntiles; ++t) {
+        int32_t tot = 0;
+        for (int k = 0; k < nt; ++k) tot += counts[k][t];
+        cursor[t + 1] = cursor[t] + tot;
+    }
+    if (cursor[ntiles] > capacity) return -1;
+    std::memcpy(offsets, cursor.data(), sizeof(int32_t) * (ntiles + 1));
+    std::vector<int> band(nt + 1, (int)tiles_y);  // rows [band[k], band[k+1]) belong to thread k
+    band[0] = 0;
+    {
+        const int64_t total = cursor[ntiles];
+        int k = 1;
+        for (int y = 0; y < tiles_y && k < nt; ++y)
+            while (k < nt && cursor[(y + 1) * tiles_x] >= total * k / nt) band[k++] = y + 1;
+    }
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+    for (int k = 0; k < nt; ++k) {
+        const int ylo = band[k], yhi = band[k + 1];
+        if (ylo >= yhi) continue;
+        int32_t* cur = cursor.data();
+        for (int64_t j = 0; j < M; ++j) {
+            const int32_t* r = rect_of(j);
+            const int y0 = std::max<int>(r[2], ylo), y1 = std::min<int>(r[3], yhi);
+            const int32_t g = id_of(j);
+            for (int y = y0; y < y1; ++y) {
+                int32_t* c = cur + y * tiles_x;
+                for (int x = r[0]; x < r[1]; ++x) list[c[x]++] = g;
+            }
+        }
+    }
+    return offsets[ntiles];
+}
+
 }  // namespace
 
 extern "C" {
@@ -729,54 +784,12 @@ int gs_backward(GsArgs* A) {
     return A->dtype == 0 ? dispatch_kernel<float>(*A, false) : dispatch_kernel<double>(*A, false);
 }
 
-// Counting sort of the depth-ordered visible Gaussians into per-tile lists (parallel: counts per thread,
-// then each thread fills the tiles of its own band of tile rows, reading the Gaussians in depth order).
-// order: M visible Gaussian ids sorted by (depth, id); rect: (N, 4) x0 x1 y0 y1 (exclusive ends).
+// gs_bin: order = M visible Gaussian ids sorted by (depth, id); rect: (N, 4) per Gaussian.
 int64_t gs_bin(int64_t M, const int64_t* order, const int32_t* rect, int64_t tiles_x, int64_t tiles_y,
                int32_t* offsets, int32_t* list, int64_t capacity, int64_t nthreads) {
-    const int64_t ntiles = tiles_x * tiles_y;
-    const int nt = (int)std::max<int64_t>(1, nthreads);
-    std::vector<std::vector<int32_t>> counts(nt, std::vector<int32_t>(ntiles, 0));
-#pragma omp parallel num_threads(nt)
-    {
-        auto& c = counts[omp_get_thread_num()];
-#pragma omp for schedule(static)
-        for (int64_t j = 0; j < M; ++j) {
-            const int32_t* r = rect + order[j] * 4;
-            for (int y = r[2]; y < r[3]; ++y)
-                for (int x = r[0]; x < r[1]; ++x) c[y * tiles_x + x]++;
-        }
-    }
-    std::vector<int32_t> cursor(ntiles + 1, 0);
-    for (int64_t t = 0; t < ntiles; ++t) {
-        int32_t tot = 0;
-        for (int k = 0; k < nt; ++k) tot += counts[k][t];
-        cursor[t + 1] = cursor[t] + tot;
-    }
-    if (cursor[ntiles] > capacity) return -1;
-    std::memcpy(offsets, cursor.data(), sizeof(int32_t) * (ntiles + 1));
-    // bands of tile rows with about equal pair counts: rows [band[k], band[k+1])
-    std::vector<int> band(nt + 1, (int)tiles_y);
-    band[0] = 0;
-    {
-        const int64_t total = cursor[ntiles];
-        int k = 1;
-        for (int y = 0; y < tiles_y && k < nt; ++y)
-            while (k < nt && cursor[(y + 1) * tiles_x] >= total * k / nt) band[k++] = y + 1;
-    }
-#pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int k = 0; k < nt; ++k) {
-        const int ylo = band[k], yhi = band[k + 1];
-        if (ylo >= yhi) continue;
-        for (int64_t j = 0; j < M; ++j) {
-            const int32_t g = (int32_t)order[j];
-            const int32_t* r = rect + (int64_t)g * 4;
-            const int y0 = std::max<int>(r[2], ylo), y1 = std::min<int>(r[3], yhi);
-            for (int y = y0; y < y1; ++y)
-                for (int x = r[0]; x < r[1]; ++x) list[cursor[y * tiles_x + x]++] = g;
-        }
-    }
-    return offsets[ntiles];
+    return bin_entries(
+        M, [&](int64_t j) { return rect + order[j] * 4; }, [&](int64_t j) { return (int32_t)order[j]; },
+        tiles_x, tiles_y, offsets, list, capacity, nthreads);
 }
 
 
@@ -867,54 +880,13 @@ int64_t gs_depth_order(int64_t N, const uint8_t* visible, const void* depth, int
     return M;
 }
 
-// gs_bin on the output of gs_depth_order (sequential reads only).
+// gs_bin on the output of gs_depth_order: rs holds the rectangles already in depth order, so every
+// read is sequential.
 int64_t gs_bin_sorted(int64_t M, const int32_t* order, const int32_t* rs, int64_t tiles_x, int64_t tiles_y,
                       int32_t* offsets, int32_t* list, int64_t capacity, int64_t nthreads) {
-    const int64_t ntiles = tiles_x * tiles_y;
-    const int nt = (int)std::max<int64_t>(1, nthreads);
-    std::vector<std::vector<int32_t>> counts(nt, std::vector<int32_t>(ntiles, 0));
-#pragma omp parallel num_threads(nt)
-    {
-        auto& c = counts[omp_get_thread_num()];
-#pragma omp for schedule(static)
-        for (int64_t j = 0; j < M; ++j) {
-            const int32_t* r = rs + 4 * j;
-            for (int y = r[2]; y < r[3]; ++y)
-                for (int x = r[0]; x < r[1]; ++x) c[y * tiles_x + x]++;
-        }
-    }
-    std::vector<int32_t> cursor(ntiles + 1, 0);
-    for (int64_t t = 0; t < ntiles; ++t) {
-        int32_t tot = 0;
-        for (int k = 0; k < nt; ++k) tot += counts[k][t];
-        cursor[t + 1] = cursor[t] + tot;
-    }
-    if (cursor[ntiles] > capacity) return -1;
-    std::memcpy(offsets, cursor.data(), sizeof(int32_t) * (ntiles + 1));
-    std::vector<int> band(nt + 1, (int)tiles_y);
-    band[0] = 0;
-    {
-        const int64_t total = cursor[ntiles];
-        int k = 1;
-        for (int y = 0; y < tiles_y && k < nt; ++y)
-            while (k < nt && cursor[(y + 1) * tiles_x] >= total * k / nt) band[k++] = y + 1;
-    }
-#pragma omp parallel for num_threads(nt) schedule(static, 1)
-    for (int k = 0; k < nt; ++k) {
-        const int ylo = band[k], yhi = band[k + 1];
-        if (ylo >= yhi) continue;
-        int32_t* cur = cursor.data();
-        for (int64_t j = 0; j < M; ++j) {
-            const int32_t* r = rs + 4 * j;
-            const int y0 = std::max<int>(r[2], ylo), y1 = std::min<int>(r[3], yhi);
-            const int32_t g = order[j];
-            for (int y = y0; y < y1; ++y) {
-                int32_t* c = cur + y * tiles_x;
-                for (int x = r[0]; x < r[1]; ++x) list[c[x]++] = g;
-            }
-        }
-    }
-    return offsets[ntiles];
+    return bin_entries(
+        M, [&](int64_t j) { return rs + 4 * j; }, [&](int64_t j) { return order[j]; },
+        tiles_x, tiles_y, offsets, list, capacity, nthreads);
 }
 
 }  // extern "C"
