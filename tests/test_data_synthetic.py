@@ -136,12 +136,33 @@ def test_dtu_gt_files_layout(scenes):
     # DTUeval-python indexing: most GT points fall in observed voxels, all inside the grid
     g = np.round((stl - obs["BB"][0]) / obs["Res"][0, 0]).astype(int)
     assert np.all(g >= 0) and np.all(g < obs["ObsMask"].shape)
-    assert obs["ObsMask"][g[:, 0], g[:, 1], g[:, 2]].mean() > 0.5
+    assert obs["ObsMask"][g[:, 0], g[:, 1], g[:, 2]].mean() > 0.99
     plane = loadmat(root / "ObsMask" / f"Plane{scan}.mat")["P"]
     assert plane.shape == (4, 1) and np.all(np.hstack([stl, np.ones((len(stl), 1))]) @ plane > 0)
     # the normalisation maps the normalised frame to DTU mm and the object fills the unit sphere
     radius = np.linalg.norm(scene.normalisation.invert(stl), axis=1).max()
     assert 0.8 < radius <= 1.0
+
+
+def test_dtu_stl_holds_only_the_observed_surface(scenes):
+    """Like a DTU scan, the stl samples the surface seen by >= 2 views; the unseen underside is left out."""
+    import open3d as o3d
+
+    from gsbench.data.groundtruth import sample_surface, visible_counts
+    from gsbench.data.similarity import decompose, transform_points
+    from gsbench.data.render import Renderer
+    from gsbench.data.synthetic import DTU_GT_SPACING, DTU_MIN_VIEWS, TAU_FRACTION
+
+    name, fmt, res = CASES["dtu"]
+    plan = plan_scene(name, fmt, res)
+    scene = load_scene(scenes["dtu"], load_images=False)
+    stl = np.asarray(o3d.io.read_point_cloud(str(scene.gt.root / "Points" / "stl" / f"stl{scene.gt.scan:03d}_total.ply")).points)
+    whole = sample_surface(plan.surface, DTU_GT_SPACING / decompose(plan.obj_to_gt)[0], plan.seed)
+    renderer = Renderer(plan.surface)
+    depths = [renderer.render(cam).depth for cam in plan.cameras]
+    seen = visible_counts(whole, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    assert 0 < seen.sum() < len(whole)
+    assert np.allclose(stl, transform_points(plan.obj_to_gt, whole[seen]), atol=1e-6)
 
 
 def test_tnt_gt_files_layout(scenes):

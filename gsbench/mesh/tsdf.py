@@ -42,8 +42,8 @@ MIN_WEIGHT = 0.5  # open3d keeps weight > this: voxels observed at least once (l
 def fusion_parameters(cfg: MeshConfig, scene_radius: float) -> dict[str, float]:
     """Absolute ``voxel_size``, ``sdf_trunc``, ``depth_trunc`` (scene units) from ``cfg``."""
     scale = 1.0 if cfg.absolute else float(scene_radius)
-    params = {"voxel_size": cfg.voxel_size * scale, "sdf_trunc": cfg.sdf_trunc * scale,
-              "depth_trunc": cfg.depth_trunc * scale}
+    params = {"voxel_size": float(cfg.voxel_size) * scale, "sdf_trunc": float(cfg.sdf_trunc) * scale,
+              "depth_trunc": float(cfg.depth_trunc) * scale}
     if not all(np.isfinite(v) and v > 0 for v in params.values()):
         raise MeshError(f"TSDF parameters must be positive and finite, got {params} (cfg voxel_size="
                         f"{cfg.voxel_size}, sdf_trunc={cfg.sdf_trunc}, depth_trunc={cfg.depth_trunc}, "

@@ -4,10 +4,13 @@
 // Per-Gaussian payload layout: see gsbench/raster/projection.py. Pixel (i, j) is evaluated at
 // (i + 0.5, j + 0.5); its ray is ((x - cx)/fx, (y - cy)/fy, 1).
 //
-// Loop order: per 16x16 tile (OpenMP, dynamic), Gaussians of the tile in depth order (outer), and the
+// Loop order: per 16x16 tile (OpenMP), Gaussians of the tile in depth order (outer), and the
 // 16 pixels of one tile row as SIMD lanes (inner). Rows outside a Gaussian's alpha >= 1/255 box are
 // skipped; this never changes a result. The backward walks the list back to front, recomputes alpha,
 // reduces each Gaussian's gradient over the tile's lanes, then adds it to a per-thread buffer.
+// Determinism: the backward deals tiles round-robin (static, 1), not dynamically, and sums the
+// per-thread buffers in thread order, so the gradients are bit-identical from run to run at a given
+// thread count (training resumes exactly); the forward writes each pixel once, so its schedule is free.
 //
 // Built with -ffinite-math-only: no isnan/isinf here (inputs are validated in Python) and all
 // sentinels are finite.
@@ -437,7 +440,7 @@ void backward_impl(GsArgs& A) {
         alignas(64) T rxs[TS];
         alignas(64) T acc[NS][TS];
         alignas(64) T proxy_dal[TS];
-#pragma omp for schedule(dynamic, 1)
+#pragma omp for schedule(static, 1)
         for (int tile = 0; tile < ntiles; ++tile) {
             const int tx = tile % TX, ty = tile / TX;
             const int x0 = tx * TS, y0 = ty * TS;
