@@ -3,7 +3,12 @@
 Layers, each overriding the previous (DESIGN.md §4):
 
     code defaults <- configs/methods/<method>.yaml <- configs/datasets/<dataset>.yaml
+                  <- configs/methods/<method>.<dataset>.yaml
                   <- configs/presets/<preset>.yaml <- user YAML files <- --set a.b=c
+
+The optional ``<method>.<dataset>.yaml`` layer holds what a paper sets per dataset for one method
+(e.g. GOF's λ_d 1000 on DTU and 100 on TnT, its tetrahedra mesh on TnT); it overrides the dataset
+layer and is overridden by the preset.
 
 Keys are strict: an unknown key anywhere is a `ConfigError` with a "did you mean" suggestion.
 The ``method`` section holds the method name plus its hyper-parameters; a plain string
@@ -75,7 +80,12 @@ class RasterConfig:
 
 @dataclass
 class MeshConfig:
-    """Mesh extraction; lengths relative to the scene radius unless ``absolute`` is true."""
+    """Mesh extraction; lengths relative to the scene radius unless ``absolute`` is true.
+
+    ``extractor``: ``tsdf`` (fused rendered ``depth``; ``voxel_size``, ``sdf_trunc``, ``depth_trunc``,
+    ``num_clusters``) or ``tets`` (GOF marching tetrahedra on the opacity ``level`` set with
+    ``bisection_steps`` bisection steps, GOF/RaDe doc §1.7); which ones a method supports is its own.
+    """
 
     extractor: str = "tsdf"
     depth: str = "median"
@@ -84,6 +94,8 @@ class MeshConfig:
     depth_trunc: float = 3.0
     absolute: bool = False
     num_clusters: int = 1
+    level: float = 0.5
+    bisection_steps: int = 8
 
 
 @dataclass
@@ -273,7 +285,9 @@ def resolve(
     """
     root = config_root()
     merged: dict = {"method": {"name": method}, "scene": scene, "preset": preset}
-    layers = [root / "methods" / f"{method}.yaml", root / "datasets" / f"{dataset_of(scene)}.yaml"]
+    dataset = dataset_of(scene)
+    layers = [root / "methods" / f"{method}.yaml", root / "datasets" / f"{dataset}.yaml",
+              root / "methods" / f"{method}.{dataset}.yaml"]
     preset_file = root / "presets" / f"{preset}.yaml"
     if not preset_file.is_file():
         available = sorted(p.stem for p in (root / "presets").glob("*.yaml"))

@@ -202,9 +202,37 @@ def dssim_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool =
     return 1.0 - ssim(render.rgb, batch.image.to(render.rgb.dtype), batch.mask if use_mask else None)
 
 
-def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
-    """L_d = mean over pixels of the distortion map Σ_i Σ_{j<i} w_i w_j (m_i − m_j)² (2DGS §2.4, §2.7)."""
-    return render.distortion.mean()
+DISTORTION_EPS = 1e-7  # GOF: distortion / ((1 − T_final)² + 1e-7), GOF/RaDe doc §1.3
+
+
+def edge_weights(image: torch.Tensor) -> torch.Tensor:
+    """exp(−g) (H,W) of an (H,W,3) image, 0 on the 1-pixel border (GOF/RaDe v1 edge-aware distortion,
+    GOF/RaDe doc §2.6): g = the largest of the 4 neighbour differences mean_c |I(p) − I(q)|."""
+    centre = image[1:-1, 1:-1]
+    diffs = [(centre - image[1:-1, :-2]), (centre - image[1:-1, 2:]), (centre - image[:-2, 1:-1]),
+             (centre - image[2:, 1:-1])]
+    g = torch.stack([d.abs().mean(-1) for d in diffs], -1).max(-1).values
+    return F.pad(torch.exp(-g), (1, 1, 1, 1))
+
+
+def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict, normalize: bool = False,
+                          edge_aware: bool = False) -> torch.Tensor:
+    """L_d = mean over pixels of the distortion map Σ_i Σ_{j<i} w_i w_j (m_i − m_j)² (2DGS §2.4, §2.7).
+
+    ``normalize`` (GOF §1.3, RaDe v1 §2.6): the map divided by stopgrad(alpha)² + 1e-7 (GOF divides by
+    (1 − T_final)² + 1e-7 with detached weights). ``edge_aware`` (RaDe v1 §2.6): multiplied per pixel
+    by `edge_weights` of the GT image. Both off in 2DGS.
+    """
+    distortion = render.distortion
+    if normalize:
+        distortion = distortion / (render.alpha.detach() ** 2 + DISTORTION_EPS)
+    if edge_aware:
+        distortion = distortion * edge_weights(batch.image.to(distortion.dtype))
+    return distortion.mean()
+
+
+def _depth_distortion_requires(params: Mapping) -> frozenset:
+    return frozenset({"distortion", "alpha"} if params["normalize"] else {"distortion"})
 
 
 def pixel_rays(camera: Camera, dtype=torch.float32) -> torch.Tensor:
@@ -249,23 +277,51 @@ def surface_depth(render: RenderOutput, depth_ratio: float) -> torch.Tensor:
     return (1 - r) * render.depth + r * render.median_depth
 
 
-def normal_consistency_term(render: RenderOutput, batch: Batch, state: dict, depth_ratio: float = 1.0
-                            ) -> torch.Tensor:
-    """L_n = mean over all H×W pixels of 1 − n_r · (n_d · stopgrad(alpha)) (2DGS §2.7).
+NORMAL_MIXES = ("depth", "normal")
 
-    n_r: the rendered normal (unnormalised, length ≈ alpha); n_d = `depth_to_normal` of the surface
-    depth (1 − r)·expected + r·median with r = ``depth_ratio`` (2DGS ``depth_ratio``; its code default
-    is 0, its DTU/TnT scripts use 1). As in 2DGS, background and the 1-pixel border (n_d = 0)
-    contribute a constant 1 each, which carries no gradient.
+
+def _check_mix(mix: str) -> str:
+    if mix not in NORMAL_MIXES:
+        raise ConfigError(f"normal_consistency mix must be one of {NORMAL_MIXES} (2DGS: depth, RaDe-GS: normal), "
+                          f"got {mix!r}")
+    return mix
+
+
+def _depth_normal(render: RenderOutput, camera: Camera, depth_ratio: float, mix: str) -> torch.Tensor:
+    """n_d of `normal_consistency_term`: the normal of the mixed depth, or the mix of the two normals."""
+    r = _check_depth_ratio(depth_ratio)
+    if _check_mix(mix) == "depth" or r in (0.0, 1.0):
+        return depth_to_normal(surface_depth(render, r), camera)
+    return (1 - r) * depth_to_normal(render.depth, camera) + r * depth_to_normal(render.median_depth, camera)
+
+
+def normal_consistency_term(render: RenderOutput, batch: Batch, state: dict, depth_ratio: float = 1.0,
+                            normalize: bool = False, mix: str = "depth") -> torch.Tensor:
+    """L_n = mean over all H×W pixels of 1 − n_r · n_d (2DGS §2.7; GOF §1.6; RaDe-GS §2.6).
+
+    n_d from ``mix`` and r = ``depth_ratio``:
+    - ``depth`` (2DGS): `depth_to_normal` of the surface depth (1 − r)·expected + r·median (2DGS
+      ``depth_ratio``; its code default is 0, its DTU/TnT scripts use 1; GOF: r = 1, median depth);
+    - ``normal`` (RaDe-GS): (1 − r)·N(expected) + r·N(median), i.e.
+      L_n = (1 − r)·mean(1 − n_r·N(expected)) + r·mean(1 − n_r·N(median)) (RaDe ``depth_ratio`` 0.6).
+
+    n_r with ``normalize`` False (2DGS): the rendered normal (unnormalised, length ≈ alpha) against
+    n_d·stopgrad(alpha); True (GOF, RaDe-GS): the rendered normal normalised, against n_d.
+    Background and the 1-pixel border (n_d = 0) contribute a constant 1 each, which carries no gradient.
     """
-    n_d = depth_to_normal(surface_depth(render, depth_ratio), batch.camera) * render.alpha.detach()[..., None]
-    return (1.0 - (render.normal * n_d).sum(-1)).mean()
+    n_d = _depth_normal(render, batch.camera, depth_ratio, mix)
+    if normalize:
+        n_r = F.normalize(render.normal, dim=-1)
+    else:
+        n_r, n_d = render.normal, n_d * render.alpha.detach()[..., None]
+    return (1.0 - (n_r * n_d).sum(-1)).mean()
 
 
 def _normal_consistency_requires(params: Mapping) -> frozenset:
     r = _check_depth_ratio(params["depth_ratio"])
+    _check_mix(params["mix"])
     depths = {"depth"} if r == 0.0 else {"median_depth"} if r == 1.0 else {"depth", "median_depth"}
-    return frozenset({"normal", "alpha"} | depths)
+    return frozenset({"normal"} | depths | (set() if params["normalize"] else {"alpha"}))
 
 
 def _gaussians(state: dict, term: str):
@@ -296,8 +352,9 @@ def opacity_entropy_term(render: RenderOutput, batch: Batch, state: dict) -> tor
 
 register_term("l1", l1_term, {"rgb"}, params={"use_mask": False})
 register_term("dssim", dssim_term, {"rgb"}, params={"use_mask": False})
-register_term("depth_distortion", depth_distortion_term, {"distortion"})
-register_term("normal_consistency", normal_consistency_term, params={"depth_ratio": 1.0},
-              requires_fn=_normal_consistency_requires)
+register_term("depth_distortion", depth_distortion_term, params={"normalize": False, "edge_aware": False},
+              requires_fn=_depth_distortion_requires)
+register_term("normal_consistency", normal_consistency_term,
+              params={"depth_ratio": 1.0, "normalize": False, "mix": "depth"}, requires_fn=_normal_consistency_requires)
 register_term("flatten", flatten_term)
 register_term("opacity_entropy", opacity_entropy_term)

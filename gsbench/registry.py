@@ -74,6 +74,8 @@ METHODS = Registry(
     {
         "3dgs": "gsbench.methods.gs3d:GS3D",
         "2dgs": "gsbench.methods.gs2d:GS2D",
+        "gof": "gsbench.methods.gof:GOF",
+        "radegs": "gsbench.methods.radegs:RaDeGS",
     },
     "gsbench.methods",
 )

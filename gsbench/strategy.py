@@ -8,7 +8,8 @@ checkpoints, and the caller runs, per training step (``step`` = 1-based iteratio
     loss.backward();           strategy.step_post_backward(gaussians, optimizer, state, step, out)
     optimizer.step()
 
-`DefaultStrategy` is 3DGS 2023 (methods-3dgs-2dgs-sugar.md §1.8); `NoStrategy` does nothing
+`DefaultStrategy` is 3DGS 2023 (methods-3dgs-2dgs-sugar.md §1.8); `AbsGradStrategy` is GOF's and
+RaDe-GS's (methods-gof-radegs-ibgs.md §1.5, with the 3D filter of §1.1); `NoStrategy` does nothing
 (SuGaR coarse/refinement). Densify and prune keep the Adam state in step with the rows of every
 parameter group (`append_params`, `keep_params`): new rows get zero moments, removed rows drop
 theirs. Replaced parameters have no ``.grad``, so the Adam step right after a densification skips
@@ -25,6 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from gsbench.errors import ConfigError
+from gsbench.filter3d import Filter3D, filter_coefficient
 from gsbench.gaussians import Gaussians
 from gsbench.raster.reference import quat_to_rotmat
 from gsbench.raster.types import RenderOutput
@@ -77,10 +79,28 @@ def keep_params(gaussians: Gaussians, optimizer: torch.optim.Optimizer, keep: to
         _swap(gaussians, optimizer, name, param.detach()[keep], lambda m: m[keep])
 
 
-def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value: float) -> None:
-    """o ← min(o, value) stored as a logit, and zero that group's Adam moments (3DGS ``reset_opacity``)."""
-    o = torch.clamp(gaussians.opacities.detach(), max=value)
+def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value: float,
+                  filter3d: torch.Tensor | None = None) -> None:
+    """o ← min(o, value) stored as a logit, and zero that group's Adam moments (3DGS ``reset_opacity``).
+
+    With a 3D-filter variance ``filter3d`` (N,) the *filtered* opacity is reset (GOF §1.1): with
+    c = `filter_coefficient`, o_eff = o·c ← min(o_eff, value), stored as o = o_eff / c (<= o).
+    """
+    o = gaussians.opacities.detach()
+    if filter3d is None:
+        o = torch.clamp(o, max=value)
+    else:
+        coef = filter_coefficient(gaussians.scales.detach(), filter3d.to(o.dtype))
+        o = torch.clamp(o * coef, max=value) / coef
     _swap(gaussians, optimizer, "opacity_logits", torch.logit(o), torch.zeros_like)
+
+
+def _sample_offsets(rows: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    """R (s ⊙ ε) per row, ε ~ N(0, I) from torch's global RNG (in the surfel plane for 2D scales)."""
+    scales = torch.exp(rows["log_scales"])
+    std = torch.cat([scales, torch.zeros(len(scales), 3 - scales.shape[1], dtype=scales.dtype)], -1)
+    offsets = torch.normal(torch.zeros_like(std), std)
+    return torch.einsum("nij,nj->ni", quat_to_rotmat(rows["quats"]), offsets)
 
 
 # ---- strategies ---------------------------------------------------------------------------------
@@ -171,22 +191,36 @@ class DefaultStrategy(Strategy):
         if step > self.refine_start and step % self.refine_every == 0:
             info.update(self._refine(gaussians, optimizer, state, step))
         if step % self.reset_every == 0 or (self.white_background and step == self.refine_start):
-            reset_opacity(gaussians, optimizer, self.reset_value)
+            self._reset(gaussians, optimizer)
             info["reset"] = True
         return info
 
     # ---- internals ------------------------------------------------------------------------------
-    @staticmethod
-    def _accumulate(state: dict, out: RenderOutput) -> None:
+    def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
+        """Add this render's statistics; returns the visible mask."""
         grad, _ = out.densify_grads()
         radii = out.radii.detach().to(state["radii"].dtype)
         visible = out.visible if out.visible is not None else radii > 0
         state["grad2d"][visible] += grad.detach().norm(dim=-1).to(state["grad2d"].dtype)[visible]
         state["count"][visible] += 1
         state["radii"][visible] = torch.maximum(state["radii"][visible], radii[visible])
+        return visible
 
-    def _select_budget(self, n: int, grads: torch.Tensor, clone: torch.Tensor, split: torch.Tensor):
-        """Restrict clone/split to the highest-gradient candidates whose added rows fit the budget."""
+    def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """(densify candidates (N,) bool, budget priority (N,)): g >= ``grad_threshold``, by g."""
+        grads = torch.nan_to_num(state["grad2d"] / state["count"], nan=0.0, posinf=0.0)
+        return grads >= self.grad_threshold, grads
+
+    @staticmethod
+    def _clones(gaussians: Gaussians, clone: torch.Tensor) -> dict:
+        """New rows for the (N,) bool ``clone``: identical copies (3DGS)."""
+        return {k: v.detach()[clone] for k, v in gaussians.params.items()}
+
+    def _reset(self, gaussians: Gaussians, optimizer) -> None:
+        reset_opacity(gaussians, optimizer, self.reset_value)
+
+    def _select_budget(self, n: int, priority: torch.Tensor, clone: torch.Tensor, split: torch.Tensor):
+        """Restrict clone/split to the highest-``priority`` candidates whose added rows fit the budget."""
         if self.max_gaussians <= 0:
             return clone, split
         room = max(0, self.max_gaussians - n)
@@ -194,7 +228,7 @@ class DefaultStrategy(Strategy):
         if int(cost.sum()) <= room:
             return clone, split
         candidates = torch.nonzero(cost > 0).flatten()
-        order = candidates[torch.argsort(grads[candidates], descending=True, stable=True)]
+        order = candidates[torch.argsort(priority[candidates], descending=True, stable=True)]
         take = order[torch.cumsum(cost[order], 0) <= room]
         chosen = torch.zeros(n, dtype=torch.bool)
         chosen[take] = True
@@ -203,24 +237,19 @@ class DefaultStrategy(Strategy):
     def _split_children(self, gaussians: Gaussians, split: torch.Tensor) -> dict:
         n = self.split_n
         params = {k: v.detach()[split] for k, v in gaussians.params.items()}
-        scales = torch.exp(params["log_scales"]).repeat(n, 1)
-        std = torch.cat([scales, torch.zeros(len(scales), 3 - scales.shape[1], dtype=scales.dtype)], -1)
-        offsets = torch.normal(torch.zeros_like(std), std)
-        rot = quat_to_rotmat(params["quats"]).repeat(n, 1, 1)
         children = {k: v.repeat((n,) + (1,) * (v.dim() - 1)) for k, v in params.items()}
-        children["means"] = children["means"] + torch.einsum("nij,nj->ni", rot, offsets)
+        children["means"] = children["means"] + _sample_offsets(children)
         children["log_scales"] = children["log_scales"] - math.log(0.8 * n)
         return children
 
     def _refine(self, gaussians: Gaussians, optimizer, state: dict, step: int) -> dict:
         n = len(gaussians)
         extent = self.scene_extent
-        grads = torch.nan_to_num(state["grad2d"] / state["count"], nan=0.0, posinf=0.0)
-        big_grad = grads >= self.grad_threshold
+        selected, priority = self._select(state)
         small = gaussians.scales.detach().max(-1).values <= self.percent_dense * extent
-        clone, split = self._select_budget(n, grads, big_grad & small, big_grad & ~small)
+        clone, split = self._select_budget(n, priority, selected & small, selected & ~small)
 
-        clones = {k: v.detach()[clone] for k, v in gaussians.params.items()}
+        clones = self._clones(gaussians, clone)
         children = self._split_children(gaussians, split)
         append_params(gaussians, optimizer, {k: torch.cat([clones[k], children[k]]) for k in clones})
         added = len(gaussians) - n
@@ -236,3 +265,91 @@ class DefaultStrategy(Strategy):
         keep_params(gaussians, optimizer, keep)
         state.update(self.init_state(len(gaussians)))
         return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((prune & ~parents).sum())}
+
+
+@dataclass(frozen=True)
+class AbsGradStrategy(DefaultStrategy):
+    """GOF / RaDe-GS densification (methods-gof-radegs-ibgs.md §1.5, §2.5, §2.6) with the 3D filter (§1.1).
+
+    `DefaultStrategy` (window, interval, pruning, opacity-reset schedule, budget) with these changes:
+
+    - statistics: besides g = mean ‖∂L/∂μ_ndc‖ it averages the abs-gradient
+      g_abs = mean Σ_pixels (|∂L_pix/∂m_x| + |∂L_pix/∂m_y|) (`RenderOutput.densify_grads`, NDC units)
+      over the same visible renders;
+    - selection: with ρ = the fraction of Gaussians with g >= τ (``grad_threshold``), τ_abs = the
+      (1 − ρ) quantile of g_abs (linear interpolation, as ``torch.quantile``), so the abs-criterion
+      selects as many Gaussians as the standard one; selected = (g >= τ) OR (g_abs >= τ_abs, g_abs > 0).
+      The g_abs > 0 guard keeps Gaussians unseen since the last refinement out when τ_abs = 0 (GOF's
+      bare >= would select all of them); ρ = 0 still selects the largest g_abs, as in GOF;
+    - clone: the copy's centre is sampled at μ + R (s ⊙ ε), ε ~ N(0, I) (split as in 3DGS);
+    - budget: candidates are taken by decreasing g_abs (>= g for every Gaussian);
+    - 3D filter (``filter3d``, shared with the method that renders with it; None = no filter): recomputed
+      after every refinement, before the opacity reset, which resets the *filtered* opacity
+      (`reset_opacity` with the variance); and every ``filter_every`` steps after ``refine_stop``
+      while ``step < iterations − filter_every`` (GOF ``train.py``). ``filter_every`` is a number of
+      steps like ``refine_every`` and is not scaled; `scaled` sets ``iterations`` to the run length.
+    """
+
+    prune_opacity: float = 0.05
+    filter3d: Filter3D | None = dataclasses.field(default=None, compare=False, repr=False)
+    filter_every: int = 100
+    iterations: int = REFERENCE_ITERATIONS
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.filter_every < 1:
+            raise ConfigError(f"AbsGradStrategy needs filter_every >= 1, got {self.filter_every}")
+
+    def scaled(self, total_iterations: int) -> AbsGradStrategy:
+        """`DefaultStrategy.scaled` plus ``iterations = total_iterations`` (the filter's end guard)."""
+        return dataclasses.replace(super().scaled(total_iterations), iterations=int(total_iterations))
+
+    def init_state(self, n: int) -> dict:
+        return {**super().init_state(n), "absgrad": torch.zeros(n)}
+
+    def step_post_backward(self, gaussians, optimizer, state, step, render_out) -> dict:
+        info = super().step_post_backward(gaussians, optimizer, state, step, render_out)
+        if (self.filter3d is not None and step > self.refine_stop and step % self.filter_every == 0
+                and step < self.iterations - self.filter_every):
+            self.filter3d.update(gaussians.means)
+        return info
+
+    def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
+        visible = super()._accumulate(state, out)
+        _, absgrad = out.densify_grads()
+        state["absgrad"][visible] += absgrad.detach().to(state["absgrad"].dtype)[visible]
+        return visible
+
+    def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        standard, grads = super()._select(state)
+        absgrads = torch.nan_to_num(state["absgrad"] / state["count"], nan=0.0, posinf=0.0)
+        threshold = matched_threshold(absgrads, float(standard.sum()) / max(len(standard), 1))
+        return standard | ((absgrads.double() >= threshold) & (absgrads > 0)), absgrads
+
+    def _clones(self, gaussians: Gaussians, clone: torch.Tensor) -> dict:
+        rows = super()._clones(gaussians, clone)
+        rows["means"] = rows["means"] + _sample_offsets(rows)
+        return rows
+
+    def _refine(self, gaussians, optimizer, state, step) -> dict:
+        info = super()._refine(gaussians, optimizer, state, step)
+        if self.filter3d is not None:
+            self.filter3d.update(gaussians.means)
+        return info
+
+    def _reset(self, gaussians: Gaussians, optimizer) -> None:
+        variance = None if self.filter3d is None else self.filter3d.variance
+        reset_opacity(gaussians, optimizer, self.reset_value, variance)
+
+
+def matched_threshold(values: torch.Tensor, ratio: float) -> float:
+    """The (1 − ``ratio``) quantile of ``values`` with linear interpolation (``torch.quantile``'s rule,
+    without its 16M-element limit), in float64: ``values >= it`` holds for round(ratio·N) of N distinct
+    values, and at least for the maximum (GOF §1.5)."""
+    if values.numel() == 0:
+        return 0.0
+    ordered = torch.sort(values.reshape(-1).to(torch.float64)).values
+    pos = (1.0 - ratio) * (len(ordered) - 1)
+    lo = math.floor(pos)
+    hi = min(lo + 1, len(ordered) - 1)
+    return float(ordered[lo] + (pos - lo) * (ordered[hi] - ordered[lo]))

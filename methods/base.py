@@ -15,10 +15,15 @@
   ``scale`` = iterations / 30000, `gsbench.train.scale_step`): position lr
   ``exp((1−t) ln lr0 + t ln lr1)`` with t = min(step / (position_lr_max_steps·scale), 1) (§1.8, no
   delay); SH degree ``min(raster.sh_degree, step // (sh_interval·scale))`` (§1.1: +1 every 1000 steps).
-- ``extract_mesh``: TSDF fusion (`gsbench.mesh.tsdf.tsdf_fusion`, §1.10/§2.9) of the depth named by
-  ``mesh.depth`` (``expected`` → the ``depth`` output, ``median`` → ``median_depth``) rendered from
-  every training camera, alpha < 0.5 and (with ``data.use_masks``) pixels outside the mask dropped;
-  TSDF lengths are relative to the scene radius; ``mesh.num_clusters`` largest components are kept.
+- ``render``: the method's kernel on `Gaussians.raster_input` with the method's `filter3d` variance
+  (None here; GOF/RaDe-GS return the Mip-Splatting 3D filter) and `raster_settings`.
+- ``extract_mesh``: ``mesh.extractor`` must be in ``MESH_EXTRACTORS`` (``tsdf`` here). ``tsdf``: TSDF
+  fusion (`gsbench.mesh.tsdf.tsdf_fusion`, §1.10/§2.9) of the depth named by ``mesh.depth``
+  (``expected`` → the ``depth`` output, ``median`` → ``median_depth``) rendered from every training
+  camera, alpha < 0.5 and (with ``data.use_masks``) pixels outside the mask dropped; TSDF lengths are
+  relative to the scene radius; ``mesh.num_clusters`` largest components are kept. ``tets`` (GOF):
+  `gsbench.mesh.tets.tetra_mesh` of the raster input over the training cameras at ``mesh.level`` with
+  ``mesh.bisection_steps`` (GOF/RaDe doc §1.7).
 - ``state_dict`` / ``load_state_dict``: parameters, Adam state (moments and step counts) and the
   active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs).
 """
@@ -123,6 +128,7 @@ class Method:
     name = ""
     Config = GSConfig
     INFO: MethodInfo
+    MESH_EXTRACTORS: tuple[str, ...] = ("tsdf",)
 
     def __init__(self):
         self.gaussians: Gaussians | None = None
@@ -212,22 +218,43 @@ class Method:
                 group["lr"] = lr
         self.sh_degree = min(self.cfg.raster.sh_degree, step // scale_step(p.sh_interval, scale))
 
+    def filter3d(self) -> torch.Tensor | None:
+        """The 3D-filter variance (N,) the rasterizer applies; none for 3DGS/2DGS."""
+        return None
+
+    def raster_settings(self) -> RasterSettings:
+        """The render settings of the current step (``raster`` config, background, active SH degree)."""
+        r = self.cfg.raster
+        return RasterSettings(sh_degree=self.sh_degree, background=self.background, near_plane=r.near_plane,
+                              far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d)
+
     def render(self, camera, outputs) -> RenderOutput:
         """Rasterize the current Gaussians with the method's kernel; only ``outputs`` are computed."""
-        r = self.cfg.raster
-        settings = RasterSettings(sh_degree=self.sh_degree, background=self.background, near_plane=r.near_plane,
-                                  far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d)
-        return rasterize(self.gaussians.raster_input(self.sh_degree), camera, kernel=self.info().kernel,
-                         outputs=tuple(sorted(outputs)), settings=settings)
+        return rasterize(self.gaussians.raster_input(self.sh_degree, self.filter3d()), camera,
+                         kernel=self.info().kernel, outputs=tuple(sorted(outputs)), settings=self.raster_settings())
 
     # ---- mesh ---------------------------------------------------------------------------------
     @torch.no_grad()
     def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
-        """TSDF-fuse ``mesh.depth`` of every training view into ``out_path`` (.ply); returns its size."""
-        if cfg.mesh.extractor != "tsdf":
-            raise ConfigError(f"method '{self.name}' supports mesh.extractor 'tsdf', got '{cfg.mesh.extractor}'")
-        depth_key = DEPTH_OUTPUTS[cfg.mesh.depth]
+        """Mesh the trained Gaussians with ``mesh.extractor`` into ``out_path`` (.ply); returns its size."""
+        if cfg.mesh.extractor not in self.MESH_EXTRACTORS:
+            raise ConfigError(f"method '{self.name}' supports mesh.extractor "
+                              f"{' or '.join(repr(e) for e in self.MESH_EXTRACTORS)}, got '{cfg.mesh.extractor}'")
         views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        if cfg.mesh.extractor == "tets":
+            from gsbench.mesh.tets import tetra_mesh  # noqa: PLC0415  (CGAL/scipy only when used)
+
+            mesh = tetra_mesh(self.gaussians.raster_input(self.sh_degree, self.filter3d()),
+                              [scene.cameras[i] for i in views], self.raster_settings(), kernel=self.info().kernel,
+                              level=cfg.mesh.level, bisection_steps=cfg.mesh.bisection_steps)
+        else:
+            mesh = self._tsdf_mesh(scene, cfg, views)
+        _export_atomic(mesh, Path(out_path))
+        return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))}
+
+    def _tsdf_mesh(self, scene: Scene, cfg: RunConfig, views: list[int]):
+        """TSDF fusion of ``mesh.depth`` rendered from the training ``views`` (module docstring)."""
+        depth_key = DEPTH_OUTPUTS[cfg.mesh.depth]
         depths, colors, alphas = [], [], []
         for i in tqdm(views, desc="extract", unit="view", disable=None, leave=False):
             out = self.render(scene.cameras[i], {depth_key, "alpha", "rgb"})
@@ -235,10 +262,8 @@ class Method:
             colors.append(out.rgb.clamp(0, 1).numpy())
             alphas.append(out.alpha.numpy())
         masks = [scene.masks[i] for i in views] if cfg.data.use_masks and scene.masks is not None else None
-        mesh = tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
+        return tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
                            alphas=alphas, masks=masks)
-        _export_atomic(mesh, Path(out_path))
-        return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))}
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -226,16 +226,24 @@ def test_errors_name_the_problem():
         rasterize(g32, cam, kernel="ewa", outputs=("rgb", "colour"))
 
 
-def test_integrate_matches_reference():
+
+
+def _integrate_scene(n_cams: int = 3):
+    """Cameras (40x30), 150 float64 raymax Gaussians and 2002 points near them, two of them seen by no view."""
     from raster_scenes import look_at_camera  # noqa: PLC0415
 
-    from gsbench.raster import integrate  # noqa: PLC0415
-
-    cams = [look_at_camera((0.3 * i, 0.2, -0.5), (0, 0, 3), width=40, height=30) for i in range(3)]
+    cams = [look_at_camera((0.3 * i, 0.2, -0.5), (0, 0, 3), width=40, height=30) for i in range(n_cams)]
     g = random_gaussians(150, "raymax", seed=0, camera=make_camera(40, 30), dtype=torch.float64, filter3d=1e-4)
     gen = torch.Generator().manual_seed(0)
     pts = g.means[torch.randint(0, 150, (2000,), generator=gen)] + 0.1 * torch.randn(2000, 3, generator=gen, dtype=torch.float64)
     pts = torch.cat([pts, torch.tensor([[0.0, 0.0, -10.0], [50.0, 0.0, 3.0]], dtype=torch.float64)])  # seen by no view
+    return cams, g, pts
+
+
+def test_integrate_matches_reference():
+    from gsbench.raster import integrate  # noqa: PLC0415
+
+    cams, g, pts = _integrate_scene()
     ref = reference.integrate_reference(g, cams, pts)
     out = integrate(g, cams, pts)
     assert float((out - ref).abs().max()) < 1e-10
@@ -244,3 +252,35 @@ def test_integrate_matches_reference():
     assert float((out32.double() - ref).abs().max()) < 1e-4
     with pytest.raises(NotImplementedError):
         integrate(g, cams, pts, kernel="ewa")
+
+
+@pytest.mark.parametrize("tile_size", [6, 8])
+def test_integrate_cells_exact_for_other_tile_sizes(tile_size):
+    """The 4x4 query cells (2x2 when the tile size is not a multiple of 4) never change the result."""
+    from gsbench.raster import integrate  # noqa: PLC0415
+
+    cams, g, pts = _integrate_scene(n_cams=5)
+    settings = RasterSettings(tile_size=tile_size)
+    ref = reference.integrate_reference(g, cams, pts, settings=settings)
+    assert float((integrate(g, cams, pts, settings=settings) - ref).abs().max()) < 1e-10
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_opacity_field_below_is_the_exact_sign(dtype):
+    """`OpacityField.below` (early exits within and across views) classifies exactly as ``values < level``."""
+    from gsbench.raster.opacity_field import OpacityField  # noqa: PLC0415
+
+    cams, g, pts = _integrate_scene(n_cams=5)
+    g = _cast(g, dtype)
+    field = OpacityField(g, cams)
+    O = field.values(pts).double()
+    for level in (0.05, 0.3, 0.5, 0.9):
+        free = field.below(pts, level)
+        assert torch.equal(free, O < level) and 0 < int(free.sum()) < len(pts)
+
+def test_package_integrate_stays_the_function_after_the_field_module_loads():
+    """Regression: a submodule named like the package's function used to replace it on import."""
+    import gsbench.mesh.tets  # noqa: F401, PLC0415  (imports gsbench.raster.opacity_field)
+    import gsbench.raster  # noqa: PLC0415
+
+    assert callable(gsbench.raster.integrate) and gsbench.raster.integrate.__module__ == "gsbench.raster"

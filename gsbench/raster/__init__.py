@@ -372,6 +372,6 @@ def integrate(
     settings: RasterSettings = RasterSettings(),
 ) -> torch.Tensor:
     """GOF opacity (P,) of 3D ``points`` (P, 3): min over views of 1 − Π(1 − α_k) (no gradient)."""
-    from gsbench.raster.integrate import integrate as _integrate  # noqa: PLC0415
+    from gsbench.raster.opacity_field import integrate as _integrate  # noqa: PLC0415
 
     return _integrate(gaussians, cameras, points, kernel=kernel, settings=settings)

@@ -179,8 +179,9 @@ def load_library() -> ctypes.CDLL:
         lib.gs_depth_order.restype = ctypes.c_int64
         lib.gs_bin_sorted.argtypes = lib.gs_bin.argtypes
         lib.gs_bin_sorted.restype = ctypes.c_int64
-        lib.gs_integrate.argtypes = [ctypes.c_void_p]
-        lib.gs_integrate.restype = ctypes.c_int
+        for fn in (lib.gs_integrate, lib.gs_integrate_cells):
+            fn.argtypes = [ctypes.c_void_p]
+            fn.restype = ctypes.c_int
         for fn in (lib.gs_project_forward, lib.gs_project_backward):
             fn.argtypes = [ctypes.POINTER(ProjArgs)]
             fn.restype = ctypes.c_int

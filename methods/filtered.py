@@ -1,0 +1,67 @@
+"""What GOF and RaDe-GS (and IBGS on top of RaDe-GS) share: the Mip-Splatting 3D filter and the
+abs-gradient densification (methods-gof-radegs-ibgs.md §1.1, §1.5, §2.5, §2.6).
+
+- `FilteredConfig`: `GSConfig` (3DGS learning rates, init, schedule: §1.6 "other optimisation
+  defaults") with prune opacity 0.05 (§1.5) and ``use_filter3d`` (RaDe ``--disable_filter3D``, §2.5).
+- `FilteredMethod`: a `Filter3D` over the training cameras with the raster near plane, computed at
+  setup (§1.1 "at the start of training") and passed to every render; `AbsGradStrategy` shares it and
+  recomputes it after each densification and on GOF's post-densification schedule, and resets the
+  filtered opacity. The variance is part of the checkpoint, so a resumed run renders identically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from gsbench.config import RunConfig
+from gsbench.data.camera import Scene
+from gsbench.filter3d import Filter3D
+from gsbench.methods.base import GSConfig, Method
+from gsbench.strategy import AbsGradStrategy, Strategy
+from gsbench.train import split_views
+
+
+@dataclass
+class FilteredConfig(GSConfig):
+    """`GSConfig` with GOF/RaDe-GS's prune opacity 0.05 (§1.5) and the 3D filter switch (§2.5)."""
+
+    prune_opacity: float = 0.05
+    use_filter3d: bool = True
+
+
+class FilteredMethod(Method):
+    """Base of the methods with the 3D filter and `AbsGradStrategy` (module docstring)."""
+
+    Config = FilteredConfig
+
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        super().setup(scene, cfg)
+        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        self.filter = Filter3D([scene.cameras[i] for i in views], near=self.raster_settings().near,
+                               enabled=self.params.use_filter3d)
+        self.filter.update(self.gaussians.means)
+
+    def filter3d(self) -> torch.Tensor | None:
+        return self.filter.variance
+
+    def strategy(self) -> Strategy:
+        """GOF's densification (§1.5) at the paper's 30k-step schedule, sharing the 3D filter."""
+        p = self.params
+        return AbsGradStrategy(
+            grad_threshold=p.densify_grad_threshold, percent_dense=p.percent_dense, prune_opacity=p.prune_opacity,
+            refine_start=p.densify_from, refine_stop=p.densify_until, refine_every=p.densify_every,
+            reset_every=p.opacity_reset_every, reset_value=p.opacity_reset_value,
+            prune_screen_size=p.prune_screen_size, white_background=self.cfg.data.white_background,
+            scene_extent=self.extent, max_gaussians=self.cfg.train.max_gaussians, filter3d=self.filter)
+
+    def state_dict(self) -> dict:
+        variance = self.filter.variance
+        return {**super().state_dict(), "filter3d": None if variance is None else variance.clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        """`Method.load_state_dict` plus the filter variance (in place: the strategy holds the same filter)."""
+        super().load_state_dict(state)
+        variance = state["filter3d"]
+        self.filter.variance = None if variance is None else variance.clone()

@@ -1,0 +1,265 @@
+"""The GOF and RaDe-GS plugins: paper defaults per dataset (the <method>.<dataset> config layer), their
+loss-term parameters, the 3D filter in render/checkpoints, the tets mesh hook, and quick end-to-end runs."""
+
+from __future__ import annotations
+
+import math
+import sys
+import types
+
+import pytest
+import torch
+import trimesh
+
+import gsbench.config as config
+import gsbench.methods.base as method_base
+from gsbench.data.loader import load_scene, make_scene
+from gsbench.errors import ConfigError
+from gsbench.losses import Batch, active_terms, depth_to_normal, edge_weights
+from gsbench.raster.types import RenderOutput
+from gsbench.registry import METHODS
+from gsbench.runner import resolve_run, run
+from gsbench.strategy import AbsGradStrategy
+from gsbench.train import Trainer, load_checkpoint, split_views
+from tests.raster_scenes import make_camera
+
+METHOD_NAMES = ("gof", "radegs")
+TERM_PARAMS = {  # GOF §1.3/§1.6: median-depth L_n, alpha²-normalised L_d; RaDe-GS §2.6: 0.4/0.6 normal mix, v1 L_d
+    "gof": {"normal_consistency": {"depth_ratio": 1.0, "normalize": True, "mix": "depth"},
+            "depth_distortion": {"normalize": True}},
+    "radegs": {"normal_consistency": {"depth_ratio": 0.6, "normalize": True, "mix": "normal"},
+               "depth_distortion": {"normalize": True, "edge_aware": True}},
+}
+TINY = ["data.downscale=1", "method.random_init_points=400", "train.checkpoint_every=0"]
+
+
+@pytest.fixture(scope="session")
+def tiny_spot(tmp_path_factory):
+    """synthetic/spot at 64x48, generated once per session (the same folder as the other test files)."""
+    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
+
+
+@pytest.fixture
+def restore_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def setup_method(name, scene_dir, *overrides):
+    cfg = resolve_run(name, str(scene_dir), preset="quick", overrides=[*TINY, *overrides])
+    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
+    m = METHODS.get(name)()
+    m.setup(scene, cfg)
+    return m, scene, cfg
+
+
+# ---- declarations and paper defaults ------------------------------------------------------------
+
+
+def test_registered_methods_declare_kernel_primitive_and_terms():
+    gof, rade = METHODS.get("gof"), METHODS.get("radegs")
+    assert (gof.info().kernel, gof.info().primitive, gof.info().mesh_depth) == ("raymax", "3d", "median")
+    assert (rade.info().kernel, rade.info().primitive, rade.info().mesh_depth) == ("rade", "3d", "median")
+    for name, cls in (("gof", gof), ("radegs", rade)):
+        cfg = resolve_run(name, "synthetic/spot", preset="paper")
+        assert cfg.mesh.depth == cls.info().mesh_depth and cfg.mesh.extractor == "tsdf"
+        assert set(cfg.losses) == set(cls.info().loss_terms)
+        p = cls.Config()
+        assert (p.prune_opacity, p.densify_grad_threshold, p.densify_from, p.densify_until, p.opacity_reset_every,
+                p.use_filter3d) == (0.05, 0.0002, 500, 15000, 3000, True)
+    assert rade.Config().depth_ratio == 0.6
+
+
+def test_dtu_and_tnt_defaults_come_from_the_method_dataset_layer():
+    dtu = resolve_run("gof", "synthetic/spot", preset="paper")
+    assert dtu.losses["normal_consistency"] == {"weight": 0.05, "start": 15000, "end": -1}
+    assert dtu.losses["depth_distortion"] == {"weight": 1000.0, "start": 15000, "end": -1}
+    mesh = dtu.mesh
+    assert (mesh.extractor, mesh.voxel_size, mesh.sdf_trunc, mesh.depth_trunc) == ("tsdf", 0.004, 0.016, 6.0)
+    tnt = resolve_run("gof", "synthetic/spot-tnt", preset="paper")
+    assert tnt.losses["depth_distortion"] == {"weight": 100.0, "start": 15000, "end": -1}
+    assert (tnt.mesh.extractor, tnt.mesh.level, tnt.mesh.bisection_steps, tnt.data.holdout_every) == ("tets", 0.5, 8, 8)
+    rade = resolve_run("radegs", "synthetic/spot", preset="paper")
+    assert rade.losses["normal_consistency"] == {"weight": 0.05, "start": 15000, "end": -1}
+    assert rade.losses["depth_distortion"]["weight"] == 0.0  # HEAD; v1 by --set
+    assert (rade.mesh.voxel_size, rade.mesh.depth_trunc) == (0.004, 8.0)
+    assert resolve_run("radegs", "synthetic/spot-tnt", preset="paper").mesh.extractor == "tsdf"
+    # --set beats the method.dataset layer
+    assert resolve_run("gof", "synthetic/spot", overrides=["losses.depth_distortion.weight=7"]).losses[
+        "depth_distortion"]["weight"] == 7.0
+
+
+def test_method_dataset_layer_sits_between_dataset_and_preset(tmp_path, monkeypatch):
+    for folder, text in {"methods/toy.yaml": "train: {iterations: 1, log_every: 1, checkpoint_every: 1}\n",
+                         "datasets/dtu.yaml": "train: {iterations: 2, log_every: 2}\n",
+                         "methods/toy.dtu.yaml": "train: {iterations: 3, log_every: 3, max_gaussians: 3}\n",
+                         "presets/quick.yaml": "train: {iterations: 4}\n"}.items():
+        (tmp_path / folder).parent.mkdir(exist_ok=True)
+        (tmp_path / folder).write_text(text)
+    monkeypatch.setattr(config, "CONFIG_ROOT", tmp_path)
+    cfg = config.resolve("toy", "synthetic/spot", preset="quick")
+    train = cfg.train
+    assert (train.checkpoint_every, train.log_every, train.max_gaussians, train.iterations) == (1, 3, 3, 4)
+    assert config.resolve("toy", "synthetic/spot-tnt", preset="quick").train.max_gaussians == 0  # no toy.tnt.yaml
+
+
+def test_term_params_and_raster_settings(tiny_spot):
+    gof, _, _ = setup_method("gof", tiny_spot)
+    assert gof.term_params() == TERM_PARAMS["gof"]
+    assert gof.raster_settings().detach_distortion_weights is True
+    rade, _, _ = setup_method("radegs", tiny_spot)
+    assert rade.term_params() == TERM_PARAMS["radegs"]
+    assert rade.raster_settings().detach_distortion_weights is False
+    active = {t.name: t for t in active_terms(rade.cfg.losses | {"depth_distortion": {"weight": 100.0}}, 15000,
+                                              rade.term_params())}
+    assert active["normal_consistency"].spec.requires == {"normal", "depth", "median_depth"}
+    assert active["depth_distortion"].spec.requires == {"distortion", "alpha"}
+
+
+# ---- the loss-term parameters GOF and RaDe-GS use ------------------------------------------------
+
+
+def two_plane_render(W=20, H=16):
+    """Expected depth: the plane z = 2; median depth: z = 2 + 0.5·x (tilted); rendered normal: a fixed
+    unnormalised direction; alpha 0.5; distortion 0.02 everywhere."""
+    cam = make_camera(W, H)
+    x = (torch.arange(W, dtype=torch.float64) + 0.5 - cam.cx) / cam.fx
+    expected = torch.full((H, W), 2.0, dtype=torch.float64)
+    median = (2.0 / (1.0 - 0.5 * x)).expand(H, W).clone()
+    normal = torch.tensor([0.3, 0.1, -0.8], dtype=torch.float64).expand(H, W, 3).clone() * 0.5
+    out = RenderOutput(alpha=torch.full((H, W), 0.5, dtype=torch.float64), depth=expected, median_depth=median,
+                       normal=normal, distortion=torch.full((H, W), 0.02, dtype=torch.float64), width=W, height=H)
+    return out, cam
+
+
+def test_normal_consistency_mixes_normals_with_the_normalised_render():
+    out, cam = two_plane_render()
+    batch = Batch(torch.zeros(16, 20, 3, dtype=torch.float64), None, cam, 0)
+    n = out.normal / out.normal.norm(dim=-1, keepdim=True)
+    loss_exp = (1 - (n * depth_to_normal(out.depth, cam)).sum(-1)).mean()
+    loss_med = (1 - (n * depth_to_normal(out.median_depth, cam)).sum(-1)).mean()
+    (rade,) = active_terms({"normal_consistency": {"weight": 1.0}}, 0,
+                           {"normal_consistency": {"depth_ratio": 0.6, "normalize": True, "mix": "normal"}})
+    torch.testing.assert_close(rade.spec(out, batch, {}), 0.4 * loss_exp + 0.6 * loss_med)
+    (gof,) = active_terms({"normal_consistency": {"weight": 1.0}}, 0,
+                          {"normal_consistency": {"depth_ratio": 1.0, "normalize": True}})
+    torch.testing.assert_close(gof.spec(out, batch, {}), loss_med)
+    with pytest.raises(ConfigError, match="mix must be one of"):
+        active_terms({"normal_consistency": {"weight": 1.0}}, 0, {"normal_consistency": {"mix": "both"}})
+
+
+def test_depth_distortion_normalised_and_edge_aware():
+    out, cam = two_plane_render()
+    image = torch.zeros(16, 20, 3, dtype=torch.float64)
+    image[:, 10:] = 0.3  # a vertical edge between columns 9 and 10: g = 0.3 there
+    batch = Batch(image, None, cam, 0)
+    value = 0.02 / (0.25 + 1e-7)
+    (gof,) = active_terms({"depth_distortion": {"weight": 1.0}}, 0, {"depth_distortion": {"normalize": True}})
+    assert gof.spec(out, batch, {}).item() == pytest.approx(value)
+    weights = edge_weights(image)
+    assert weights[0].abs().sum() == 0 and weights[:, 0].abs().sum() == 0  # 0 on the border
+    assert weights[5, 9].item() == pytest.approx(math.exp(-0.3)) and weights[5, 5].item() == 1.0
+    (rade,) = active_terms({"depth_distortion": {"weight": 1.0}}, 0,
+                           {"depth_distortion": {"normalize": True, "edge_aware": True}})
+    interior = 14 * 18 - 2 * 14 + 2 * 14 * math.exp(-0.3)  # two columns of 14 interior pixels see the edge
+    assert rade.spec(out, batch, {}).item() == pytest.approx(value * interior / (16 * 20))
+
+
+# ---- the 3D filter in the method -----------------------------------------------------------------
+
+
+def test_filter_is_computed_at_setup_rendered_and_shared_with_the_strategy(tiny_spot, monkeypatch):
+    m, scene, cfg = setup_method("radegs", tiny_spot)
+    assert m.filter3d().shape == (len(m.gaussians),) and bool((m.filter3d() > 0).all())
+    views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+    assert m.filter.cameras == [scene.cameras[i] for i in views] and m.filter.near == pytest.approx(0.2 * scene.radius)
+    strategy = m.strategy()
+    assert isinstance(strategy, AbsGradStrategy) and strategy.filter3d is m.filter
+    assert (strategy.prune_opacity, strategy.max_gaussians) == (0.05, cfg.train.max_gaussians)
+    seen = {}
+    real = method_base.rasterize
+
+    def spy(g, camera, **kw):
+        seen["filter3d"], seen["kernel"] = g.filter3d, kw["kernel"]
+        return real(g, camera, **kw)
+
+    monkeypatch.setattr(method_base, "rasterize", spy)
+    m.render(scene.cameras[0], {"rgb"})
+    assert seen["filter3d"] is m.filter3d() and seen["kernel"] == "rade"
+    off, _, _ = setup_method("gof", tiny_spot, "method.use_filter3d=false")
+    assert off.filter3d() is None
+
+
+def test_resume_is_bit_identical_with_densification_and_the_filter(tiny_spot, tmp_path, monkeypatch, restore_threads):
+    """GOF: 24 steps straight vs 12 + crash + resume + 12, densifying (and refiltering) every 4 steps."""
+    overrides = ("threads=1", "train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
+                 "method.densify_until=30000", "method.opacity_reset_every=30000")
+
+    def trainer(folder):
+        m, scene, cfg = setup_method("gof", tiny_spot, *overrides)
+        return Trainer(m, scene, cfg, folder)
+
+    straight = trainer(tmp_path / "a")
+    straight.fit()
+    interrupted = trainer(tmp_path / "b")
+    original = interrupted.train_step
+    monkeypatch.setattr(interrupted, "train_step", lambda step: original(step) if step <= 12 else 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        interrupted.fit()
+    resumed = trainer(tmp_path / "b")
+    resumed.fit()
+    assert len(resumed.method.gaussians) == len(straight.method.gaussians) != 400  # densified
+    for k, v in straight.method.gaussians.params.items():
+        assert torch.equal(v, resumed.method.gaussians.params[k]), k
+    assert torch.equal(straight.method.filter3d(), resumed.method.filter3d())
+    assert len(straight.method.filter3d()) == len(straight.method.gaussians)
+    saved = load_checkpoint(tmp_path / "a" / "checkpoint-final.pt")
+    assert torch.equal(saved["method"]["filter3d"], straight.method.filter3d())
+
+
+# ---- meshes --------------------------------------------------------------------------------------
+
+
+def test_tets_extractor_calls_tetra_mesh_with_the_filtered_gaussians(tiny_spot, tmp_path, monkeypatch):
+    m, scene, cfg = setup_method("gof", tiny_spot, "mesh.extractor=tets", "mesh.bisection_steps=3")
+    calls = {}
+
+    def tetra_mesh(g, cameras, settings, *, kernel, level, bisection_steps):
+        calls.update(g=g, cameras=cameras, settings=settings, kernel=kernel, level=level, steps=bisection_steps)
+        return trimesh.creation.box()
+
+    monkeypatch.setitem(sys.modules, "gsbench.mesh.tets", types.SimpleNamespace(tetra_mesh=tetra_mesh))
+    size = m.extract_mesh(scene, cfg, tmp_path / "mesh.ply")
+    assert size == {"vertices": 8, "faces": 12} and (tmp_path / "mesh.ply").is_file()
+    assert calls["g"].filter3d is m.filter3d() and len(calls["g"]) == len(m.gaussians)
+    assert calls["cameras"] == [scene.cameras[i] for i in split_views(len(scene.cameras), cfg.data.holdout_every)[0]]
+    assert (calls["kernel"], calls["level"], calls["steps"]) == ("raymax", 0.5, 3)
+    assert calls["settings"].scene_radius == scene.radius
+    for name in ("radegs", "3dgs"):
+        other, _, other_cfg = setup_method(name, tiny_spot, "mesh.extractor=tets")
+        with pytest.raises(ConfigError, match="supports mesh.extractor 'tsdf', got 'tets'"):
+            other.extract_mesh(scene, other_cfg, tmp_path / "x.ply")
+
+
+# ---- quick end-to-end runs -----------------------------------------------------------------------
+
+# A TSDF voxel of about one pixel at 64x48; one evaluator keeps the run short.
+QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations=60", "train.checkpoint_every=0",
+         "train.log_every=10", "mesh.voxel_size=0.02", "mesh.sdf_trunc=0.08", "eval.evaluators=[dtu_chamfer]",
+         "threads=1"]
+
+
+@pytest.mark.parametrize("name", METHOD_NAMES)
+def test_quick_run_trains_meshes_evaluates_and_records(name, tiny_spot, tmp_path, restore_threads):
+    cfg = resolve_run(name, str(tiny_spot), preset="quick", overrides=QUICK)
+    cfg.out = str(tmp_path / "runs")
+    record = run(cfg, echo=lambda *a: None)
+    assert record.status == "ok" and record.method == name and record.num_gaussians > 0
+    assert all(math.isfinite(record.metrics[k]) for k in ("chamfer", "accuracy", "completeness"))
+    assert record.mesh["faces"] > 0 and set(record.eval_protocol) == {"dtu_chamfer"}
+    schedule = record.losses["schedule"]  # starts are 15000 · 60/30000
+    assert schedule["normal_consistency"] == {"weight": 0.05, "start": 30, "end": -1}
+    assert schedule["depth_distortion"] == {"weight": 1000.0 if name == "gof" else 0.0, "start": 30, "end": -1}
+    assert schedule["l1"]["weight"] == 0.8 and schedule["dssim"]["weight"] == 0.2
+    assert record.losses["params"] == TERM_PARAMS[name]
