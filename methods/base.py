@@ -188,8 +188,12 @@ class Method:
     # ---- what the Trainer asks for ------------------------------------------------------------
     def strategy(self) -> Strategy:
         """3DGS densification (§1.8) at the paper's 30k-step schedule; the Trainer scales it."""
+        return DefaultStrategy(**self.densify_settings())
+
+    def densify_settings(self) -> dict:
+        """`DefaultStrategy` fields from the method's paper-named densification hyper-parameters."""
         p = self.params
-        return DefaultStrategy(
+        return dict(
             grad_threshold=p.densify_grad_threshold, percent_dense=p.percent_dense, prune_opacity=p.prune_opacity,
             refine_start=p.densify_from, refine_stop=p.densify_until, refine_every=p.densify_every,
             reset_every=p.opacity_reset_every, reset_value=p.opacity_reset_value,

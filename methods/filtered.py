@@ -48,13 +48,7 @@ class FilteredMethod(Method):
 
     def strategy(self) -> Strategy:
         """GOF's densification (§1.5) at the paper's 30k-step schedule, sharing the 3D filter."""
-        p = self.params
-        return AbsGradStrategy(
-            grad_threshold=p.densify_grad_threshold, percent_dense=p.percent_dense, prune_opacity=p.prune_opacity,
-            refine_start=p.densify_from, refine_stop=p.densify_until, refine_every=p.densify_every,
-            reset_every=p.opacity_reset_every, reset_value=p.opacity_reset_value,
-            prune_screen_size=p.prune_screen_size, white_background=self.cfg.data.white_background,
-            scene_extent=self.extent, max_gaussians=self.cfg.train.max_gaussians, filter3d=self.filter)
+        return AbsGradStrategy(**self.densify_settings(), filter3d=self.filter)
 
     def state_dict(self) -> dict:
         variance = self.filter.variance

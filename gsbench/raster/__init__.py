@@ -371,7 +371,9 @@ def integrate(
     kernel: str = "raymax",
     settings: RasterSettings = RasterSettings(),
 ) -> torch.Tensor:
-    """GOF opacity (P,) of 3D ``points`` (P, 3): min over views of 1 − Π(1 − α_k) (no gradient)."""
-    from gsbench.raster.opacity_field import integrate as _integrate  # noqa: PLC0415
+    """GOF opacity (P,) of 3D ``points`` (P, 3): min over views of 1 − Π(1 − α_k) (no gradient), by
+    `gsbench.raster.opacity_field.OpacityField` (which serves many queries from one binning)."""
+    from gsbench.raster.opacity_field import OpacityField  # noqa: PLC0415
 
-    return _integrate(gaussians, cameras, points, kernel=kernel, settings=settings)
+    with torch.no_grad():
+        return OpacityField(gaussians, cameras, kernel=kernel, settings=settings).values(points)

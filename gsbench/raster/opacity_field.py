@@ -1,4 +1,4 @@
-"""GOF opacity field at 3D points (``gsbench.raster.opacity_field``; the package re-exports `integrate`): C++, all views in one call.
+"""GOF opacity field at 3D points, `OpacityField` (behind `gsbench.raster.integrate`): C++, all views in one call.
 
 Same rule as `gsbench.raster.reference.integrate_reference` (GOF doc §1.7): per view, a point in front
 of the near plane that projects inside the image sees the Gaussians binned to its pixel's tile (3σ
@@ -166,16 +166,3 @@ def _check_points(points: torch.Tensor) -> None:
         raise ValueError(f"points must be (P, 3), got {tuple(points.shape)}")
     _check_finite("points", points)
 
-
-@torch.no_grad()
-def integrate(
-    gaussians: RasterGaussians,
-    cameras: Sequence[Camera],
-    points: torch.Tensor,
-    *,
-    kernel: str = "raymax",
-    settings: RasterSettings = RasterSettings(),
-) -> torch.Tensor:
-    """(P,) GOF opacity ``O(x) = min_v O_v(x)`` at (P, 3) world points (module docstring, §1.7)."""
-    _check_points(points)
-    return OpacityField(gaussians, cameras, kernel=kernel, settings=settings).values(points)
