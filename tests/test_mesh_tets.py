@@ -16,12 +16,11 @@ from gsbench.mesh.tets import (
     BOX_CORNERS,
     frustum_mask,
     marching_tetrahedra,
-    opacity_field,
     point_budget,
     tetra_mesh,
     tetra_points,
 )
-from gsbench.raster import RasterGaussians, RasterSettings
+from gsbench.raster import RasterGaussians, RasterSettings, integrate
 from tests.raster_scenes import look_at_camera, make_camera, random_gaussians
 
 RADIUS = 1.0
@@ -151,7 +150,8 @@ def test_tetra_mesh_equals_marching_on_the_exact_field(ring_of_cameras):
     points = grid[frustum_mask(grid, ring_of_cameras, settings.near, settings.far)]
 
     def sdf(x):
-        return 0.5 - opacity_field(g, ring_of_cameras, x, settings=settings)
+        exact = integrate(g, ring_of_cameras, torch.as_tensor(x, dtype=torch.float64), settings=settings)
+        return 0.5 - exact.to(torch.float64).numpy()
 
     v, f = marching_tetrahedra(points, Delaunay(points).simplices, sdf(points), sdf, level=0.0, bisection_steps=4)
     np.testing.assert_array_equal(mesh.vertices, v)

@@ -65,7 +65,6 @@ __all__ = [
     "filtered_scales",
     "frustum_mask",
     "marching_tetrahedra",
-    "opacity_field",
     "point_budget",
     "tetra_mesh",
     "tetra_points",
@@ -140,20 +139,6 @@ def point_budget(seen: np.ndarray, priority: np.ndarray, max_points: int) -> np.
         total, max_points, int(keep.sum()), len(seen), int(seen[keep].sum()),
     )
     return seen & keep[:, None]
-
-
-def opacity_field(
-    g: RasterGaussians,
-    cameras: Sequence[Camera],
-    points: np.ndarray,
-    *,
-    kernel: str = "raymax",
-    settings: RasterSettings = RasterSettings(),
-) -> np.ndarray:
-    """(P,) exact GOF opacity ``O(x) = min_v O_v(x)`` (§1.7) by `gsbench.raster.opacity_field` (float64);
-    1 where no view sees x. For diagnostics and tests: `tetra_mesh` only needs the sign (`_free_space`)."""
-    field = OpacityField(g, cameras, kernel=kernel, settings=settings)
-    return field.values(torch.as_tensor(np.asarray(points, dtype=np.float64))).to(torch.float64).numpy()
 
 
 def _free_space(field: OpacityField, points: np.ndarray, level: float, chunk: int, desc: str) -> np.ndarray:
