@@ -66,6 +66,7 @@ class TrainConfig:
     checkpoint_every: int = 5000
     log_every: int = 100
     max_gaussians: int = 0
+    scale_refine_interval: bool = False  # gsbench.train.scaled_strategy
 
 
 @dataclass

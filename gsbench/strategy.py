@@ -139,7 +139,8 @@ class DefaultStrategy(Strategy):
     - split  where g >= ``grad_threshold`` and s_max >  ``percent_dense``·extent: ``split_n`` children
       at μ + R (s ⊙ ε), ε ~ N(0, I) (in-plane only for 2D surfels), scale s / (0.8·split_n); the
       parent is removed. Both use the pre-densification g, so fresh clones are never split;
-    - prune  where o < ``prune_opacity``, and when ``step > reset_every`` also s_max >
+    - prune  where o < ``prune_opacity`` (not within ``prune_grace`` steps after an opacity reset:
+      0, the paper's behaviour, prunes at every refinement), and when ``step > reset_every`` also s_max >
       ``big_world``·extent and, only with ``prune_screen_size``, max radius > ``screen_size`` px.
       3DGS 2023 resets the radii during clone/split, so its screen test never fires (issues
       #123/#643; gsplat disables it too): ``prune_screen_size = False`` is that faithful behaviour;
@@ -165,6 +166,7 @@ class DefaultStrategy(Strategy):
     big_world: float = 0.1
     prune_screen_size: bool = False
     split_n: int = 2
+    prune_grace: int = 0
     white_background: bool = False
     scene_extent: float = 1.0
     max_gaussians: int = 0
@@ -256,6 +258,8 @@ class DefaultStrategy(Strategy):
 
         radii = torch.cat([state["radii"], torch.zeros(added)])
         prune = gaussians.opacities.detach() < self.prune_opacity
+        if step >= self.reset_every and step % self.reset_every < self.prune_grace:
+            prune[:] = False  # opacities reset moments ago have not had time to recover
         if step > self.reset_every:
             prune |= gaussians.scales.detach().max(-1).values > self.big_world * extent
             if self.prune_screen_size:

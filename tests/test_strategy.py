@@ -149,6 +149,18 @@ def test_world_size_pruning_after_first_reset_and_screen_size_option():
         assert len(g) == expected, (step, screen)
 
 
+def test_prune_grace_spares_faint_gaussians_right_after_a_reset():
+    """With prune_grace 100 and resets every 1000 steps, a faint Gaussian survives refinements at
+    steps 1001-1099 and is pruned from step 1100; grace 0 (the paper) prunes it at once."""
+    rows = [(SMALL, OPAQUE), (SMALL, FAINT)]
+    for step, grace, expected in ((1010, 100, 2), (1099, 100, 2), (1100, 100, 1), (1010, 0, 1), (500, 100, 1)):
+        g, opt = make_setup(rows)
+        strategy = DefaultStrategy(refine_start=0, refine_every=1, refine_stop=2000, reset_every=1000,
+                                   prune_grace=grace)
+        strategy.step_post_backward(g, opt, strategy.init_state(2), step, fake_render([LOW] * 2))
+        assert len(g) == expected, (step, grace)
+
+
 def test_opacity_reset_clamps_and_zeroes_moments():
     g, opt = make_setup([(SMALL, OPAQUE), (SMALL, FAINT)])
     opacities = g.opacities.detach().clone()

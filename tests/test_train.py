@@ -3,6 +3,8 @@ the active terms, numerical errors, masks, metrics log."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 
@@ -62,6 +64,10 @@ def test_strategy_window_scales_but_refine_interval_stays_and_resets_align_with_
     assert paper == DefaultStrategy()
     short = scaled_strategy(DefaultStrategy(), 300)
     assert short.reset_every % short.refine_every == 0 and short.refine_every == 100
+    rounds = scaled_strategy(DefaultStrategy(), 3000, scale_refine_interval=True)
+    assert (rounds.refine_every, rounds.reset_every, rounds.prune_grace) == (10, 300, 100)
+    assert scaled_strategy(DefaultStrategy(), 30000, scale_refine_interval=True) == dataclasses.replace(
+        DefaultStrategy(), prune_grace=100)
 
 
 def test_camera_sampler_draws_every_view_once_per_epoch_and_is_seeded():
