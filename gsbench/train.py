@@ -16,9 +16,9 @@ paper's 30 000-step run (loss ``start``/``end``, the densification window/interv
 `DefaultStrategy.scaled`, the position-lr decay length and the SH interval via
 ``method.update_schedules``) is multiplied by ``scale = train.iterations / 30000`` with `scale_step`
 (rounded, at least 1; 0 and negative "unset" values stay), except the refinement interval, which
-stays 100 steps unless ``train.scale_refine_interval`` (`scaled_strategy` says why). A 3 000-step cpu run therefore densifies every 100
-steps over steps 50–1500, resets opacity every 300 steps, starts λ_d at 300 and λ_n at 700: the same
-fractions of the run as the paper's 30 000 steps.
+stays 100 steps unless ``train.scale_refine_interval`` (`scaled_strategy` says why). A 3 000-step cpu
+run therefore densifies every 100 steps over steps 50–1500, resets opacity every 300 steps, starts
+λ_d at 300 and λ_n at 700: the same fractions of the run as the paper's 30 000 steps.
 
 Masks (``data.use_masks`` with a scene that has masks): the GT image is composited over the render
 background, ``gt' = mask·gt + (1 − mask)·bg`` (the 2023 3DGS intent, §0 "Masks", §6 item 16), so
