@@ -18,9 +18,9 @@ import numpy as np
 import torch
 
 from gsbench.errors import DataError, NumericalError
+from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.types import RasterGaussians
 
-SH_C0 = 0.28209479177387814
 PARAMETER_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
 

@@ -21,11 +21,11 @@ import numpy as np
 import torch
 
 from gsbench.data.camera import Camera
+from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
 FLOOR_FWD = 1.45e9  # pairs/s, 2 threads (performance.md)
 FLOOR_BWD = 0.75e9
-SH_C0 = 0.28209479177387814
 
 STANDARD_WORKLOADS = {
     "50k-400x300": dict(n=50_000, width=400, height=300),

@@ -70,6 +70,10 @@ import torch
 import torch.nn.functional as F
 
 from gsbench.data.camera import Camera
+from gsbench.raster.sh import C0 as SH_C0
+from gsbench.raster.sh import C1 as SH_C1
+from gsbench.raster.sh import C2 as SH_C2
+from gsbench.raster.sh import C3 as SH_C3
 from gsbench.raster.types import KERNELS, OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
 
 ALPHA_MAX = 0.99  # 3DGS §1.4
@@ -79,19 +83,6 @@ JACOBIAN_CLAMP = 1.3  # 3DGS §1.2 step 3
 SURFEL_CUTOFF = 3.0  # 2DGS §2.3
 SURFEL_FILTER_INV_SQUARE = 2.0  # 2DGS §2.4
 SURFEL_MIN_EXTENT = 0.707106  # 2DGS §2.3 (FilterSize)
-
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
 
 
 # --------------------------------------------------------------------------------------------------
