@@ -139,8 +139,9 @@ class DefaultStrategy(Strategy):
     - split  where g >= ``grad_threshold`` and s_max >  ``percent_dense``·extent: ``split_n`` children
       at μ + R (s ⊙ ε), ε ~ N(0, I) (in-plane only for 2D surfels), scale s / (0.8·split_n); the
       parent is removed. Both use the pre-densification g, so fresh clones are never split;
-    - prune  where o < ``prune_opacity`` (not within ``prune_grace`` steps after an opacity reset:
-      0, the paper's behaviour, prunes at every refinement), and when ``step > reset_every`` also s_max >
+    - prune  where o < ``prune_opacity`` (not within ``prune_grace`` steps after a periodic opacity
+      reset — the white-background reset at ``refine_start`` gets no grace; 0, the paper's
+      behaviour, prunes at every refinement), and when ``step > reset_every`` also s_max >
       ``big_world``·extent and, only with ``prune_screen_size``, max radius > ``screen_size`` px.
       3DGS 2023 resets the radii during clone/split, so its screen test never fires (issues
       #123/#643; gsplat disables it too): ``prune_screen_size = False`` is that faithful behaviour;
