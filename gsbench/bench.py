@@ -1,4 +1,4 @@
-"""`gsbench bench`: fixed-workload benchmarks of the rasterizer and the evaluators.
+"""`gsbench bench`: fixed-workload benchmarks of the rasterizer, the evaluators and IBGS's overhead.
 
 Performance claims in this project come from this command, written down with the workload, the
 thread count and the machine (the result JSON carries `records.capture_environment`).
@@ -21,6 +21,11 @@ def run_benchmark(args) -> int:
         from gsbench.raster.bench import format_table, run_raster_benchmark  # noqa: PLC0415
 
         result = run_raster_benchmark(kernels=args.kernels, workloads=args.workloads, repeats=args.repeats, threads=threads)
+        print(format_table(result))
+    elif args.target == "ibgs":
+        from gsbench.local_geometry_bench import DEFAULT_SIZES, format_table, run_ibgs_benchmark  # noqa: PLC0415
+
+        result = run_ibgs_benchmark(sizes=args.sizes or DEFAULT_SIZES, repeats=args.repeats)
         print(format_table(result))
     else:
         from gsbench.evaluators.bench import run_eval_benchmark  # noqa: PLC0415

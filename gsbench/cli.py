@@ -87,6 +87,19 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from gsbench.sweep import expand, format_runs, load_sweep, run_sweep
+
+    sweep = load_sweep(args.config)
+    runs = expand(sweep, overrides=args.set or ())
+    print(f"# sweep {sweep['name']}: {len(runs)} runs")
+    if args.dry_run:
+        print(format_runs(runs))
+        return 0
+    counts = run_sweep(runs, out=args.out, threads=getattr(args, "threads", None))
+    return 1 if counts["failed"] else 0
+
+
 def cmd_eval(args) -> int:
     from gsbench.data.loader import load_scene
     from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file, format_table
@@ -149,6 +162,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--threads", type=int, default=argparse.SUPPRESS, help="OpenMP / torch threads (0 = all)")
     run.set_defaults(func=cmd_run)
 
+    sweep = sub.add_parser("sweep", help="expand a sweep file (configs/sweeps/) and run its runs, skipping finished ones")
+    sweep.add_argument("config", help="sweep YAML file")
+    sweep.add_argument("--dry-run", action="store_true", help="validate and print the runs and their ids only")
+    sweep.add_argument("--set", action="append", metavar="KEY=VALUE", help="override for every run, e.g. train.iterations=1000")
+    sweep.add_argument("--out", default=None, help="runs folder (default: each run's config out, runs/)")
+    sweep.add_argument("--threads", type=int, default=argparse.SUPPRESS, help="OpenMP / torch threads per run")
+    sweep.set_defaults(func=cmd_sweep)
+
     evaluate = sub.add_parser("eval", help="evaluate a mesh against a scene's ground truth")
     evaluate.add_argument("--mesh", required=True)
     evaluate.add_argument("--scene", required=True)
@@ -159,10 +180,11 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(func=cmd_eval)
 
     bench = sub.add_parser("bench", help="fixed-workload benchmarks")
-    bench.add_argument("target", choices=("raster", "eval"))
+    bench.add_argument("target", choices=("raster", "eval", "ibgs"))
     bench.add_argument("--kernels", nargs="+", default=None)
     bench.add_argument("--workloads", nargs="+", default=None, help="e.g. 50k-400x300 200k-800x600 (raster)")
     bench.add_argument("--repeats", type=int, default=5)
+    bench.add_argument("--sizes", type=int, nargs="+", default=None, help="Gaussian counts (ibgs; default 10000 100000)")
     bench.add_argument("--vertices", type=int, default=1_000_000, help="mesh size (eval)")
     bench.add_argument("--gt-points", type=int, default=2_000_000, help="GT size (eval)")
     bench.add_argument("--json", default=None, help="also write the result as JSON")

@@ -6,6 +6,9 @@ Layers, each overriding the previous (DESIGN.md §4):
                   <- configs/methods/<method>.<dataset>.yaml
                   <- configs/presets/<preset>.yaml <- user YAML files <- --set a.b=c
 
+A method yaml that starts with ``extends: <base>`` is preceded by the base's method layer, and its
+``<method>.<dataset>`` layer by the base's (`_method_layers`).
+
 The optional ``<method>.<dataset>.yaml`` layer holds what a paper sets per dataset for one method
 (e.g. GOF's λ_d 1000 on DTU and 100 on TnT, its tetrahedra mesh on TnT); it overrides the dataset
 layer and is overridden by the preset.
@@ -85,7 +88,13 @@ class MeshConfig:
 
     ``extractor``: ``tsdf`` (fused rendered ``depth``; ``voxel_size``, ``sdf_trunc``, ``depth_trunc``,
     ``num_clusters``) or ``tets`` (GOF marching tetrahedra on the opacity ``level`` set with
-    ``bisection_steps`` bisection steps, GOF/RaDe doc §1.7); which ones a method supports is its own.
+    ``bisection_steps`` bisection steps, GOF/RaDe doc §1.7) or ``poisson`` (SuGaR: points on the
+    density ``level`` set along the rays of the rendered ``depth``, screened Poisson,
+    `gsbench.mesh.levelset`, methods-3dgs-2dgs-sugar.md §3.3); which ones a method supports is its own.
+    ``poisson_depth``: octree depth (SuGaR 10; 0 = from the pixel footprint, at most 10);
+    ``poisson_density_quantile``: vertices below this quantile of the Poisson density are removed (0.1);
+    ``poisson_points``: level-set points kept over all views (SuGaR's n_total_points, 10M);
+    ``poisson_triangles``: quadric decimation target in triangles (1M; 0 = no decimation).
     """
 
     extractor: str = "tsdf"
@@ -97,6 +106,10 @@ class MeshConfig:
     num_clusters: int = 1
     level: float = 0.5
     bisection_steps: int = 8
+    poisson_depth: int = 0
+    poisson_density_quantile: float = 0.1
+    poisson_points: int = 10_000_000
+    poisson_triangles: int = 1_000_000
 
 
 @dataclass
@@ -269,6 +282,26 @@ def dataset_of(scene: str) -> str:
     return detect_format(Path(scene)).split("-")[0]
 
 
+def _method_layers(root: Path, method: str, dataset: str, chain: tuple = ()) -> tuple[list[dict], list[dict]]:
+    """(method layers, method-per-dataset layers) of ``method``, its ``extends`` ancestors' first.
+
+    ``configs/methods/<m>.yaml`` may start with ``extends: <base method>``: the base's layers come first,
+    so a variant (e.g. ``ibgs`` on ``radegs``) states only what it adds. Cycles are errors.
+    """
+    if method in chain:
+        raise ConfigError(f"configs/methods: 'extends' loops through {' -> '.join((*chain, method))}")
+    own_file, own_dataset_file = root / "methods" / f"{method}.yaml", root / "methods" / f"{method}.{dataset}.yaml"
+    own = load_yaml(own_file) if own_file.is_file() else {}
+    own_dataset = load_yaml(own_dataset_file) if own_dataset_file.is_file() else {}
+    base = own.pop("extends", None)
+    if base is None:
+        return [own], [own_dataset]
+    if not (root / "methods" / f"{base}.yaml").is_file():
+        raise ConfigError(f"{own_file}: extends '{base}', which has no configs/methods/{base}.yaml")
+    base_layers, base_dataset_layers = _method_layers(root, str(base), dataset, (*chain, method))
+    return [*base_layers, own], [*base_dataset_layers, own_dataset]
+
+
 def resolve(
     method: str,
     scene: str,
@@ -287,16 +320,16 @@ def resolve(
     root = config_root()
     merged: dict = {"method": {"name": method}, "scene": scene, "preset": preset}
     dataset = dataset_of(scene)
-    layers = [root / "methods" / f"{method}.yaml", root / "datasets" / f"{dataset}.yaml",
-              root / "methods" / f"{method}.{dataset}.yaml"]
     preset_file = root / "presets" / f"{preset}.yaml"
     if not preset_file.is_file():
         available = sorted(p.stem for p in (root / "presets").glob("*.yaml"))
         raise ConfigError(f"unknown preset '{preset}'{suggest(preset, available)}; available: {', '.join(available)}")
-    layers.append(preset_file)
-    for layer_path in layers:
-        if layer_path.is_file():
-            merged = _merge(merged, _normalise_method(load_yaml(layer_path)))
+    method_layers, method_dataset_layers = _method_layers(root, method, dataset)
+    dataset_file = root / "datasets" / f"{dataset}.yaml"
+    layers = [*method_layers, load_yaml(dataset_file) if dataset_file.is_file() else {}, *method_dataset_layers,
+              load_yaml(preset_file)]
+    for layer in layers:
+        merged = _merge(merged, _normalise_method(layer))
     for user_file in user_files:
         merged = _merge(merged, _normalise_method(load_yaml(Path(user_file))))
     for text in overrides:

@@ -43,7 +43,10 @@ def knn_initial_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
 class Gaussians(torch.nn.Module):
     """Learnable Gaussian parameters as an ``nn.ParameterDict``-like module (one tensor per group)."""
 
-    def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest, max_sh_degree: int):
+    def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest, max_sh_degree: int, **state):
+        """The six learnable groups, plus optional per-Gaussian ``state`` tensors (N, ...) that are not
+        learned (``requires_grad`` False, no optimizer group) but are densified, pruned and checkpointed
+        with the rows (e.g. IBGS's reference frame, `gsbench.methods.ibgs`)."""
         super().__init__()
         self.max_sh_degree = int(max_sh_degree)
         self.params = torch.nn.ParameterDict(
@@ -56,6 +59,16 @@ class Gaussians(torch.nn.Module):
                 "sh_rest": torch.nn.Parameter(sh_rest),
             }
         )
+        for name, value in state.items():
+            self.add_state(name, value)
+
+    def add_state(self, name: str, value: torch.Tensor) -> None:
+        """Attach a non-learned per-Gaussian tensor ``value`` (N, ...) under ``name`` (see `__init__`)."""
+        if name in PARAMETER_NAMES:
+            raise ValueError(f"'{name}' is a learnable parameter group, not a state tensor")
+        if value.shape[0] != len(self):
+            raise ValueError(f"state '{name}' has {value.shape[0]} rows for {len(self)} Gaussians")
+        self.params[name] = torch.nn.Parameter(value, requires_grad=False)
 
     # ---- construction -------------------------------------------------------------------------
     @classmethod

@@ -3,7 +3,8 @@
 Schema (DESIGN.md §3 RunRecord, frameworks.md §3.4), version `SCHEMA_VERSION`:
 identity (method, scene, dataset, seed, run_id, status, error_tail), resolved config and effective loss
 terms, eval protocols, metrics, timings per stage in seconds (``load``, ``train``, ``extract``,
-``evaluate``, ``total``; training excludes the others), iterations/s, Gaussian count, peak RSS per
+``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of method-specific
+phases inside training, e.g. IBGS ``train.knn``), iterations/s, Gaussian count, peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
 threads, OS, host, UTC start/end).
 """

@@ -76,6 +76,10 @@ METHODS = Registry(
         "2dgs": "gsbench.methods.gs2d:GS2D",
         "gof": "gsbench.methods.gof:GOF",
         "radegs": "gsbench.methods.radegs:RaDeGS",
+        "sugar": "gsbench.methods.sugar:SuGaR",
+        "ibgs": "gsbench.methods.ibgs:IBGS",
+        "ibgs-gof": "gsbench.methods.ibgs:IBGSGOF",
+        "ibgs-2dgs": "gsbench.methods.ibgs:IBGS2DGS",
     },
     "gsbench.methods",
 )

@@ -122,6 +122,8 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
         record.timings = {k: stages.data[k]["seconds"] for k in keys if k in stages.data}
         record.timings["total"] = sum(record.timings.values())
         record.timings["wall_this_invocation"] = time.perf_counter() - start
+        phases = stages.data.get("train", {}).get("phases", {})
+        record.timings.update({f"train.{name}": seconds for name, seconds in phases.items()})
         record.peak_rss_bytes = {k: stages.data[k]["peak_rss_bytes"] for k in keys if k in stages.data}
         record.environment["time_end_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
         record.write(folder / RECORD)
@@ -145,7 +147,7 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     if not final.is_file():
         result = Trainer(method, scene, cfg, folder).fit()
         stages.done("train", result.seconds, it_per_s=result.it_per_s, num_gaussians=result.num_gaussians,
-                    steps=result.steps)
+                    steps=result.steps, phases=result.phases)
     elif not (mesh_path.is_file() and eval_path.is_file()):
         method.load_state_dict(load_checkpoint(final)["method"])
 

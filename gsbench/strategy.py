@@ -95,12 +95,13 @@ def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value:
     _swap(gaussians, optimizer, "opacity_logits", torch.logit(o), torch.zeros_like)
 
 
-def _sample_offsets(rows: Mapping[str, torch.Tensor]) -> torch.Tensor:
-    """R (s ⊙ ε) per row, ε ~ N(0, I) from torch's global RNG (in the surfel plane for 2D scales)."""
+def _sample_offsets(rows: Mapping[str, torch.Tensor], quats: torch.Tensor) -> torch.Tensor:
+    """R (s ⊙ ε) per row, R the rotation of ``quats`` (N,4), ε ~ N(0, I) from torch's global RNG (in the
+    surfel plane for 2D scales)."""
     scales = torch.exp(rows["log_scales"])
     std = torch.cat([scales, torch.zeros(len(scales), 3 - scales.shape[1], dtype=scales.dtype)], -1)
     offsets = torch.normal(torch.zeros_like(std), std)
-    return torch.einsum("nij,nj->ni", quat_to_rotmat(rows["quats"]), offsets)
+    return torch.einsum("nij,nj->ni", quat_to_rotmat(quats), offsets)
 
 
 # ---- strategies ---------------------------------------------------------------------------------
@@ -222,6 +223,12 @@ class DefaultStrategy(Strategy):
     def _reset(self, gaussians: Gaussians, optimizer) -> None:
         reset_opacity(gaussians, optimizer, self.reset_value)
 
+    @staticmethod
+    def _orientations(rows: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The quaternions (N,4) that orient the Gaussians of parameter ``rows`` (the ``quats`` group;
+        IBGS composes them with its reference frame, `gsbench.sparsity`)."""
+        return rows["quats"]
+
     def _select_budget(self, n: int, priority: torch.Tensor, clone: torch.Tensor, split: torch.Tensor):
         """Restrict clone/split to the highest-``priority`` candidates whose added rows fit the budget."""
         if self.max_gaussians <= 0:
@@ -241,7 +248,7 @@ class DefaultStrategy(Strategy):
         n = self.split_n
         params = {k: v.detach()[split] for k, v in gaussians.params.items()}
         children = {k: v.repeat((n,) + (1,) * (v.dim() - 1)) for k, v in params.items()}
-        children["means"] = children["means"] + _sample_offsets(children)
+        children["means"] = children["means"] + _sample_offsets(children, self._orientations(children))
         children["log_scales"] = children["log_scales"] - math.log(0.8 * n)
         return children
 
@@ -333,7 +340,7 @@ class AbsGradStrategy(DefaultStrategy):
 
     def _clones(self, gaussians: Gaussians, clone: torch.Tensor) -> dict:
         rows = super()._clones(gaussians, clone)
-        rows["means"] = rows["means"] + _sample_offsets(rows)
+        rows["means"] = rows["means"] + _sample_offsets(rows, self._orientations(rows))
         return rows
 
     def _refine(self, gaussians, optimizer, state, step) -> dict:

@@ -168,13 +168,15 @@ class CameraSampler:
 
 @dataclass
 class TrainResult:
-    """What training produced: steps done in total, seconds spent (over all resumes), it/s, final N."""
+    """What training produced: steps done in total, seconds spent (over all resumes), it/s, final N, and
+    the seconds of method-specific phases within training (`Method.training_phases`)."""
 
     steps: int
     seconds: float
     it_per_s: float
     num_gaussians: int
     resumed_from: int = 0
+    phases: dict = dataclasses.field(default_factory=dict)
 
 
 def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list]:
@@ -312,4 +314,5 @@ class Trainer:
 
     def result(self, resumed_from: int = 0) -> TrainResult:
         return TrainResult(steps=self.step, seconds=self.seconds, it_per_s=self.step / max(self.seconds, 1e-9),
-                           num_gaussians=len(self.method.gaussians), resumed_from=resumed_from)
+                           num_gaussians=len(self.method.gaussians), resumed_from=resumed_from,
+                           phases=self.method.training_phases())

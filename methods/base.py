@@ -46,7 +46,7 @@ from gsbench.errors import ConfigError
 from gsbench.gaussians import Gaussians
 from gsbench.losses import TermSpec
 from gsbench.mesh.tsdf import tsdf_fusion
-from gsbench.raster import RasterSettings, RenderOutput, rasterize
+from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, rasterize
 from gsbench.strategy import DefaultStrategy, Strategy
 from gsbench.train import scale_step, split_views
 
@@ -182,7 +182,8 @@ class Method:
 
     def make_optimizer(self, gaussians: Gaussians) -> torch.optim.Optimizer:
         lrs = self.learning_rates()
-        groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()]
+        groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()
+                  if param.requires_grad]
         return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
 
     # ---- what the Trainer asks for ------------------------------------------------------------
@@ -222,6 +223,10 @@ class Method:
                 group["lr"] = lr
         self.sh_degree = min(self.cfg.raster.sh_degree, step // scale_step(p.sh_interval, scale))
 
+    def training_phases(self) -> dict[str, float]:
+        """Seconds of training spent in named method-specific phases (none here; IBGS: kNN, eigen)."""
+        return {}
+
     def filter3d(self) -> torch.Tensor | None:
         """The 3D-filter variance (N,) the rasterizer applies; none for 3DGS/2DGS."""
         return None
@@ -232,10 +237,14 @@ class Method:
         return RasterSettings(sh_degree=self.sh_degree, background=self.background, near_plane=r.near_plane,
                               far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d)
 
+    def raster_input(self) -> RasterGaussians:
+        """The activated Gaussians the kernel renders (active SH degree, the method's 3D filter)."""
+        return self.gaussians.raster_input(self.sh_degree, self.filter3d())
+
     def render(self, camera, outputs) -> RenderOutput:
         """Rasterize the current Gaussians with the method's kernel; only ``outputs`` are computed."""
-        return rasterize(self.gaussians.raster_input(self.sh_degree, self.filter3d()), camera,
-                         kernel=self.info().kernel, outputs=tuple(sorted(outputs)), settings=self.raster_settings())
+        return rasterize(self.raster_input(), camera, kernel=self.info().kernel, outputs=tuple(sorted(outputs)),
+                         settings=self.raster_settings())
 
     # ---- mesh ---------------------------------------------------------------------------------
     @torch.no_grad()
@@ -248,9 +257,8 @@ class Method:
         if cfg.mesh.extractor == "tets":
             from gsbench.mesh.tets import tetra_mesh  # noqa: PLC0415  (CGAL/scipy only when used)
 
-            mesh = tetra_mesh(self.gaussians.raster_input(self.sh_degree, self.filter3d()),
-                              [scene.cameras[i] for i in views], self.raster_settings(), kernel=self.info().kernel,
-                              level=cfg.mesh.level, bisection_steps=cfg.mesh.bisection_steps)
+            mesh = tetra_mesh(self.raster_input(), [scene.cameras[i] for i in views], self.raster_settings(),
+                              kernel=self.info().kernel, level=cfg.mesh.level, bisection_steps=cfg.mesh.bisection_steps)
         else:
             mesh = self._tsdf_mesh(scene, cfg, views)
         _export_atomic(mesh, Path(out_path))

@@ -1,7 +1,8 @@
 """Compile (on first use) and load the C++/OpenMP rasterizer.
 
 The extension has a plain C ABI (raster.cpp: binning and compositing; integrate.cpp; project.cpp: the
-fused EWA-family projection), compiled with
+fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.eigen3`),
+compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)
 and called through ctypes. The library name carries a hash of the sources, the flags and the CPU, so
 an edit or another machine triggers a rebuild. The first build prints one line.
@@ -21,7 +22,7 @@ from pathlib import Path
 from gsbench.errors import BuildError
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp"]
+SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp"]
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -185,5 +186,11 @@ def load_library() -> ctypes.CDLL:
         for fn in (lib.gs_project_forward, lib.gs_project_backward):
             fn.argtypes = [ctypes.POINTER(ProjArgs)]
             fn.restype = ctypes.c_int
+        lib.gs_sym3_eigh_forward.argtypes = [ctypes.c_int64] + [ctypes.c_void_p] * 3 + [ctypes.c_int64]
+        lib.gs_sym3_eigh_forward.restype = ctypes.c_int
+        lib.gs_sym3_eigh_backward.argtypes = [ctypes.c_int64] + [ctypes.c_void_p] * 4 + [ctypes.c_double] * 2 + [
+            ctypes.c_void_p, ctypes.c_int64,
+        ]
+        lib.gs_sym3_eigh_backward.restype = ctypes.c_int
         _lib = lib
         return lib

@@ -1,0 +1,114 @@
+"""Local covariance of neighbour means, its eigen-decomposition, and frame continuity (IBGS,
+methods-gof-radegs-ibgs.md §3.2 steps 2–4, §3.4).
+
+- Covariance (paper Eq. 4): with P_i = {μ_i} ∪ {μ_j : j ∈ N(i)} (n = K + 1 points; without μ_i when
+  ``include_self`` is false), μ̄_i = mean(P_i), ``C_i = (1/n) Σ_{p∈P_i} (p − μ̄_i)(p − μ̄_i)ᵀ + δI`` with
+  δ = 1e-10·radius² (§3.4 (f)), in float64 from the *current* means, so gradients reach all n means.
+- Eigen-decomposition (Eq. 5) by `gsbench.eigen3.sym3_eigh` of C / radius² (then λ × radius², so the
+  solver's absolute floors are scale-free): λ1 ≥ λ2 ≥ λ3, columns v1, v2, v3, det V = +1,
+  gap-regularised backward (§3.4 (a)). ``valid`` is false where λ1 <= 2δ, i.e. the neighbours' own
+  spread is below the jitter (coincident points, §3.4 (f)); those rows use V = I and the IBGS losses
+  skip them.
+- Planarity (Eq. 10, [ASSUMED] formula): γ = (λ2 − λ3)/λ1 (λ1 >= δ > 0), detached (§3.2 step 8).
+- Frame continuity (§3.4 (e), item 3): eigenvector signs are arbitrary and the sorted order swaps
+  when two eigenvalues cross, so the orientation would jump. `frame_alignment` picks, per Gaussian, the
+  column permutation and signs of the new V that best agree with the previous frame (maximising
+  Σ_k |v_new,π(k) · v_old,k|), then makes det = +1 by flipping the least aligned column. For surfels
+  (2 scales) the permutation must keep v3 — the splat normal — in the third column.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import torch
+
+from gsbench.eigen3 import sym3_eigh
+from gsbench.phase_timer import PhaseTimer
+
+COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (§3.4 (f)); λ1 <= 2δ: coincident points
+
+PERMUTATIONS_3D = tuple(itertools.permutations(range(3)))
+PERMUTATIONS_2D = ((0, 1, 2), (1, 0, 2))  # surfels: v3 stays the normal
+
+
+@dataclass
+class LocalGeometry:
+    """Per-Gaussian neighbourhood eigen-structure: ``eigenvalues`` (N,3) descending, ``eigenvectors``
+    (N,3,3) columns v1 v2 v3 (float64, differentiable w.r.t. the means), ``valid`` (N,) bool,
+    ``index`` (N,K) the neighbour index they were computed with."""
+
+    eigenvalues: torch.Tensor
+    eigenvectors: torch.Tensor
+    valid: torch.Tensor
+    index: torch.Tensor
+
+    @property
+    def normals(self) -> torch.Tensor:
+        """v3 (N,3): the direction of least spread, sign arbitrary."""
+        return self.eigenvectors[:, :, 2]
+
+    def planarity(self) -> torch.Tensor:
+        """γ = (λ2 − λ3)/λ1 (N,), detached (Eq. 10, [ASSUMED] Demantké/Weinmann form)."""
+        lam = self.eigenvalues.detach()
+        return (lam[:, 1] - lam[:, 2]) / lam[:, 0]  # λ1 >= δ > 0 (the jitter)
+
+
+def neighbourhood_points(means: torch.Tensor, neighbour_means: torch.Tensor, include_self: bool) -> torch.Tensor:
+    """P_i (N, n, 3): the neighbour means (N,K,3), preceded by the Gaussian's own (N,3) if ``include_self``."""
+    return torch.cat([means[:, None], neighbour_means], 1) if include_self else neighbour_means
+
+
+def local_covariance(means: torch.Tensor, index: torch.Tensor, radius: float,
+                     include_self: bool = True) -> torch.Tensor:
+    """C (N,3,3) float64 of each Gaussian's neighbourhood (module docstring, Eq. 4)."""
+    x = means.to(torch.float64)
+    points = neighbourhood_points(x, x[index], include_self)
+    centred = points - points.mean(1, keepdim=True)
+    cov = centred.transpose(1, 2) @ centred / max(points.shape[1], 1)
+    return cov + (COVARIANCE_JITTER * radius**2) * torch.eye(3, dtype=torch.float64)
+
+
+def local_geometry(means: torch.Tensor, index: torch.Tensor, radius: float, include_self: bool = True,
+                   gap_eps: float = 1e-3, timer: PhaseTimer | None = None) -> LocalGeometry:
+    """Covariance and eigen-decomposition of every neighbourhood (module docstring); with a ``timer``
+    their forward and backward time is added to its ``"local_geometry"`` phase."""
+
+    def decompose(x):
+        lam, vec = sym3_eigh(local_covariance(x, index, radius, include_self) / radius**2, gap_eps=gap_eps)
+        return lam * radius**2, vec
+
+    lam, vec = decompose(means) if timer is None else timer.run("local_geometry", decompose, means)
+    valid = lam.detach()[:, 0] > 2 * COVARIANCE_JITTER * radius**2
+    eye = torch.eye(3, dtype=vec.dtype).expand_as(vec)
+    vec = torch.where(valid[:, None, None], vec, eye)
+    return LocalGeometry(lam, vec, valid, index)
+
+
+@torch.no_grad()
+def frame_alignment(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool = False
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(column permutation (N,3) int64, signs (N,3)) that map ``vectors`` onto ``previous`` (§3.4 (e)).
+
+    Apply as ``vectors[:, :, perm] * signs``: column k of the result is ± the new eigenvector that best
+    matches previous column k; the signs make each dot product >= 0, then det is made +1 by flipping
+    the least aligned column.
+    """
+    perms = torch.tensor(PERMUTATIONS_2D if surfel else PERMUTATIONS_3D, dtype=torch.int64)
+    dots = previous.transpose(1, 2).to(vectors.dtype) @ vectors  # (N, old k, new m)
+    picks = torch.zeros(9, len(perms), dtype=dots.dtype)  # picks[3k + p(k), p] = 1: scores = |dots| · picks
+    picks[torch.arange(3)[None, :] * 3 + perms, torch.arange(len(perms))[:, None]] = 1.0
+    perm = perms[(dots.abs().reshape(-1, 9) @ picks).argmax(-1)]
+    aligned = torch.gather(dots, 2, perm[:, :, None]).squeeze(-1)  # previous_k · v_perm(k)
+    signs = torch.where(aligned < 0, -1.0, 1.0).to(vectors.dtype)
+    frame = torch.gather(vectors, 2, perm[:, None, :].expand(-1, 3, -1)) * signs[:, None, :]
+    flip = torch.linalg.det(frame) < 0
+    weakest = (aligned.abs() + torch.tensor([0.0, 0.0, 1.0 if surfel else 0.0])).argmin(-1)
+    signs[flip, weakest[flip]] *= -1
+    return perm, signs
+
+
+def apply_alignment(vectors: torch.Tensor, perm: torch.Tensor, signs: torch.Tensor) -> torch.Tensor:
+    """``vectors[:, :, perm] * signs`` per row (differentiable in ``vectors``)."""
+    return torch.gather(vectors, 2, perm[:, None, :].expand(-1, 3, -1)) * signs[:, None, :]

@@ -1,0 +1,128 @@
+"""Sweep files: expansion (variants × grid × zip × scenes × seeds), validation and run-id stability;
+every shipped sweep in configs/sweeps/ expands and validates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from gsbench.config import config_root
+from gsbench.errors import ConfigError
+from gsbench.sweep import expand, format_runs, load_sweep
+
+SWEEPS = sorted((config_root() / "sweeps").glob("*.yaml"))
+
+
+def write(tmp_path, text) -> Path:
+    path = tmp_path / "sweep.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_grid_zip_scenes_and_seeds_multiply_in_order(tmp_path):
+    sweep = load_sweep(write(tmp_path, """
+base: {method: 3dgs, scene: synthetic/spot, preset: quick, train: {iterations: 50}}
+grid: {method.densify_grad_threshold: [0.0002, 0.0004]}
+zip: {train.log_every: [5, 10], train.checkpoint_every: [0, 25]}
+scenes: [synthetic/spot, synthetic/spot-tnt]
+seeds: [0, 1]
+"""))
+    runs = expand(sweep)
+    assert len(runs) == 2 * 2 * 2 * 2
+    assert sweep["name"] == "sweep"
+    first = runs[0].config
+    assert (first.method["densify_grad_threshold"], first.train.log_every, first.train.checkpoint_every,
+            first.scene, first.seed, first.train.iterations) == (0.0002, 5, 0, "synthetic/spot", 0, 50)
+    assert runs[0].label == "method.densify_grad_threshold=0.0002 train.log_every=5 train.checkpoint_every=0"
+    assert {(r.config.train.log_every, r.config.train.checkpoint_every) for r in runs} == {(5, 0), (10, 25)}
+    assert len({r.run_id for r in runs}) == len(runs)
+    assert [r.run_id for r in expand(load_sweep(write(tmp_path, Path(tmp_path / "sweep.yaml").read_text())))] == \
+        [r.run_id for r in runs]  # stable ids
+
+
+def test_variants_may_switch_the_method_and_overrides_apply_to_every_run(tmp_path):
+    sweep = load_sweep(write(tmp_path, """
+base: {method: ibgs, scene: synthetic/spot, preset: cpu}
+variants:
+  full: {}
+  plain: {method: radegs, losses.depth_distortion.weight: 100}
+  no_sadc: {method.sadc: false}
+"""))
+    runs = expand(sweep, overrides=["train.iterations=1000"])
+    assert [r.label for r in runs] == ["full", "plain", "no_sadc"]
+    assert [r.config.method["name"] for r in runs] == ["ibgs", "radegs", "ibgs"]
+    assert runs[1].config.losses["depth_distortion"]["weight"] == 100.0
+    assert runs[2].config.method["sadc"] is False and runs[0].config.method["sadc"] is True
+    assert all(r.config.train.iterations == 1000 for r in runs)
+    table = format_runs(runs)
+    assert all(r.run_id in table for r in runs) and "no_sadc" in table
+
+
+@pytest.mark.parametrize("text,message", [
+    ("base: {method: ibgs, scene: synthetic/spot}\ngrid: {method.knn_kk: [1]}", "'method.knn_kk=1'.*knn_k"),
+    ("base: {method: ibgs, scene: synthetic/spot}\nvariants: {x: {losses.eigvall.weight: 1}}", "sweep run 'x'.*eigval"),
+    ("base: {scene: synthetic/spot}", "needs a method"),
+    ("base: {method: 3dgs, scene: synthetic/spot}\nzip: {a: [1, 2], b: [1]}", "same length"),
+    ("base: {method: 3dgs, scene: synthetic/spot}\ngrid: {a: []}", "non-empty list"),
+    ("base: {method: 3dgs}\nscenez: [synthetic/spot]", "unknown sweep keys"),
+])
+def test_malformed_sweeps_fail_before_running(tmp_path, text, message):
+    with pytest.raises(ConfigError, match=message):
+        expand(load_sweep(write(tmp_path, text)))
+
+
+@pytest.mark.parametrize("path", SWEEPS, ids=[p.stem for p in SWEEPS])
+def test_shipped_sweeps_expand_and_validate(path):
+    runs = expand(load_sweep(path))
+    assert runs and len({r.run_id for r in runs}) == len(runs)
+
+
+def test_shipped_sweeps_are_the_issue_grids():
+    by_name = {p.stem: expand(load_sweep(p)) for p in SWEEPS}
+    assert [r.config.method["knn_k"] for r in by_name["ibgs_k"]] == list(range(2, 11))
+    assert {r.config.method["name"] for r in by_name["ibgs_rasterizers"]} == \
+        {"2dgs", "ibgs-2dgs", "gof", "ibgs-gof", "radegs", "ibgs"}
+    assert {(r.config.method["name"], r.config.scene) for r in by_name["all_methods"]} == {
+        (m, s) for m in ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs")
+        for s in ("synthetic/spot", "synthetic/spot-tnt")}
+    losses = {r.label: r.config for r in by_name["ibgs_losses"]}
+    assert losses["ibgs_without_Ld_Ln"].losses["normal_consistency"]["weight"] == 0.0
+    assert losses["ibgs_Ls_instead_of_eigval"].losses["flatten"]["weight"] > 0
+    assert losses["ibgs_Ls_instead_of_eigval"].losses["eigval"]["weight"] == 0.0
+    assert losses["ibgs_attached_V"].method["attach_eigenvectors"] is True
+
+
+def test_cli_dry_run_prints_every_run_id(capsys):
+    from gsbench.cli import main
+
+    path = config_root() / "sweeps" / "ibgs_k.yaml"
+    assert main(["sweep", str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert all(r.run_id in out for r in expand(load_sweep(path)))
+
+
+def test_sequential_sweep_skips_finished_runs_and_survives_a_failure(tmp_path, monkeypatch):
+    import gsbench.runner as runner
+    from gsbench.records import RunRecord
+    from gsbench.sweep import run_sweep
+
+    runs = expand(load_sweep(write(tmp_path, """
+base: {method: 3dgs, scene: synthetic/spot, preset: quick}
+grid: {seed: [0, 1, 2]}
+""")))
+    calls = []
+
+    def fake_run(cfg, echo=print):
+        calls.append(cfg.seed)
+        if cfg.seed == 1:
+            raise RuntimeError("boom")
+        folder = runner.run_dir(cfg)
+        folder.mkdir(parents=True)
+        RunRecord(run_id=cfg.run_id, method="3dgs", scene=cfg.scene, dataset="dtu", seed=cfg.seed,
+                  status="ok").write(folder / runner.RECORD)
+
+    monkeypatch.setattr(runner, "run", fake_run)
+    assert run_sweep(runs, out=str(tmp_path / "runs"), echo=lambda *a: None) == {"ok": 2, "skipped": 0, "failed": 1}
+    assert run_sweep(runs, out=str(tmp_path / "runs"), echo=lambda *a: None) == {"ok": 0, "skipped": 2, "failed": 1}
+    assert calls == [0, 1, 2, 1]
