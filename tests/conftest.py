@@ -1,6 +1,28 @@
-"""Test session set-up: the OpenMP wait policy must be set before the first test module imports torch
-(see gsbench/__init__.py: two OpenMP runtimes spinning against each other on few cores)."""
+"""Test session set-up and shared fixtures.
+
+The OpenMP wait policy must be set before the first test module imports torch (see
+gsbench/__init__.py: two OpenMP runtimes spinning against each other on few cores).
+"""
 
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def tiny_spot(tmp_path_factory):
+    """synthetic/spot at 64x48, generated once per session and shared by the method test files."""
+    from gsbench.data.loader import make_scene
+
+    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
+
+
+@pytest.fixture
+def restore_threads():
+    """Put torch's thread count back after a test that sets it (``threads=`` in a run config)."""
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)

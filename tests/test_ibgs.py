@@ -10,7 +10,6 @@ import pytest
 import torch
 
 import gsbench.config as config
-from gsbench.data.loader import load_scene, make_scene
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.gaussians import Gaussians
 from gsbench.local_geometry import PERMUTATIONS_3D, LocalGeometry, apply_alignment, frame_alignment, local_geometry
@@ -19,33 +18,11 @@ from gsbench.neighbours import NeighbourIndex, nearest_other
 from gsbench.raster.reference import quat_to_rotmat
 from gsbench.registry import METHODS
 from gsbench.rotations import quat_multiply, rotmat_to_quat
-from gsbench.runner import resolve_run, run
+from gsbench.runner import resolve_run
 from gsbench.sparsity import SparsityAwareStrategy
 from gsbench.strategy import append_params
 from gsbench.train import Trainer
-
-TINY = ["data.downscale=1", "method.random_init_points=400", "train.checkpoint_every=0", "threads=1"]
-
-
-@pytest.fixture(scope="session")
-def tiny_spot(tmp_path_factory):
-    """synthetic/spot at 64x48, generated once per session (the same folder as the other test files)."""
-    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
-
-
-@pytest.fixture
-def restore_threads():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
-
-
-def setup_method(name, scene_dir, *overrides):
-    cfg = resolve_run(name, str(scene_dir), preset="quick", overrides=[*TINY, *overrides])
-    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
-    m = METHODS.get(name)()
-    m.setup(scene, cfg)
-    return m, scene, cfg
+from tests.method_setup import quick_run, setup_method, straight_and_resumed
 
 
 def random_rotations(n, seed=0):
@@ -240,20 +217,7 @@ def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threa
     overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
                  "method.densify_until=30000", "method.opacity_reset_every=30000", "method.knn_refresh_every=5",
                  "losses.eigval.start=0", "losses.eigvec.start=0")
-
-    def trainer(folder):
-        m, scene, cfg = setup_method("ibgs", tiny_spot, *overrides)
-        return Trainer(m, scene, cfg, folder)
-
-    straight = trainer(tmp_path / "a")
-    straight.fit()
-    interrupted = trainer(tmp_path / "b")
-    original = interrupted.train_step
-    monkeypatch.setattr(interrupted, "train_step", lambda step: original(step) if step <= 12 else 1 / 0)
-    with pytest.raises(ZeroDivisionError):
-        interrupted.fit()
-    resumed = trainer(tmp_path / "b")
-    resumed.fit()
+    straight, resumed = straight_and_resumed("ibgs", tiny_spot, tmp_path, monkeypatch, *overrides, crash_after=12)
     assert len(resumed.method.gaussians) == len(straight.method.gaussians) != 400
     for k, v in straight.method.gaussians.params.items():
         assert torch.equal(v, resumed.method.gaussians.params[k]), k
@@ -314,12 +278,7 @@ QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations
 
 @pytest.mark.parametrize("name", ["ibgs", "ibgs-gof", "ibgs-2dgs"])
 def test_quick_run_trains_meshes_evaluates_and_records(name, tiny_spot, tmp_path, restore_threads):
-    cfg = resolve_run(name, str(tiny_spot), preset="quick", overrides=QUICK)
-    cfg.out = str(tmp_path / "runs")
-    record = run(cfg, echo=lambda *a: None)
-    assert record.status == "ok" and record.method == name and record.num_gaussians > 0
-    assert all(math.isfinite(record.metrics[k]) for k in ("chamfer", "accuracy", "completeness"))
-    assert record.mesh["faces"] > 0
+    record = quick_run(name, tiny_spot, tmp_path)
     assert record.losses["schedule"]["eigval"]["start"] == 14  # 7000 · 60/30000
     assert 0 < record.timings["train.knn"] < record.timings["train"]
     assert 0 < record.timings["train.local_geometry"] < record.timings["train"]

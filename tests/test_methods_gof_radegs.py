@@ -13,14 +13,14 @@ import trimesh
 
 import gsbench.config as config
 import gsbench.methods.base as method_base
-from gsbench.data.loader import load_scene, make_scene
 from gsbench.errors import ConfigError
 from gsbench.losses import Batch, active_terms, depth_to_normal, edge_weights
 from gsbench.raster.types import RenderOutput
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run, run
+from gsbench.runner import resolve_run
 from gsbench.strategy import AbsGradStrategy
-from gsbench.train import Trainer, load_checkpoint, split_views
+from gsbench.train import load_checkpoint, split_views
+from tests.method_setup import quick_run, setup_method, straight_and_resumed
 from tests.raster_scenes import make_camera
 
 METHOD_NAMES = ("gof", "radegs")
@@ -30,28 +30,6 @@ TERM_PARAMS = {  # GOF §1.3/§1.6: median-depth L_n, alpha²-normalised L_d; Ra
     "radegs": {"normal_consistency": {"depth_ratio": 0.6, "normalize": True, "mix": "normal"},
                "depth_distortion": {"normalize": True, "edge_aware": True}},
 }
-TINY = ["data.downscale=1", "method.random_init_points=400", "train.checkpoint_every=0"]
-
-
-@pytest.fixture(scope="session")
-def tiny_spot(tmp_path_factory):
-    """synthetic/spot at 64x48, generated once per session (the same folder as the other test files)."""
-    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
-
-
-@pytest.fixture
-def restore_threads():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
-
-
-def setup_method(name, scene_dir, *overrides):
-    cfg = resolve_run(name, str(scene_dir), preset="quick", overrides=[*TINY, *overrides])
-    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
-    m = METHODS.get(name)()
-    m.setup(scene, cfg)
-    return m, scene, cfg
 
 
 # ---- declarations and paper defaults ------------------------------------------------------------
@@ -195,20 +173,7 @@ def test_resume_is_bit_identical_with_densification_and_the_filter(tiny_spot, tm
     """GOF: 24 steps straight vs 12 + crash + resume + 12, densifying (and refiltering) every 4 steps."""
     overrides = ("threads=1", "train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
                  "method.densify_until=30000", "method.opacity_reset_every=30000")
-
-    def trainer(folder):
-        m, scene, cfg = setup_method("gof", tiny_spot, *overrides)
-        return Trainer(m, scene, cfg, folder)
-
-    straight = trainer(tmp_path / "a")
-    straight.fit()
-    interrupted = trainer(tmp_path / "b")
-    original = interrupted.train_step
-    monkeypatch.setattr(interrupted, "train_step", lambda step: original(step) if step <= 12 else 1 / 0)
-    with pytest.raises(ZeroDivisionError):
-        interrupted.fit()
-    resumed = trainer(tmp_path / "b")
-    resumed.fit()
+    straight, resumed = straight_and_resumed("gof", tiny_spot, tmp_path, monkeypatch, *overrides, crash_after=12)
     assert len(resumed.method.gaussians) == len(straight.method.gaussians) != 400  # densified
     for k, v in straight.method.gaussians.params.items():
         assert torch.equal(v, resumed.method.gaussians.params[k]), k
@@ -252,12 +217,8 @@ QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations
 
 @pytest.mark.parametrize("name", METHOD_NAMES)
 def test_quick_run_trains_meshes_evaluates_and_records(name, tiny_spot, tmp_path, restore_threads):
-    cfg = resolve_run(name, str(tiny_spot), preset="quick", overrides=QUICK)
-    cfg.out = str(tmp_path / "runs")
-    record = run(cfg, echo=lambda *a: None)
-    assert record.status == "ok" and record.method == name and record.num_gaussians > 0
-    assert all(math.isfinite(record.metrics[k]) for k in ("chamfer", "accuracy", "completeness"))
-    assert record.mesh["faces"] > 0 and set(record.eval_protocol) == {"dtu_chamfer"}
+    record = quick_run(name, tiny_spot, tmp_path)
+    assert set(record.eval_protocol) == {"dtu_chamfer"}
     schedule = record.losses["schedule"]  # starts are 15000 · 60/30000
     assert schedule["normal_consistency"] == {"weight": 0.05, "start": 30, "end": -1}
     assert schedule["depth_distortion"] == {"weight": 1000.0 if name == "gof" else 0.0, "start": 30, "end": -1}

@@ -19,12 +19,6 @@ from gsbench.train import Trainer
 # Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection.
 
 
-@pytest.fixture(scope="session")
-def tiny_spot(tmp_path_factory):
-    """synthetic/spot at 64x48, generated once per session (the same folder as the other test files)."""
-    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
-
-
 def test_registered_methods_declare_kernel_primitive_and_mesh_depth():
     gs3d, gs2d = METHODS.get("3dgs"), METHODS.get("2dgs")
     assert (gs3d.info().kernel, gs3d.info().primitive, gs3d.info().mesh_depth) == ("ewa", "3d", "expected")

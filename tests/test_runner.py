@@ -10,7 +10,6 @@ import pytest
 import trimesh
 
 from gsbench.cli import main
-from gsbench.data.loader import make_scene
 from gsbench.records import RunRecord, sha256_file
 from gsbench.runner import resolve_run, run_dir
 from gsbench.train import CHECKPOINT, FINAL_CHECKPOINT, METRICS, Trainer
@@ -20,12 +19,6 @@ from gsbench.train import CHECKPOINT, FINAL_CHECKPOINT, METRICS, Trainer
 # A TSDF voxel of about one pixel at 64x48 (a finer grid meshes pixel noise and slows evaluation).
 QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations=60", "train.checkpoint_every=30",
          "train.log_every=10", "mesh.voxel_size=0.02", "mesh.sdf_trunc=0.08"]
-
-
-@pytest.fixture(scope="session")
-def tiny_spot(tmp_path_factory):
-    """synthetic/spot at 64x48, generated once per session (the same folder as the other test files)."""
-    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
 
 
 def gsbench_run(method, scene, out, *extra_sets, expect=0):

@@ -28,19 +28,6 @@ from tests.raster_scenes import look_at_camera, make_camera
 LEVEL = 0.3
 
 
-@pytest.fixture(scope="session")
-def tiny_spot(tmp_path_factory):
-    """synthetic/spot at 64x48, generated once per session (the same folder as the other test files)."""
-    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
-
-
-@pytest.fixture
-def restore_threads():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
-
-
 def one_gaussian(mean, quat, scales, opacity, dtype=torch.float64) -> RasterGaussians:
     return RasterGaussians(means=torch.tensor([mean], dtype=dtype), quats=torch.tensor([quat], dtype=dtype),
                            scales=torch.tensor([scales], dtype=dtype), opacities=torch.tensor([opacity], dtype=dtype),

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import gsbench.methods.base as method_base
-from gsbench.data.loader import load_scene, make_scene
+from gsbench.data.loader import load_scene
 from gsbench.errors import NumericalError
 from gsbench.registry import METHODS
 from gsbench.runner import resolve_run
@@ -24,12 +24,6 @@ from gsbench.train import (CHECKPOINT, FINAL_CHECKPOINT, METRICS, CameraSampler,
 # Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection, before
 # any test loads the rasterizer extension.
 TINY = ["data.downscale=1", "method.random_init_points=400", "train.log_every=5"]
-
-
-@pytest.fixture(scope="session")
-def tiny_spot(tmp_path_factory):
-    """synthetic/spot at 64x48, generated once per session (shared by the method test files)."""
-    return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
 
 
 def make_trainer(method, scene_dir, run_dir, *overrides):
@@ -83,13 +77,6 @@ def test_camera_sampler_draws_every_view_once_per_epoch_and_is_seeded():
 
 
 # ---- the loop -------------------------------------------------------------------------------------
-
-
-@pytest.fixture
-def restore_threads():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.mark.parametrize("threads", [1, 2])
