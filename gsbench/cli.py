@@ -88,6 +88,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_sweep(args) -> int:
+    from gsbench.executors import make_executor, threads_per_run
     from gsbench.sweep import expand, format_runs, load_sweep, run_sweep
 
     sweep = load_sweep(args.config)
@@ -96,8 +97,16 @@ def cmd_sweep(args) -> int:
     if args.dry_run:
         print(format_runs(runs))
         return 0
-    counts = run_sweep(runs, out=args.out, threads=getattr(args, "threads", None))
-    return 1 if counts["failed"] else 0
+    settings = sweep.get("executor", {})
+    workers = args.workers or settings.get("workers", 1)
+    threads = threads_per_run(args.threads or settings.get("threads") or max(r.config.threads for r in runs), workers)
+    with make_executor(args.executor or settings.get("kind", "local"), workers=workers, threads=threads,
+                       address=args.address or settings.get("address")) as executor:
+        summary = run_sweep(runs, executor, name=sweep["name"], description=sweep.get("description", ""),
+                            file=args.config, out=args.out, threads=threads)
+    if summary.interrupted:
+        return 130
+    return 1 if summary.counts["failed"] else 0
 
 
 def cmd_eval(args) -> int:
@@ -120,6 +129,16 @@ def cmd_bench(args) -> int:
     from gsbench.bench import run_benchmark
 
     return run_benchmark(args)
+
+
+def cmd_report(args) -> int:
+    from gsbench.report.build import write_report
+
+    written = write_report(Path(args.runs_dir), Path(args.out), plots=not args.no_plots)
+    plots = sum(1 for p in written if p.suffix == ".png")
+    print(f"report written to {args.out}: " + ", ".join(p.name for p in written if p.suffix != ".png")
+          + (f" and {plots} plot{'s' if plots > 1 else ''} in plots/" if plots else ""))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -167,7 +186,17 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--dry-run", action="store_true", help="validate and print the runs and their ids only")
     sweep.add_argument("--set", action="append", metavar="KEY=VALUE", help="override for every run, e.g. train.iterations=1000")
     sweep.add_argument("--out", default=None, help="runs folder (default: each run's config out, runs/)")
-    sweep.add_argument("--threads", type=int, default=argparse.SUPPRESS, help="OpenMP / torch threads per run")
+    sweep.add_argument("--threads", type=int, default=argparse.SUPPRESS,
+                       help="OpenMP / torch threads per run (default: the sweep file's executor.threads, "
+                            "else the cores divided among the workers)")
+    sweep.add_argument("--executor", choices=("local", "ray"), default=None,
+                       help="local processes or Ray (pip install \"gsbench[ray]\"); "
+                            "default: the sweep file's executor.kind, else local")
+    sweep.add_argument("--workers", type=int, default=None,
+                       help="runs at a time: local processes, or a local Ray cluster of workers × threads CPUs "
+                            "(default: the sweep file's executor.workers, else 1)")
+    sweep.add_argument("--address", default=None,
+                       help="the Ray cluster to connect to, e.g. auto (default: start a local one)")
     sweep.set_defaults(func=cmd_sweep)
 
     evaluate = sub.add_parser("eval", help="evaluate a mesh against a scene's ground truth")
@@ -189,6 +218,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--gt-points", type=int, default=2_000_000, help="GT size (eval)")
     bench.add_argument("--json", default=None, help="also write the result as JSON")
     bench.set_defaults(func=cmd_bench)
+
+    report = sub.add_parser("report", help="leaderboard tables, speed-vs-error plots and sweep ablations from run records")
+    report.add_argument("runs_dir", metavar="RUNS_DIR", help="runs folder (searched recursively for record.json)")
+    report.add_argument("--out", default="report", help="output folder (default: report/)")
+    report.add_argument("--no-plots", action="store_true", help="skip the matplotlib plots (no PNGs, no figures)")
+    report.set_defaults(func=cmd_report)
     return parser
 
 

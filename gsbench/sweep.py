@@ -12,6 +12,7 @@ A sweep file (``configs/sweeps/*.yaml``)::
     zip: {a.b: [1, 2], c.d: [3, 4]}  # optional, lists of one length, taken together
     scenes: [synthetic/spot]         # optional; default: base.scene
     seeds: [0]                       # optional; default: [base seed or 0]
+    executor: {kind: local, workers: 1, threads: 2, address: null}  # optional defaults of the CLI options
 
 Every key other than ``method``, ``scene``, ``preset`` and ``seed`` is a config path (dotted, or
 nested mappings that are flattened to dotted paths) applied as a ``--set`` override after the
@@ -20,20 +21,31 @@ method/dataset/preset layers. The runs are variants × grid × zip × scenes × 
 run's label) and checks its loss-term names against the registry, so a sweep fails before it
 starts. Each run's id is its resolved config's (`gsbench.config.run_id`), so re-running a sweep
 finds the finished runs.
+
+Running (`run_sweep`): every unfinished run is one task (`run_one`) on an executor
+(`gsbench.executors`: local processes or Ray); a manifest (`Manifest`) records the sweep's runs and
+their statuses for the report, and a summary (`SweepSummary`) says how it ended.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import time
+import traceback
+from concurrent.futures import CancelledError, as_completed
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
+
+from tqdm import tqdm
 
 from gsbench.config import RunConfig, load_yaml
 from gsbench.errors import ConfigError
 
 SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "seeds", "executor")
 IDENTITY_KEYS = ("method", "scene", "preset", "seed")
+EXECUTOR_KEYS = ("kind", "workers", "threads", "address")
 
 
 @dataclass
@@ -67,9 +79,12 @@ def load_sweep(path) -> dict:
     unknown = set(data) - set(SWEEP_KEYS)
     if unknown:
         raise ConfigError(f"{path}: unknown sweep keys {sorted(unknown)}; valid: {', '.join(SWEEP_KEYS)}")
-    for key in ("base", "variants", "grid", "zip"):
+    for key in ("base", "variants", "grid", "zip", "executor"):
         if not isinstance(data.get(key, {}), dict):
             raise ConfigError(f"{path}: '{key}' must be a mapping")
+    unknown = set(data.get("executor", {})) - set(EXECUTOR_KEYS)
+    if unknown:
+        raise ConfigError(f"{path}: unknown executor keys {sorted(unknown)}; valid: {', '.join(EXECUTOR_KEYS)}")
     for key in ("grid", "zip"):
         for name, values in data.get(key, {}).items():
             if not isinstance(values, list) or not values:
@@ -146,29 +161,206 @@ def format_runs(runs: list[SweepRun]) -> str:
     return "\n".join(lines)
 
 
-def run_sweep(runs: list[SweepRun], *, out: str | None = None, threads: int | None = None, echo=print) -> dict:
-    """Run ``runs`` one after another in this process; finished runs (record status ok) are skipped and
-    a failing run is recorded (``status: failed``) without stopping the others. Returns the counts."""
-    from gsbench.records import RunRecord  # noqa: PLC0415
-    from gsbench.runner import RECORD, run, run_dir  # noqa: PLC0415
+@dataclass
+class RunOutcome:
+    """What a task sends back to the sweep: small and picklable, whatever the executor."""
 
-    counts = {"ok": 0, "skipped": 0, "failed": 0}
-    for i, sweep_run in enumerate(runs, 1):
+    run_id: str
+    status: str  # ok | failed
+    seconds: float
+    error_tail: str = ""
+
+
+def _quiet(*_args) -> None:
+    """The runner's per-run printing, dropped: the sweep reports progress."""
+
+
+def run_one(cfg: RunConfig) -> RunOutcome:
+    """The task every executor runs: ``cfg`` in this process with its own thread count (``cfg.threads``).
+    A failing run returns status failed with its traceback tail (the runner has written the failed
+    record), so it never takes the sweep down."""
+    from gsbench.runner import ERROR_TAIL_LINES, run  # noqa: PLC0415
+
+    start = time.perf_counter()
+    try:
+        run(cfg, echo=_quiet)
+    except Exception:  # noqa: BLE001  (recorded by the runner; the sweep goes on)
+        tail = "".join(traceback.format_exc().splitlines(keepends=True)[-ERROR_TAIL_LINES:])
+        return RunOutcome(cfg.run_id, "failed", time.perf_counter() - start, tail)
+    return RunOutcome(cfg.run_id, "ok", time.perf_counter() - start)
+
+
+def is_finished(cfg: RunConfig) -> bool:
+    """The run's record exists with status ok."""
+    from gsbench.records import RunRecord  # noqa: PLC0415
+    from gsbench.runner import RECORD, run_dir  # noqa: PLC0415
+
+    path = run_dir(cfg) / RECORD
+    return path.is_file() and RunRecord.read(path).status == "ok"
+
+
+class Manifest:
+    """``<out>/sweeps/<name>.json``, what the report builds ablation tables from::
+
+        {"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed", "dir", "status"}]}
+
+    ``dir`` is the run folder relative to ``<out>``; ``status`` is pending, skipped (finished by an
+    earlier invocation), ok, failed or cancelled (interrupted, or never started). Rewritten atomically
+    on every change."""
+
+    def __init__(self, path: Path, *, name: str, description: str, file: str, runs: list[SweepRun], out: Path,
+                 finished: set):
+        from gsbench.runner import run_dir  # noqa: PLC0415
+
+        self.path = path
+        entries = [{"run_id": r.run_id, "label": r.label, "method": r.config.method["name"], "scene": r.config.scene,
+                    "seed": r.config.seed, "dir": str(run_dir(r.config).relative_to(out)),
+                    "status": "skipped" if r.run_id in finished else "pending"} for r in runs]
+        self.data = {"name": name, "description": description, "file": file, "runs": entries}
+        self._by_id = {entry["run_id"]: entry for entry in entries}
+
+    def set(self, run_id: str, status: str) -> None:
+        self._by_id[run_id]["status"] = status
+        self.write()
+
+    def write(self) -> None:
+        from gsbench.records import write_json_atomic  # noqa: PLC0415
+
+        write_json_atomic(self.path, self.data)
+
+
+@dataclass
+class SweepSummary:
+    """How a sweep ended: counts (ok, skipped, failed, cancelled), wall time, the failed runs."""
+
+    name: str
+    counts: dict
+    seconds: float
+    failures: list  # (SweepRun, RunOutcome)
+    interrupted: bool = False
+
+    def format(self, tail_lines: int = 5) -> str:
+        c = self.counts
+        lines = [f"sweep {self.name}{' interrupted' if self.interrupted else ''}: {c['ok']} ok, {c['skipped']} skipped "
+                 f"(finished earlier), {c['failed']} failed, {c['cancelled']} cancelled in {self.seconds:.1f} s"]
+        for sweep_run, outcome in self.failures:
+            lines.append(f"failed: {outcome.run_id} ({sweep_run.label}), {sweep_run.config.method['name']} "
+                         f"on {sweep_run.config.scene}:")
+            lines += ["    " + line for line in outcome.error_tail.strip().splitlines()[-tail_lines:]]
+        return "\n".join(lines)
+
+
+def _unique(runs: list[SweepRun]) -> list[SweepRun]:
+    """Runs with the same resolved config share a folder: each id runs once (its first row)."""
+    first: dict = {}
+    for sweep_run in runs:
+        first.setdefault(sweep_run.run_id, sweep_run)
+    return list(first.values())
+
+
+def _outcome(future, sweep_run: SweepRun) -> RunOutcome:
+    """The task's outcome; an executor error (a worker that died, a Ray error) is a failed run."""
+    try:
+        return future.result()
+    except Exception as exc:  # noqa: BLE001
+        return RunOutcome(sweep_run.run_id, "failed", 0.0, f"{type(exc).__name__}: {exc}")
+
+
+class _Tally:
+    """A running sweep's counts, failures and unfinished runs, mirrored to the manifest, the bar and ``echo``."""
+
+    def __init__(self, todo: list[SweepRun], skipped: int, manifest: Manifest, name: str, echo):
+        self.counts = {"ok": 0, "skipped": skipped, "failed": 0, "cancelled": 0}
+        self.failures: list = []
+        self.unfinished = {sweep_run.run_id: sweep_run for sweep_run in todo}
+        self.manifest, self.echo = manifest, echo
+        self.bar = tqdm(total=len(todo), desc=f"sweep {name}", unit="run", disable=None)
+
+    def finish(self, sweep_run: SweepRun, outcome: RunOutcome) -> None:
+        del self.unfinished[sweep_run.run_id]
+        self.counts[outcome.status] += 1
+        if outcome.status == "failed":
+            self.failures.append((sweep_run, outcome))
+        self.manifest.set(sweep_run.run_id, outcome.status)
+        self.bar.update()
         cfg = sweep_run.config
-        if out is not None:
-            cfg.out = out
+        self.echo(f"{outcome.status:<6} {cfg.method['name']} on {cfg.scene}, seed {cfg.seed} ({sweep_run.label}), "
+                  f"run {cfg.run_id}, {outcome.seconds:.1f} s")
+
+    def cancel_unfinished(self) -> None:
+        for run_id in list(self.unfinished):
+            del self.unfinished[run_id]
+            self.counts["cancelled"] += 1
+            self.manifest.set(run_id, "cancelled")
+
+
+def _apply(runs: list[SweepRun], out: str | None, threads: int | None) -> list[SweepRun]:
+    """Each resolved config once, with ``out`` (made absolute) and ``threads`` set when given."""
+    runs = _unique(runs)
+    for sweep_run in runs:
+        cfg = sweep_run.config
+        cfg.out = str(Path(out if out is not None else cfg.out).resolve())
         if threads is not None:
             cfg.threads = threads
-        record_path = run_dir(cfg) / RECORD
-        if record_path.is_file() and RunRecord.read(record_path).status == "ok":
-            counts["skipped"] += 1
-            continue
-        echo(f"[{i}/{len(runs)}] {cfg.method['name']} on {cfg.scene} ({sweep_run.label}), run {cfg.run_id}")
-        try:
-            run(cfg, echo=echo)
-            counts["ok"] += 1
-        except Exception as exc:  # noqa: BLE001  (recorded by the runner; the sweep goes on)
-            counts["failed"] += 1
-            echo(f"run {cfg.run_id} failed: {type(exc).__name__}: {exc}")
-    echo(f"sweep: {counts['ok']} ran, {counts['skipped']} already finished, {counts['failed']} failed")
-    return counts
+    return runs
+
+
+def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", description: str = "", file: str = "",
+              out: str | None = None, threads: int | None = None, echo=tqdm.write) -> SweepSummary:
+    """Run ``runs`` on ``executor`` (a `concurrent.futures.Executor`, see `gsbench.executors`) and return
+    the summary, also echoed.
+
+    ``out`` and ``threads`` replace every run's own; ``out`` is made absolute, so that workers elsewhere
+    write to the same (shared) folder. Runs whose record has status ok are skipped, so re-running a
+    sweep resumes it; a failing run is recorded and the others go on. The manifest (`Manifest`) is
+    written when the sweep starts and updated as runs finish.
+
+    Ctrl-C: the runs not started are cancelled and the running ones are stopped at once
+    (``executor.terminate_workers()``; an executor without it lets them finish). A stopped run keeps
+    what it had written (finished stages, its last checkpoint), so re-running the sweep resumes it;
+    finished records are untouched (written atomically). Both count as cancelled, and the summary has
+    ``interrupted`` set.
+    """
+    start = time.perf_counter()
+    runs = _apply(runs, out, threads)
+    finished = {sweep_run.run_id for sweep_run in runs if is_finished(sweep_run.config)}
+    todo = [sweep_run for sweep_run in runs if sweep_run.run_id not in finished]
+    root = Path(runs[0].config.out)
+    manifest = Manifest(root / "sweeps" / f"{name}.json", name=name, description=description, file=str(file),
+                        runs=runs, out=root, finished=finished)
+    manifest.write()
+    tally = _Tally(todo, len(finished), manifest, name, echo)
+    futures: dict = {}
+    interrupted = False
+    try:
+        for sweep_run in todo:
+            futures[executor.submit(run_one, sweep_run.config)] = sweep_run
+        for future in as_completed(futures):
+            tally.finish(futures[future], _outcome(future, futures[future]))
+    except KeyboardInterrupt:
+        interrupted = True
+        echo(f"interrupted: cancelling {len(tally.unfinished)} unfinished runs")
+        _stop(executor, futures)
+        for future, sweep_run in futures.items():
+            if sweep_run.run_id in tally.unfinished and not future.cancelled() and future.exception() is None:
+                tally.finish(sweep_run, future.result())  # finished while the sweep was stopping
+        tally.cancel_unfinished()
+    finally:
+        tally.bar.close()
+    summary = SweepSummary(name, tally.counts, time.perf_counter() - start, tally.failures, interrupted)
+    echo(summary.format())
+    return summary
+
+
+def _stop(executor, futures: dict) -> None:
+    """Cancel what has not started, stop what runs (when the executor can), and block until every future
+    is finished or cancelled (`concurrent.futures.wait` would hang on a future cancelled by a shutdown:
+    it never reaches the "cancelled and notified" state that `wait` counts)."""
+    terminate = getattr(executor, "terminate_workers", None)
+    if terminate is not None:
+        terminate()
+    else:
+        executor.shutdown(wait=True, cancel_futures=True)
+    for future in futures:
+        with suppress(CancelledError):
+            future.exception()

@@ -129,6 +129,10 @@ class Method:
     Config = GSConfig
     INFO: MethodInfo
     MESH_EXTRACTORS: tuple[str, ...] = ("tsdf",)
+    # What the papers report on the real DTU / TnT (GPU, full schedule), shown by `gsbench report` beside
+    # measured numbers and never comparable with synthetic scenes or CPU budgets: {dataset: {"metric",
+    # "mean", "source", optional "scenes"}}. Read from each class itself (a variant does not inherit it).
+    REPORTED: dict = {}
 
     def __init__(self):
         self.gaussians: Gaussians | None = None

@@ -18,3 +18,8 @@ class GS3D(Method):
     Config = GSConfig
     INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"), mesh_extractor="tsdf",
                       mesh_depth="expected", loss_terms=("l1", "dssim"))
+    # methods-3dgs-2dgs-sugar.md §4: the 2DGS paper's tables [UNVERIFIED].
+    REPORTED = {
+        "dtu": {"metric": "chamfer", "mean": 1.96, "source": "2DGS paper, DTU table (3DGS row)"},
+        "tnt": {"metric": "f1", "mean": 0.09, "source": "2DGS paper, TnT table (3DGS row)"},
+    }

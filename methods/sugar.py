@@ -94,6 +94,11 @@ class SuGaR(Method):
                       mesh_extractor="poisson", mesh_depth="median",
                       loss_terms=("l1", "dssim", "opacity_entropy", "sugar_sdf", "sugar_normal"))
     MESH_EXTRACTORS = ("poisson", "tsdf")
+    # methods-3dgs-2dgs-sugar.md §4: the 2DGS paper's tables [UNVERIFIED].
+    REPORTED = {
+        "dtu": {"metric": "chamfer", "mean": 1.33, "source": "2DGS paper, DTU table (SuGaR row)"},
+        "tnt": {"metric": "f1", "mean": 0.19, "source": "2DGS paper, TnT table (SuGaR row)"},
+    }
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
         super().setup(scene, cfg)

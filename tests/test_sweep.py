@@ -1,8 +1,14 @@
 """Sweep files: expansion (variants × grid × zip × scenes × seeds), validation and run-id stability;
-every shipped sweep in configs/sweeps/ expands and validates."""
+every shipped sweep in configs/sweeps/ expands and validates. Running a sweep on in-process executors
+with a fake runner: resume, a failing run, the manifest, Ctrl-C (real executors: test_executors.py)."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import threading
+from concurrent.futures import Executor, Future
 from pathlib import Path
 
 import pytest
@@ -66,6 +72,7 @@ variants:
     ("base: {method: 3dgs, scene: synthetic/spot}\nzip: {a: [1, 2], b: [1]}", "same length"),
     ("base: {method: 3dgs, scene: synthetic/spot}\ngrid: {a: []}", "non-empty list"),
     ("base: {method: 3dgs}\nscenez: [synthetic/spot]", "unknown sweep keys"),
+    ("base: {method: 3dgs}\nexecutor: {kind: ray, worker: 2}", r"unknown executor keys \['worker'\]"),
 ])
 def test_malformed_sweeps_fail_before_running(tmp_path, text, message):
     with pytest.raises(ConfigError, match=message):
@@ -102,20 +109,22 @@ def test_cli_dry_run_prints_every_run_id(capsys):
     assert all(r.run_id in out for r in expand(load_sweep(path)))
 
 
-def test_sequential_sweep_skips_finished_runs_and_survives_a_failure(tmp_path, monkeypatch):
-    import gsbench.runner as runner
-    from gsbench.records import RunRecord
-    from gsbench.sweep import run_sweep
-
-    runs = expand(load_sweep(write(tmp_path, """
+THREE_SEEDS = """
 base: {method: 3dgs, scene: synthetic/spot, preset: quick}
 grid: {seed: [0, 1, 2]}
-""")))
+"""
+
+
+def fake_runs(monkeypatch, fail_seed=None):
+    """runner.run replaced in this process: writes an ok record, or raises for ``fail_seed``; returns the seeds run."""
+    import gsbench.runner as runner
+    from gsbench.records import RunRecord
+
     calls = []
 
     def fake_run(cfg, echo=print):
         calls.append(cfg.seed)
-        if cfg.seed == 1:
+        if cfg.seed == fail_seed:
             raise RuntimeError("boom")
         folder = runner.run_dir(cfg)
         folder.mkdir(parents=True)
@@ -123,6 +132,77 @@ grid: {seed: [0, 1, 2]}
                   status="ok").write(folder / runner.RECORD)
 
     monkeypatch.setattr(runner, "run", fake_run)
-    assert run_sweep(runs, out=str(tmp_path / "runs"), echo=lambda *a: None) == {"ok": 2, "skipped": 0, "failed": 1}
-    assert run_sweep(runs, out=str(tmp_path / "runs"), echo=lambda *a: None) == {"ok": 0, "skipped": 2, "failed": 1}
-    assert calls == [0, 1, 2, 1]
+    return calls
+
+
+def test_sweep_skips_finished_runs_survives_a_failure_and_writes_the_manifest(tmp_path, monkeypatch):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from gsbench.sweep import run_sweep
+
+    runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
+    calls = fake_runs(monkeypatch, fail_seed=1)
+    out = tmp_path / "runs"
+    with ThreadPoolExecutor(1) as executor:
+        first = run_sweep(runs, executor, name="seeds", description="three seeds", file="sweep.yaml", out=str(out),
+                          echo=lambda *a: None)
+    assert first.counts == {"ok": 2, "skipped": 0, "failed": 1, "cancelled": 0} and not first.interrupted
+    assert [(r.config.seed, o.status) for r, o in first.failures] == [(1, "failed")]
+    assert "RuntimeError: boom" in first.failures[0][1].error_tail
+    assert f"failed: {runs[1].run_id}" in first.format() and "boom" in first.format()
+
+    manifest = json.loads((out / "sweeps" / "seeds.json").read_text())
+    assert {k: manifest[k] for k in ("name", "description", "file")} == \
+        {"name": "seeds", "description": "three seeds", "file": "sweep.yaml"}
+    assert [{k: e[k] for k in ("run_id", "label", "method", "scene", "seed", "status")} for e in manifest["runs"]] == [
+        {"run_id": r.run_id, "label": f"seed={r.config.seed}", "method": "3dgs", "scene": "synthetic/spot",
+         "seed": r.config.seed, "status": status} for r, status in zip(runs, ("ok", "failed", "ok"))]
+    assert all((out / e["dir"] / "record.json").is_file() for e in manifest["runs"] if e["status"] == "ok")
+    assert set(manifest["runs"][0]) == {"run_id", "label", "method", "scene", "seed", "dir", "status"}
+
+    with ThreadPoolExecutor(1) as executor:
+        again = run_sweep(runs, executor, name="seeds", out=str(out), echo=lambda *a: None)
+    assert again.counts == {"ok": 0, "skipped": 2, "failed": 1, "cancelled": 0}
+    assert sorted(calls) == [0, 1, 1, 2]
+    statuses = [e["status"] for e in json.loads((out / "sweeps" / "seeds.json").read_text())["runs"]]
+    assert statuses == ["skipped", "failed", "skipped"]
+
+
+class FirstRunThenCtrlC(Executor):
+    """Runs the first task at once and queues the others; after the last submit, a Ctrl-C (SIGINT) arrives
+    while the sweep waits. ``terminate_workers`` cancels the queue."""
+
+    def __init__(self, total: int):
+        self.total, self.submitted, self.queued, self.terminated = total, 0, [], False
+
+    def submit(self, fn, /, *args):
+        future = Future()
+        self.submitted += 1
+        if self.submitted == 1:
+            future.set_result(fn(*args))
+        else:
+            self.queued.append(future)
+        if self.submitted == self.total:
+            threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
+        return future
+
+    def terminate_workers(self):
+        self.terminated = True
+        for future in self.queued:
+            future.cancel()  # as ProcessPoolExecutor's shutdown does: cancelled, never "notified"
+
+
+def test_ctrl_c_cancels_the_unfinished_runs_keeps_finished_records_and_exits_130(tmp_path, monkeypatch, capsys):
+    import gsbench.executors
+    from gsbench.cli import main
+
+    executor = FirstRunThenCtrlC(total=3)
+    monkeypatch.setattr(gsbench.executors, "make_executor", lambda *a, **k: executor)
+    calls = fake_runs(monkeypatch)
+    out = tmp_path / "runs"
+    assert main(["sweep", str(write(tmp_path, THREE_SEEDS)), "--out", str(out)]) == 130
+    assert calls == [0] and executor.terminated
+    manifest = json.loads((out / "sweeps" / "sweep.json").read_text())
+    assert [e["status"] for e in manifest["runs"]] == ["ok", "cancelled", "cancelled"]
+    assert json.loads((out / manifest["runs"][0]["dir"] / "record.json").read_text())["status"] == "ok"
+    assert "interrupted: 1 ok, 0 skipped (finished earlier), 0 failed, 2 cancelled" in capsys.readouterr().out

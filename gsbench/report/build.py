@@ -1,0 +1,151 @@
+"""`write_report`: a runs folder -> ``leaderboard.md``, ``leaderboard.csv``, ``index.html`` and
+``plots/*.png`` in the output folder (``gsbench report RUNS_DIR --out DIR``).
+
+The Markdown and CSV hold no timestamps or absolute paths, so they are byte-stable for the same
+records (golden tests); the HTML adds the generation time (``generated``, injectable), the runs
+folder, the warnings and the list of every run.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+from pathlib import Path
+
+from gsbench.report import plots as figures
+from gsbench.report.aggregate import Board, ablations, leaderboard
+from gsbench.report.collect import label_variants, load_manifests, load_runs
+from gsbench.report.html import document_html
+from gsbench.report.metrics import metric_specs, primary_metric, reported
+from gsbench.report.tables import Plot, Section, document_markdown
+from gsbench.report.views import (ablation_table, environment_table, failed_table, leaderboard_csv,
+                                  leaderboard_table, protocol_table, runs_table, speed_table)
+
+TITLE = "gsbench report"
+ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
+             "between its runs on one scene (so different configs are never averaged as if they were seeds).")
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-") or "x"
+
+
+class _Plots:
+    """Collects figures under unique file names; disabled -> draws nothing."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self.made: list[Plot] = []
+
+    def add(self, name: str, alt: str, draw, board: Board) -> list[Plot]:
+        if not self.enabled:
+            return []
+        png = draw(board)
+        if png is None:
+            return []
+        taken = {p.name for p in self.made}
+        stem, n = _slug(name), 1
+        file = f"{stem}.png"
+        while file in taken:
+            n += 1
+            file = f"{stem}-{n}.png"
+        plot = Plot(file, alt, png)
+        self.made.append(plot)
+        return [plot]
+
+
+def _summary(runs) -> str:
+    statuses: dict[str, int] = {}
+    for run in runs:
+        statuses[run.status] = statuses.get(run.status, 0) + 1
+    counts = ", ".join(f"{n} {s}" for s, n in sorted(statuses.items(), key=lambda kv: (kv[0] != "ok", kv[0])))
+    datasets = sorted({r.dataset for r in runs})
+    return f"{len(runs)} runs ({counts}) on {len(datasets)} dataset(s): {', '.join(datasets)}."
+
+
+def _leaderboards(runs, warnings: list[str]) -> tuple[dict, list[Board]]:
+    """(dataset -> ranking metric, one leaderboard per dataset with the methods' reported numbers)."""
+    specs = metric_specs()
+    primary = {}
+    for dataset in sorted({r.dataset for r in runs}):
+        spec = primary_metric(dataset, {m for r in runs if r.dataset == dataset and r.ok for m in r.metrics}, specs)
+        if spec is None:
+            warnings.append(f"dataset '{dataset}': no run has a metric, so it has no leaderboard")
+        else:
+            primary[dataset] = spec
+    boards = []
+    for dataset, spec in primary.items():
+        methods = sorted({r.method for r in runs if r.dataset == dataset})
+        refs = {m: reported(m, dataset, warnings) for m in methods}
+        boards.append(leaderboard(runs, dataset, spec, {m: r for m, r in refs.items() if r is not None}))
+    return primary, boards
+
+
+def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict[str, list[str]]]:
+    """(the ablation section, run id -> its ``sweep: label`` names)."""
+    section = Section("sweeps", "Sweeps (ablations)", [], [])
+    if not manifests:
+        section.paragraphs.append("No sweep manifests (`<out>/sweeps/<name>.json`, written by `gsbench sweep`) found.")
+    by_id = {r.run_id: r for r in runs}
+    labels: dict[str, list[str]] = {}
+    for manifest in manifests:
+        for entry in manifest.runs:
+            labels.setdefault(entry.run_id, []).append(f"{manifest.name}: {entry.label}")
+        described = f": {manifest.description}" if manifest.description else ""
+        source = f", from {manifest.file}" if manifest.file else ""
+        about = f"Sweep {manifest.name} ({manifest.path}{source}){described}."
+        boards = ablations(manifest, by_id, primary)
+        if not boards:
+            section.paragraphs.append(f"{about} None of its runs has a record or a known dataset.")
+        for board in boards:
+            table = ablation_table(board)
+            table.notes.insert(0, about)
+            section.blocks.append(table)
+            draw = figures.grid_figure if board.grid_key else figures.variants_figure
+            section.blocks += made.add(f"sweep_{manifest.name}_{board.dataset}", board.title, draw, board)
+    return section, labels
+
+
+def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = None) -> list[Path]:
+    """Write the report of every record below ``runs_dir`` into ``out``; return the written files.
+
+    ``plots=False`` skips matplotlib (no PNGs, no figures in the page); ``generated`` is the time shown
+    in the HTML (default: now, UTC)."""
+    runs_dir, out = Path(runs_dir), Path(out)
+    runs, warnings = load_runs(runs_dir)
+    runs = label_variants(runs)
+    manifests, manifest_warnings = load_manifests(runs_dir)
+    warnings += manifest_warnings
+    primary, boards = _leaderboards(runs, warnings)
+
+    made = _Plots(plots)
+    speed = Section("speed", "Speed and size against error", [], [])
+    for board in boards:
+        speed.blocks.append(speed_table(board))
+        speed.blocks += made.add(f"speed_{board.dataset}", f"{board.dataset}: cost against {board.spec.label}",
+                                 figures.speed_figure, board)
+    sweeps, sweep_labels = _sweeps(manifests, runs, primary, made)
+    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE], [leaderboard_table(b) for b in boards]),
+                speed, sweeps,
+                Section("failed", "Failed and unfinished runs", [], [failed_table(runs)]),
+                Section("protocols", "Protocols", [], [protocol_table(runs)]),
+                Section("environment", "Environment", [], [environment_table(runs)])]
+    warnings = list(dict.fromkeys(warnings))
+    intro = [_summary(runs)]
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, text in (("leaderboard.md", document_markdown(TITLE, intro, sections, warnings)),
+                       ("leaderboard.csv", leaderboard_csv(boards))):
+        (out / name).write_text(text)
+        written.append(out / name)
+    if made.made:
+        (out / "plots").mkdir(exist_ok=True)
+    for plot in made.made:
+        (out / "plots" / plot.name).write_bytes(plot.png)
+        written.append(out / "plots" / plot.name)
+    page_sections = sections + [Section("runs", "All runs", [], [runs_table(runs, primary, sweep_labels)])]
+    generated = generated or datetime.now(timezone.utc).isoformat(timespec="seconds")
+    page = document_html(TITLE, [*intro, f"Runs folder: {runs_dir.resolve()}"], page_sections, warnings, generated)
+    (out / "index.html").write_text(page)
+    written.append(out / "index.html")
+    return written

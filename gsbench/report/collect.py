@@ -1,0 +1,225 @@
+"""Read what a runs folder holds: run records and sweep manifests, as plain immutable values.
+
+Records are found anywhere below the folder (``**/record.json``; the runner writes
+``<out>/<dataset>/<scene>/<method>/<run_id>/record.json``), so one report can cover several ``--out``
+folders. A file that cannot be read, or lacks the identity fields, becomes a warning, never a crash.
+The same run id found twice (one config run into two folders) is kept once, preferring an ``ok``
+record, then the newest, then the first path, and the others are named in a warning.
+
+Rows of a leaderboard are configurations, not just methods: `label_variants` names each run by the
+config keys whose values differ between runs of the same method on the same scene (e.g.
+``method.knn_k=5``), so runs of different configs are never averaged together as if they were seeds.
+
+Sweep manifests (``<out>/sweeps/<name>.json``, written by ``gsbench sweep``) give the row labels of
+ablations: ``{"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed",
+"dir", "status"}]}``; the status of a run comes from its record (an entry without one is missing).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from gsbench.errors import GsbenchError
+
+RECORD_NAME = "record.json"
+# Identity and execution keys: they never distinguish two configurations of one method.
+NOT_A_VARIANT = ("seed", "scene", "out", "threads")
+REQUIRED = ("run_id", "method", "dataset", "scene")
+
+
+@dataclass(frozen=True)
+class Run:
+    """One run record, flattened to what the report reads. ``scene`` is the display name (the last
+    path part of the record's scene, as in the runs folder); ``variant`` is set by `label_variants`."""
+
+    run_id: str
+    dataset: str
+    scene: str
+    method: str
+    seed: int | None
+    status: str
+    path: str
+    metrics: dict
+    timings: dict
+    it_per_s: float | None
+    num_gaussians: int | None
+    peak_rss_bytes: int | None
+    threads: int | None
+    iterations: int | None
+    eval_protocol: dict
+    environment: dict
+    error_tail: str
+    config: dict
+    variant: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def row(self) -> str:
+        """The leaderboard row name: the method, plus its variant when it has one."""
+        return f"{self.method} [{self.variant}]" if self.variant else self.method
+
+
+@dataclass(frozen=True)
+class ManifestRun:
+    run_id: str
+    label: str
+    method: str
+    scene: str
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A sweep manifest; ``path`` is relative to the runs folder."""
+
+    name: str
+    description: str
+    file: str
+    path: str
+    runs: tuple[ManifestRun, ...]
+
+
+def flatten(mapping: dict, prefix: str = "") -> dict:
+    """Nested mappings -> ``{dotted.key: leaf}``."""
+    flat = {}
+    for key, value in mapping.items():
+        if isinstance(value, dict) and value:
+            flat.update(flatten(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _number(value):
+    return value if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def _run(data: dict, rel: str) -> Run:
+    config = data.get("config") if isinstance(data.get("config"), dict) else {}
+    environment = data.get("environment") if isinstance(data.get("environment"), dict) else {}
+    rss = [v for v in (data.get("peak_rss_bytes") or {}).values() if _number(v) is not None]
+    threads = environment.get("threads") if _number(environment.get("threads")) else _number(config.get("threads"))
+    train = config.get("train") if isinstance(config.get("train"), dict) else {}
+    iterations = _number(train.get("iterations"))
+    # a non-finite metric is no measurement: the run then counts as "no metric"
+    metrics = {k: float(v) for k, v in (data.get("metrics") or {}).items()
+               if _number(v) is not None and math.isfinite(v)}
+    timings = {k: float(v) for k, v in (data.get("timings") or {}).items() if _number(v) is not None}
+    return Run(
+        run_id=str(data["run_id"]), dataset=str(data["dataset"]), scene=Path(str(data["scene"]).rstrip("/")).name,
+        method=str(data["method"]), seed=_number(data.get("seed")), status=str(data.get("status") or "unknown"),
+        path=rel, metrics=metrics, timings=timings, it_per_s=_number(data.get("it_per_s")),
+        num_gaussians=_number(data.get("num_gaussians")), peak_rss_bytes=max(rss) if rss else None,
+        threads=threads, iterations=iterations,
+        eval_protocol=data.get("eval_protocol") if isinstance(data.get("eval_protocol"), dict) else {},
+        environment=environment, error_tail=str(data.get("error_tail") or ""), config=flatten(config),
+    )
+
+
+def _keep_first(copies: list[Run]) -> list[Run]:
+    """Duplicates of one run id ordered by preference: ok first, then the newest end time, then path."""
+    ordered = sorted(copies, key=lambda r: r.path)
+    ordered.sort(key=lambda r: str(r.environment.get("time_end_utc") or r.environment.get("time_utc") or ""),
+                 reverse=True)
+    ordered.sort(key=lambda r: not r.ok)
+    return ordered
+
+
+def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
+    """Every readable record below ``runs_dir`` (one per run id), sorted; and the warnings.
+
+    A missing folder or one without records is a GsbenchError naming the folder."""
+    runs_dir = Path(runs_dir)
+    if not runs_dir.is_dir():
+        raise GsbenchError(f"runs folder '{runs_dir}' does not exist (expected the --out folder of gsbench run/sweep)")
+    found: dict[str, list[Run]] = {}
+    warnings = []
+    for path in sorted(runs_dir.rglob(RECORD_NAME)):
+        rel = path.relative_to(runs_dir).as_posix()
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            warnings.append(f"{rel}: unreadable record skipped ({type(exc).__name__}: {exc})")
+            continue
+        missing = [k for k in REQUIRED if not isinstance(data, dict) or data.get(k) in (None, "")]
+        if missing:
+            warnings.append(f"{rel}: record without {', '.join(missing)} skipped")
+            continue
+        run = _run(data, rel)
+        found.setdefault(run.run_id, []).append(run)
+    if not found:
+        raise GsbenchError(
+            f"no run records ({RECORD_NAME}) under '{runs_dir}'; expected "
+            f"<dataset>/<scene>/<method>/<run_id>/{RECORD_NAME} (fix: pass the --out folder of gsbench run/sweep)"
+        )
+    runs = []
+    for run_id, copies in found.items():
+        copies = _keep_first(copies)
+        runs.append(copies[0])
+        if len(copies) > 1:
+            others = ", ".join(c.path for c in copies[1:])
+            warnings.append(f"run {run_id} found {len(copies)} times; using {copies[0].path}, ignoring {others}")
+    runs.sort(key=lambda r: (r.dataset, r.method, r.scene, r.seed if r.seed is not None else -1, r.run_id))
+    return runs, warnings
+
+
+def _show(value) -> str:
+    if value is None:
+        return "unset"
+    return value if isinstance(value, str) else json.dumps(value, sort_keys=True)
+
+
+def label_variants(runs: list[Run]) -> list[Run]:
+    """The runs with ``variant`` set to ``key=value, ...`` over the config keys that take more than one
+    value among the runs of one (dataset, method, scene); empty when a method ran one config only."""
+    values: dict[tuple, dict[str, set]] = {}
+    presence: dict[tuple, dict[str, int]] = {}
+    sizes: dict[tuple, int] = {}
+    for run in runs:
+        group = (run.dataset, run.method, run.scene)
+        sizes[group] = sizes.get(group, 0) + 1
+        seen, present = values.setdefault(group, {}), presence.setdefault(group, {})
+        for key, value in run.config.items():
+            seen.setdefault(key, set()).add(_show(value))
+            present[key] = present.get(key, 0) + 1
+    varying: dict[tuple, set] = {}
+    for group, seen in values.items():
+        keys = varying.setdefault(group[:2], set())
+        for key, options in seen.items():
+            # a key that some runs of the group lack also varies
+            if key not in NOT_A_VARIANT and (len(options) > 1 or presence[group][key] < sizes[group]):
+                keys.add(key)
+    labelled = []
+    for run in runs:
+        keys = sorted(varying[(run.dataset, run.method)])
+        variant = ", ".join(f"{k}={_show(run.config.get(k))}" for k in keys)
+        labelled.append(dataclasses.replace(run, variant=variant))
+    return labelled
+
+
+def load_manifests(runs_dir: Path) -> tuple[list[Manifest], list[str]]:
+    """Every sweep manifest (``**/sweeps/*.json``) below ``runs_dir``, sorted by path; and warnings."""
+    runs_dir = Path(runs_dir)
+    manifests, warnings = [], []
+    for path in sorted(runs_dir.rglob("sweeps/*.json")):
+        rel = path.relative_to(runs_dir).as_posix()
+        try:
+            data = json.loads(path.read_text())
+            entries = tuple(
+                ManifestRun(run_id=str(r["run_id"]), label=str(r.get("label") or "base"),
+                            method=str(r.get("method", "")), scene=Path(str(r.get("scene", "")).rstrip("/")).name)
+                for r in data["runs"]
+            )
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
+            warnings.append(f"{rel}: unreadable sweep manifest skipped ({type(exc).__name__}: {exc})")
+            continue
+        manifests.append(Manifest(name=str(data.get("name") or path.stem),
+                                  description=str(data.get("description") or ""), file=str(data.get("file") or ""),
+                                  path=rel, runs=entries))
+    return manifests, warnings

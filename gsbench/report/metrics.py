@@ -1,0 +1,116 @@
+"""How to read a metric (direction, unit, display name), which metric ranks a dataset, and the
+paper-reported numbers that methods declare.
+
+Directions and units come from the evaluators (`MetricInfo` of each registered evaluator); `FALLBACK`
+covers the built-in metrics when an evaluator cannot be imported. The ranking metric of a dataset is
+the one its papers rank by: DTU Chamfer (mm, lower is better), TnT F1 (higher is better).
+
+Reported numbers: a method plugin class may declare ``REPORTED`` (read from the class itself, not
+inherited, since a subclass is a different method)::
+
+    REPORTED = {"dtu": {"metric": "chamfer", "mean": 0.80, "scenes": {"scan24": 0.48, ...},
+                        "source": "2DGS paper, Table 1"}}
+
+These are numbers on the real datasets (GPU, the paper's schedule). The report shows them beside the
+measured ones and labels them so; they are not comparable with synthetic scenes or CPU budgets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+PRIMARY = {"dtu": "chamfer", "tnt": "f1"}
+PRIMARY_ORDER = ("chamfer", "f1", "psnr")
+DATASET_TITLES = {"dtu": "DTU protocol", "tnt": "Tanks and Temples protocol"}
+REAL_DATASETS = {"dtu": "real DTU", "tnt": "real TnT"}
+DISPLAY = {"chamfer": "Chamfer", "f1": "F1", "psnr": "PSNR", "ssim": "SSIM", "normal_consistency": "normal consistency"}
+FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics
+    "chamfer": (False, "mm"), "accuracy": (False, "mm"), "completeness": (False, "mm"),
+    "f1": (True, ""), "precision": (True, ""), "recall": (True, ""),
+    "normal_consistency": (True, ""), "normal_accuracy": (True, ""), "normal_completeness": (True, ""),
+    "normal_consistency_ungated": (True, ""), "psnr": (True, "dB"), "ssim": (True, ""),
+}
+
+
+@dataclass(frozen=True)
+class MetricSpec:
+    name: str
+    higher_is_better: bool
+    unit: str
+    evaluator: str = ""  # the evaluator that reports it ("" when only `FALLBACK` knows it)
+
+    @property
+    def label(self) -> str:
+        """e.g. ``Chamfer (mm)``."""
+        name = DISPLAY.get(self.name, self.name)
+        return f"{name} ({self.unit})" if self.unit else name
+
+    @property
+    def direction(self) -> str:
+        return "higher is better" if self.higher_is_better else "lower is better"
+
+
+def metric_specs() -> dict[str, MetricSpec]:
+    """Every known metric: the registered evaluators' declarations over `FALLBACK`."""
+    from gsbench.registry import EVALUATORS  # noqa: PLC0415
+
+    specs = {name: MetricSpec(name, better, unit) for name, (better, unit) in FALLBACK.items()}
+    for evaluator in EVALUATORS.names():
+        try:
+            declared = EVALUATORS.get(evaluator).metrics
+        except Exception:  # noqa: BLE001  (a broken plugin must not stop the report; FALLBACK stands)
+            continue
+        for name, info in declared.items():
+            specs[name] = MetricSpec(name, bool(info.higher_is_better), str(info.unit), evaluator)
+    return specs
+
+
+def primary_metric(dataset: str, metrics_seen: set[str], specs: dict[str, MetricSpec]) -> MetricSpec | None:
+    """The ranking metric of ``dataset``: `PRIMARY`, else the first of `PRIMARY_ORDER` its runs have,
+    else the alphabetically first metric they have; None when no run has a metric."""
+    candidates = [PRIMARY.get(dataset), *PRIMARY_ORDER, *sorted(metrics_seen)]
+    for name in candidates:
+        if name and name in metrics_seen:
+            return specs.get(name) or MetricSpec(name, False, "")
+    if dataset in PRIMARY:
+        name = PRIMARY[dataset]
+        return specs.get(name) or MetricSpec(name, False, "")
+    return None
+
+
+@dataclass(frozen=True)
+class Reported:
+    """A paper's number for one method on one real dataset."""
+
+    metric: str
+    mean: float | None
+    scenes: dict
+    source: str
+
+    def scene_value(self, scene: str) -> float | None:
+        """The paper's per-scene value when ``scene`` names a real scene (case-insensitive)."""
+        lowered = {str(k).lower(): v for k, v in self.scenes.items()}
+        return lowered.get(scene.lower())
+
+
+def reported(method: str, dataset: str, warnings: list[str]) -> Reported | None:
+    """The ``REPORTED`` entry of ``method``'s plugin class for ``dataset``; malformed entries and
+    plugins that fail to import add a warning and give None."""
+    from gsbench.registry import METHODS  # noqa: PLC0415
+
+    try:
+        cls = METHODS.get(method)
+    except Exception as exc:  # noqa: BLE001  (unknown or broken plugin: no reference numbers)
+        warnings.append(f"method '{method}': no reported numbers ({type(exc).__name__}: {exc})")
+        return None
+    entry = (vars(cls).get("REPORTED") or {}).get(dataset) if isinstance(cls, type) else None
+    if entry is None:
+        return None
+    try:
+        mean = entry.get("mean")
+        return Reported(metric=str(entry["metric"]), mean=None if mean is None else float(mean),
+                        scenes={str(k): float(v) for k, v in (entry.get("scenes") or {}).items()},
+                        source=str(entry.get("source", "")))
+    except (AttributeError, KeyError, TypeError, ValueError) as exc:
+        warnings.append(f"method '{method}': malformed REPORTED['{dataset}'] ignored ({type(exc).__name__}: {exc})")
+        return None

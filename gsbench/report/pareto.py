@@ -1,0 +1,56 @@
+"""Pareto fronts of cost (time, memory, Gaussians) against error.
+
+A point is on the front when no other point is at least as good in both cost and error and strictly
+better in one. Cost is always minimised; the error is minimised, or maximised for a score such as F1.
+Equal points are all on the front. `cost_points` applies this to the rows of a board.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from gsbench.report.aggregate import Board
+
+
+def pareto_front(points: list[tuple[float, float]], higher_is_better: bool = False) -> list[int]:
+    """Indices (ascending) of the non-dominated ``(cost, value)`` points."""
+    sign = -1.0 if higher_is_better else 1.0
+    keyed = [(cost, sign * value) for cost, value in points]
+
+    def dominates(a, b) -> bool:
+        return a[0] <= b[0] and a[1] <= b[1] and (a[0] < b[0] or a[1] < b[1])
+
+    return [i for i, p in enumerate(keyed) if not any(dominates(q, p) for q in keyed)]
+
+
+COSTS = {  # Row.speed key -> (short name, axis label)
+    "train": ("train", "training time (s)"),
+    "total": ("total", "total time (s)"),
+    "peak_rss": ("memory", "peak RSS (MiB)"),
+    "gaussians": ("Gaussians", "Gaussians"),
+}
+
+
+@dataclass(frozen=True)
+class Point:
+    """One row of a board against one cost: its mean cost, its mean metric over scenes, whether it
+    covers every scene (only such rows compete for the front), and whether it is on the front."""
+
+    row: str
+    cost: float
+    value: float
+    complete: bool
+    front: bool
+
+
+def cost_points(board: Board, cost: str) -> list[Point]:
+    """The rows of ``board`` that have both a mean ``cost`` (a `COSTS` key) and a mean metric."""
+    raw = []
+    for row in board.rows:
+        value, complete = board.mean(row)
+        spent = row.speed.get(cost)
+        if value is not None and spent is not None:
+            raw.append((row.name, spent.mean, value, complete))
+    competing = [i for i, p in enumerate(raw) if p[3]]
+    front = {competing[j] for j in pareto_front([raw[i][1:3] for i in competing], board.spec.higher_is_better)}
+    return [Point(name, spent, value, complete, i in front) for i, (name, spent, value, complete) in enumerate(raw)]

@@ -1,0 +1,125 @@
+"""Figures of the report as PNG bytes (matplotlib, the ``report`` extra), drawn on the Agg canvas
+without pyplot, so no global backend state or display is touched.
+
+- `speed_figure`: per dataset, four panels (training time, total time, peak RSS, Gaussians) against
+  the mean metric; rows with every scene are filled and compete for the Pareto front (joined by a
+  line), incomplete rows are hollow.
+- `grid_figure`: a one-key numeric sweep (e.g. IBGS K) against the metric, one line per scene, error
+  bars = sample std over seeds.
+- `variants_figure`: a sweep of named rows, the metric per row (one marker per scene, std bars).
+"""
+
+from __future__ import annotations
+
+import io
+
+from gsbench.errors import missing_dependency
+from gsbench.report.aggregate import Board
+from gsbench.report.pareto import COSTS, cost_points
+
+SCALE = {"peak_rss": 1 / 2**20}  # bytes -> MiB on the memory axis
+LABEL_CHARS = 40
+
+
+def _figure(width: float, height: float):
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
+        from matplotlib.figure import Figure  # noqa: PLC0415
+    except ImportError as exc:
+        fix = "pip install gsbench[report] (or run gsbench report --no-plots)"
+        raise missing_dependency("matplotlib", fix) from exc
+    figure = Figure(figsize=(width, height), dpi=100, layout="constrained")
+    FigureCanvasAgg(figure)
+    return figure
+
+
+def _png(figure) -> bytes:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", metadata={"Software": None})
+    return buffer.getvalue()
+
+
+def _short(text: str) -> str:
+    """Long row names keep their start (the method) and their end (the last differing value)."""
+    if len(text) <= LABEL_CHARS:
+        return text
+    head = LABEL_CHARS // 3
+    return text[:head] + "…" + text[-(LABEL_CHARS - head - 1):]
+
+
+def _metric_axis(board: Board) -> str:
+    return f"mean {board.spec.label} ({board.spec.direction})"
+
+
+def speed_figure(board: Board) -> bytes | None:
+    """Cost against the mean metric with Pareto fronts; None when no row has a cost and a metric."""
+    panels = {cost: cost_points(board, cost) for cost in COSTS}
+    if not any(panels.values()):
+        return None
+    figure = _figure(11, 8)
+    axes = figure.subplots(2, 2).ravel()
+    for ax, (cost, points) in zip(axes, panels.items()):
+        scale = SCALE.get(cost, 1.0)
+        ax.set_xlabel(COSTS[cost][1])
+        ax.set_ylabel(_metric_axis(board))
+        ax.grid(alpha=0.3)
+        for point in points:
+            ax.scatter([point.cost * scale], [point.value], s=40, zorder=3,
+                       facecolors="C0" if point.complete else "none", edgecolors="C3" if point.front else "C0")
+            ax.annotate(_short(point.row), (point.cost * scale, point.value), fontsize=7,
+                        xytext=(4, 3), textcoords="offset points")
+        front = sorted((p.cost * scale, p.value) for p in points if p.front)
+        if front:
+            ax.plot(*zip(*front), color="C3", lw=1.2, zorder=2, label="Pareto front")
+            ax.legend(fontsize=8, loc="best")
+        if not points:
+            ax.text(0.5, 0.5, "no data", ha="center", va="center", transform=ax.transAxes)
+    figure.suptitle(f"{board.dataset}: cost against {board.spec.label} (hollow: not every scene)")
+    return _png(figure)
+
+
+def _scene_series(board: Board, positions) -> list[tuple[int, str, list, list, list]]:
+    """Per scene with any value: (index, scene, positions, means, stds) over the rows at ``positions``."""
+    series = []
+    for i, scene in enumerate(board.scenes):
+        points = [(at, row.cells[scene].stat) for at, row in zip(positions, board.rows)
+                  if row.cells.get(scene) is not None and row.cells[scene].stat is not None]
+        if points:
+            series.append((i, scene, [at for at, _ in points], [st.mean for _, st in points],
+                           [st.std or 0.0 for _, st in points]))
+    return series
+
+
+def grid_figure(board: Board) -> bytes | None:
+    """Metric against the swept value, one line per scene; None when nothing has a value."""
+    series = _scene_series(board, board.grid_values)
+    if not series:
+        return None
+    figure = _figure(7, 4.5)
+    ax = figure.subplots()
+    for i, scene, xs, ys, errs in series:
+        ax.errorbar(xs, ys, yerr=errs, marker="o", capsize=3, color=f"C{i}", label=scene)
+    ax.set_xlabel(board.grid_key)
+    ax.set_ylabel(f"{board.spec.label} ({board.spec.direction})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(board.title, fontsize=10)
+    return _png(figure)
+
+
+def variants_figure(board: Board) -> bytes | None:
+    """One horizontal line per sweep label, a marker per scene with std bars; None when empty."""
+    series = _scene_series(board, range(len(board.rows)))
+    if not series:
+        return None
+    figure = _figure(8, 1.2 + 0.4 * len(board.rows))
+    ax = figure.subplots()
+    for i, scene, ys, xs, errs in series:
+        ax.errorbar(xs, ys, xerr=errs, fmt="o", capsize=3, color=f"C{i}", label=scene)
+    ax.set_yticks(range(len(board.rows)), [_short(row.name) for row in board.rows], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel(f"{board.spec.label} ({board.spec.direction})")
+    ax.grid(alpha=0.3, axis="x")
+    ax.legend(fontsize=8)
+    ax.set_title(board.title, fontsize=10)
+    return _png(figure)

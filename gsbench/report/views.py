@@ -1,0 +1,318 @@
+"""The report's tables, built from boards and runs: leaderboard, speed against error, sweep ablations,
+failed runs, protocols, environment and the list of every run; and the long-format leaderboard CSV.
+
+Every table is sorted deterministically and formats numbers with fixed digits (`gsbench.report.tables`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+from gsbench.report.aggregate import SPEED, Board, Row, Stat, stat
+from gsbench.report.collect import Run
+from gsbench.report.metrics import REAL_DATASETS, MetricSpec
+from gsbench.report.pareto import COSTS, cost_points
+from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
+
+TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
+              "the same thread count on an equally loaded machine of the same kind (see Environment).")
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
+
+
+def _join(values) -> str:
+    return ", ".join(str(v) for v in values) or MISSING
+
+
+def protocol_note(board: Board) -> str:
+    """Which evaluator version(s) produced the board's numbers, with run counts."""
+    evaluator = board.spec.evaluator
+    versions: dict[str, int] = {}
+    for row in board.rows:
+        for run in row.runs:
+            if run.ok and board.spec.name in run.metrics:
+                proto = run.eval_protocol.get(evaluator) if evaluator else None
+                version = f"{evaluator}@{proto.get('version')}" if isinstance(proto, dict) else "unrecorded protocol"
+                versions[version] = versions.get(version, 0) + 1
+    text = ", ".join(f"{v} ({n} run{'s' if n > 1 else ''})" for v, n in sorted(versions.items())) or MISSING
+    mixed = " — MIXED versions: numbers of different versions are not comparable" if len(versions) > 1 else ""
+    return f"{board.spec.label} from {text}{mixed}."
+
+
+def leaderboard_table(board: Board) -> Table:
+    """Method × scene in the papers' shape, mean over scenes, the paper's number on the real dataset."""
+    real = REAL_DATASETS.get(board.dataset, f"real {board.dataset}")
+    header = ["method", *board.scenes, "mean", f"reported ({real})", "runs"]
+    best = {column: board.best(column) for column in [*board.scenes, "mean"]}
+    rows = []
+    for row in board.rows:
+        cells = [plain(row.name)]
+        cells += [metric_cell(row.cells.get(scene), row.name in best[scene]) for scene in board.scenes]
+        value, complete = board.mean(row)
+        if value is None:
+            cells.append(TCell(MISSING, None, "bad"))
+        elif complete:
+            cells.append(TCell(number(value), value, "best" if row.name in best["mean"] else ""))
+        else:
+            _, n = row.scene_mean(board.scenes)
+            cells.append(TCell(f"{number(value)} ({n}/{len(board.scenes)} scenes)", value, "bad"))
+        ref = board.reported.get(row.methods[0]) if len(row.methods) == 1 else None
+        has_ref = ref is not None and ref.mean is not None
+        cells.append(TCell(number(ref.mean, 2), ref.mean, "reported") if has_ref else plain(MISSING))
+        cells.append(plain(status_text(row.counts)))
+        rows.append(cells)
+    notes = [
+        f"{board.spec.label}, {board.spec.direction}; mean ± sample std over a cell's ok runs (seeds) when it "
+        f"has several; **bold**: best in its column; the mean is over scenes and ranked only for rows with "
+        f"every scene ('k/n scenes' otherwise).",
+        "Runs: ok, failed and other statuses, and missing (scene, seed) pairs among the seeds a row has.",
+        protocol_note(board),
+    ]
+    sources = sorted((m, r) for m, r in board.reported.items() if r.mean is not None)
+    if sources:
+        notes.append(
+            f"Reported: the papers' numbers on the {real} data (GPU, the papers' full schedules). They are "
+            f"NOT comparable with synthetic scenes or CPU budgets; they show the scale only. Sources: "
+            + "; ".join(f"{m}: {r.source}" for m, r in sources) + "."
+        )
+    return Table(f"leaderboard-{_slug(board.dataset)}", board.title, header, rows, notes)
+
+
+def fronts(board: Board) -> dict[str, set[str]]:
+    """Row name -> the costs (`COSTS` keys) on whose Pareto front it lies."""
+    on: dict[str, set[str]] = {}
+    for cost in COSTS:
+        for point in cost_points(board, cost):
+            if point.front:
+                on.setdefault(point.row, set()).add(cost)
+    return on
+
+
+SPEED_COLUMNS = (  # Row.speed key -> format of its mean
+    ("train", lambda v: number(v, 1)), ("total", lambda v: number(v, 1)), ("it_per_s", lambda v: number(v, 2)),
+    ("peak_rss", mib), ("gaussians", count),
+)
+
+
+def _stat_cell(value: Stat | None, show) -> TCell:
+    return TCell(show(value.mean), value.mean) if value else TCell(MISSING)
+
+
+def speed_table(board: Board) -> Table:
+    """Per row: budget, threads, times, memory, size, mean metric, and the Pareto fronts it is on."""
+    header = ["method", "iterations", "threads", "train (s)", "total (s)", "it/s", "peak RSS (MiB)", "Gaussians",
+              f"mean {board.spec.label}", "Pareto front"]
+    on = fronts(board)
+    rows = []
+    for row in board.rows:
+        value, complete = board.mean(row)
+        shown = number(value) if complete or value is None else f"{number(value)} (incomplete)"
+        front = [short for key, (short, _) in COSTS.items() if key in on.get(row.name, ())]
+        rows.append([
+            plain(row.name), plain(_join(row.iterations)), plain(_join(row.threads)),
+            *(_stat_cell(row.speed[key], show) for key, show in SPEED_COLUMNS),
+            TCell(shown, value, "" if complete else "bad"),
+            TCell(", ".join(front) or MISSING, len(front), "front" if front else ""),
+        ])
+    threads = sorted({t for row in board.rows for t in row.threads})
+    notes = [TIMES_NOTE,
+             f"Pareto front: no other row (with a value on every scene) is at most as costly and at least as good "
+             f"in mean {board.spec.label}; costs: {', '.join(short for short, _ in COSTS.values())}."]
+    if len(threads) > 1:
+        notes.append(f"Thread counts differ between runs ({_join(threads)}): compare times only at one thread count.")
+    title = f"{board.dataset}: cost against {board.spec.label}"
+    return Table(f"speed-{_slug(board.dataset)}", title, header, rows, notes)
+
+
+def _row_speed_cells(row: Row) -> list[TCell]:
+    """Training time and Gaussian count of a sweep row."""
+    return [_stat_cell(row.speed["train"], lambda v: number(v, 1)), _stat_cell(row.speed["gaussians"], count)]
+
+
+def ablation_table(board: Board) -> Table:
+    """A sweep: transposed (``key | v1 | v2 ...``) for a one-key numeric grid, else one row per label
+    with the change of the mean against the first label."""
+    anchor = f"sweep-{_slug(board.title)}"
+    notes = [protocol_note(board), TIMES_NOTE]
+    if board.grid_key:
+        return _grid_table(board, anchor, notes)
+    several = len(board.scenes) > 1
+    header = ["label", "method", *board.scenes, *(["mean"] if several else []),
+              f"Δ vs {board.rows[0].name}" if board.rows else "Δ", "train (s)", "Gaussians", "runs"]
+    best = {column: board.best(column) for column in [*board.scenes, "mean"]}
+    first, first_complete = board.mean(board.rows[0]) if board.rows else (None, False)
+    rows = []
+    for row in board.rows:
+        value, complete = board.mean(row)
+        cells = [plain(row.name), plain(_join(row.methods))]
+        cells += [metric_cell(row.cells.get(scene), row.name in best[scene]) for scene in board.scenes]
+        if several:
+            cells.append(TCell(number(value) if complete else MISSING, value if complete else None,
+                               "best" if row.name in best["mean"] else ""))
+        delta = value - first if complete and first_complete and value is not None and first is not None else None
+        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}", delta))
+        cells += _row_speed_cells(row)
+        cells.append(plain(status_text(row.counts)))
+        rows.append(cells)
+    return Table(anchor, board.title, header, rows, notes)
+
+
+def _value_text(value: float) -> str:
+    return str(int(value)) if value == int(value) else f"{value:g}"
+
+
+def _grid_table(board: Board, anchor: str, notes: list[str]) -> Table:
+    header = [board.grid_key, *(_value_text(v) for v in board.grid_values)]
+    rows = []
+    for scene in board.scenes:
+        best = board.best(scene)
+        label = board.spec.label if len(board.scenes) == 1 else f"{board.spec.label}, {scene}"
+        rows.append([plain(label)] + [metric_cell(row.cells.get(scene), row.name in best) for row in board.rows])
+    if len(board.scenes) > 1:
+        best = board.best("mean")
+        means = [board.mean(row) for row in board.rows]
+        rows.append([plain(f"{board.spec.label}, mean")] +
+                    [TCell(number(v) if c else MISSING, v if c else None, "best" if row.name in best else "")
+                     for row, (v, c) in zip(board.rows, means)])
+    speed = [_row_speed_cells(row) for row in board.rows]
+    rows.append([plain("train (s)")] + [cells[0] for cells in speed])
+    rows.append([plain("Gaussians")] + [cells[1] for cells in speed])
+    rows.append([plain("runs")] + [plain(status_text(row.counts)) for row in board.rows])
+    return Table(anchor, board.title, header, rows, notes)
+
+
+def _last_line(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+def failed_table(runs: list[Run]) -> Table:
+    header = ["run id", "dataset", "scene", "method", "seed", "status", "last error line", "record"]
+    rows = [[plain(r.run_id), plain(r.dataset), plain(r.scene), plain(r.row), plain(str(r.seed)),
+             plain(r.status, None, "bad"), plain(_last_line(r.error_tail) or MISSING), plain(r.path)]
+            for r in runs if not r.ok]
+    return Table("failed-runs", "", header, rows)
+
+
+def protocol_table(runs: list[Run]) -> Table:
+    """Every evaluator protocol behind a number, per dataset: name@version, the options that differ
+    between runs of that evaluator on that dataset, and run counts."""
+    groups: dict[tuple, int] = {}
+    for run in runs:
+        for name, proto in sorted(run.eval_protocol.items()):
+            if isinstance(proto, dict):
+                options = json.dumps({k: v for k, v in proto.items() if k not in ("name", "version")}, sort_keys=True)
+                key = (run.dataset, name, str(proto.get("version")), options)
+                groups[key] = groups.get(key, 0) + 1
+    siblings: dict[tuple, list[dict]] = {}
+    for dataset, name, _, options in groups:
+        siblings.setdefault((dataset, name), []).append(json.loads(options))
+    rows = []
+    for (dataset, name, version, options), n in sorted(groups.items()):
+        others = siblings[(dataset, name)]
+        differing = sorted({k for o in others for k in o if any(p.get(k) != o.get(k) for p in others)})
+        mine = json.loads(options)
+        shown = ", ".join(f"{k}={json.dumps(mine.get(k))}" for k in differing) or "same for all runs"
+        rows.append([plain(dataset), plain(f"{name}@{version}"), plain(shown), TCell(str(n), n)])
+    notes = ["Numbers from different versions of one evaluator are not comparable. Options: those that differ "
+             "between runs of the evaluator on one dataset; some are derived per scene (e.g. a distance gate "
+             "from the ground truth's point spacing), others change the protocol."]
+    return Table("protocol-table", "", ["dataset", "protocol", "options", "runs"], rows, notes)
+
+
+ENV_PACKAGES = ("torch", "numpy", "open3d")
+
+
+def environment_table(runs: list[Run]) -> Table:
+    """Distinct (CPU, cores, threads, versions, commit) combinations and how many runs each produced."""
+    groups: dict[tuple, int] = {}
+    for run in runs:
+        env = run.environment
+        packages = env.get("packages") if isinstance(env.get("packages"), dict) else {}
+        commit = str(env.get("git_commit") or MISSING)[:10] + ("+dirty" if env.get("git_dirty") else "")
+        key = (str(env.get("cpu") or MISSING), str(env.get("cpu_count") or MISSING),
+               str(run.threads if run.threads is not None else MISSING), str(env.get("os") or MISSING),
+               str(env.get("python") or MISSING), str(env.get("gsbench") or MISSING), commit,
+               *(str(packages.get(p) or MISSING) for p in ENV_PACKAGES))
+        groups[key] = groups.get(key, 0) + 1
+    header = ["CPU", "cores", "threads", "OS", "python", "gsbench", "git", *ENV_PACKAGES, "runs"]
+    rows = [[plain(v) for v in key] + [TCell(str(n), n)] for key, n in sorted(groups.items())]
+    note = "One row per machine and software combination that produced runs; threads: OpenMP/torch threads."
+    return Table("environment-table", "", header, rows, [note])
+
+
+def runs_table(runs: list[Run], specs: dict[str, MetricSpec], sweeps: dict[str, list[str]]) -> Table:
+    """Every run: identity, status, its dataset's ranking metric, times, threads, protocols, sweeps."""
+    header = ["run id", "dataset", "scene", "method", "seed", "status", "metric", "value", "train (s)", "total (s)",
+              "threads", "iterations", "protocols", "sweeps", "record"]
+    rows = []
+    for r in runs:
+        spec = specs.get(r.dataset)
+        value = r.metrics.get(spec.name) if spec else None
+        protocols = ", ".join(f"{n}@{p.get('version')}" for n, p in sorted(r.eval_protocol.items())
+                              if isinstance(p, dict))
+        train, total = r.timings.get("train"), r.timings.get("total")
+        rows.append([plain(r.run_id), plain(r.dataset), plain(r.scene), plain(r.row), TCell(str(r.seed), r.seed),
+                     plain(r.status, None, "" if r.ok else "bad"), plain(spec.label if spec else MISSING),
+                     TCell(number(value), value), TCell(number(train, 1), train), TCell(number(total, 1), total),
+                     plain(str(r.threads if r.threads is not None else MISSING)),
+                     plain(str(r.iterations if r.iterations is not None else MISSING)),
+                     plain(protocols or MISSING), plain("; ".join(sweeps.get(r.run_id, [])) or MISSING), plain(r.path)])
+    return Table("runs-table", "", header, rows)
+
+
+CSV_COLUMNS = ("dataset", "metric", "unit", "higher_is_better", "method", "variant", "scene", "n_ok", "n_other",
+               "n_missing", "mean", "std", "best", "complete", "reported", "iterations", "threads", "train_s",
+               "total_s", "peak_rss_mib", "gaussians")
+
+
+def _csv_number(value) -> str:
+    return "" if value is None else f"{value:.6g}"
+
+
+def leaderboard_csv(boards: list[Board]) -> str:
+    """Long format: one line per (dataset, row, scene) and one ``scene=mean`` line per row."""
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for board in boards:
+        spec = board.spec
+        best = {column: board.best(column) for column in [*board.scenes, "mean"]}
+        for row in board.rows:
+            variant = row.runs[0].variant if row.runs else ""
+            method = row.methods[0] if len(row.methods) == 1 else ";".join(row.methods)
+            ref = board.reported.get(method)
+            base = [board.dataset, spec.name, spec.unit, int(spec.higher_is_better), method, variant]
+            for scene in board.scenes:
+                cell = row.cells.get(scene)
+                runs = cell.runs if cell else []
+                statuses = cell.statuses if cell else {}
+                value = cell.stat if cell else None
+                writer.writerow(base + [scene, statuses.get("ok", 0),
+                                        sum(n for k, n in statuses.items() if k not in ("ok", "missing")),
+                                        statuses.get("missing", 0),
+                                        _csv_number(value.mean if value else None),
+                                        _csv_number(value.std if value else None), int(row.name in best[scene]), "",
+                                        _csv_number(ref.scene_value(scene) if ref else None)] + _csv_speed(runs))
+            mean, complete = board.mean(row)
+            counts = row.counts
+            writer.writerow(base + ["mean", counts.get("ok", 0),
+                                    sum(n for k, n in counts.items() if k not in ("ok", "missing")),
+                                    counts.get("missing", 0), _csv_number(mean), "", int(row.name in best["mean"]),
+                                    int(complete), _csv_number(ref.mean if ref else None)] + _csv_speed(row.runs))
+    return out.getvalue()
+
+
+def _csv_speed(runs: list[Run]) -> list[str]:
+    ok = [r for r in runs if r.ok]
+    iterations = ";".join(str(i) for i in sorted({r.iterations for r in runs if r.iterations is not None}))
+    threads = ";".join(str(t) for t in sorted({r.threads for r in runs if r.threads is not None}))
+    means = {key: stat(read(r) for r in ok) for key, read in SPEED.items()}
+    rss = means["peak_rss"].mean / 2**20 if means["peak_rss"] else None
+    return [iterations, threads, _csv_number(means["train"].mean if means["train"] else None),
+            _csv_number(means["total"].mean if means["total"] else None), _csv_number(rss),
+            _csv_number(means["gaussians"].mean if means["gaussians"] else None)]

@@ -1,0 +1,181 @@
+"""`gsbench report`: leaderboard tables (golden files), the self-contained HTML page, Pareto fronts,
+variant labels and robustness to incomplete records.
+
+Fixtures: ``tests/fixtures/report/runs/`` is a hand-made runs folder (DTU-like scan24/scan37 and
+TnT-like spot-tnt/bunny-tnt; 3dgs, 2dgs, gof, ibgs; two seeds for some; one failed run; missing
+combinations; mixed thread counts) with two sweep manifests in ``runs/sweeps/`` (an IBGS K grid with
+a missing run, and named loss variants). The expected ``leaderboard.md`` and ``leaderboard.csv`` are
+in ``tests/fixtures/report/golden/``. After an intended change of the output, regenerate them with
+
+    GSBENCH_UPDATE_GOLDEN=1 python -m pytest -q tests/test_report.py
+
+and review the diff of the golden files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from gsbench.cli import main
+from gsbench.errors import GsbenchError
+from gsbench.report.build import write_report
+from gsbench.report.collect import label_variants, load_runs
+from gsbench.report.pareto import pareto_front
+from gsbench.registry import METHODS
+
+FIXTURES = Path(__file__).parent / "fixtures" / "report"
+RUNS = FIXTURES / "runs"
+GOLDEN = FIXTURES / "golden"
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    pytest.importorskip("matplotlib")
+    out = tmp_path_factory.mktemp("report")
+    write_report(RUNS, out, generated="2026-01-01T00:00:00+00:00")
+    return out
+
+
+@pytest.mark.parametrize("name", ["leaderboard.md", "leaderboard.csv"])
+def test_golden_tables(report, name):
+    produced = (report / name).read_text()
+    if os.environ.get("GSBENCH_UPDATE_GOLDEN"):
+        GOLDEN.mkdir(parents=True, exist_ok=True)
+        (GOLDEN / name).write_text(produced)
+    assert produced == (GOLDEN / name).read_text(), f"{name} differs from the golden file (see the module docstring)"
+
+
+class _Page(HTMLParser):
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.tags: list[tuple[str, dict]] = []
+        self.text: list[str] = []
+        self.scripts = 0
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+        self.scripts += tag == "script"
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def test_html_is_self_contained_sortable_and_lists_every_run(report):
+    page = (report / "index.html").read_text()
+    assert "http://" not in page and "https://" not in page
+    parser = _Page()
+    parser.feed(page)
+    parser.close()
+    text = " ".join(parser.text)
+    run_ids = [json.loads(p.read_text())["run_id"] for p in RUNS.rglob("record.json")]
+    assert len(run_ids) == 17
+    assert all(run_id in text for run_id in run_ids)
+    for tag, attrs in parser.tags:
+        for name in ("src", "href"):
+            value = attrs.get(name) or ""
+            assert not value.startswith(("http://", "https://", "//")), (tag, name, value)
+        if tag == "a":
+            assert attrs["href"].startswith("#")
+        assert not (tag in ("script", "link") and ("src" in attrs or "href" in attrs)), "no external script/style"
+    images = [attrs for tag, attrs in parser.tags if tag == "img"]
+    assert len(images) == 4 and all(a["src"].startswith("data:image/png;base64,") for a in images)
+    tables = [attrs for tag, attrs in parser.tags if tag == "table"]
+    assert tables and all("sortable" in a.get("class", "").split() for a in tables)
+    assert parser.scripts == 1 and "table.sortable" in page
+    assert "2026-01-01T00:00:00+00:00" in text
+    assert "not comparable" in text.lower()
+    pngs = sorted(p.name for p in (report / "plots").glob("*.png"))
+    assert pngs == ["speed-dtu.png", "speed-tnt.png", "sweep-ibgs-k-dtu.png", "sweep-ibgs-losses-dtu.png"]
+    assert all((report / "plots" / n).read_bytes().startswith(b"\x89PNG") for n in pngs)
+
+
+def test_pareto_front_minimises_cost_and_error_or_maximises_score():
+    points = [(1.0, 0.9), (2.0, 0.5), (3.0, 0.6), (2.0, 0.5), (0.5, 1.5)]
+    assert pareto_front(points) == [0, 1, 3, 4]  # (3, 0.6) is dominated; equal points both stay
+    assert pareto_front(points, higher_is_better=True) == [4]  # cheapest and highest
+    assert pareto_front([(1.0, 0.9), (2.0, 0.5), (3.0, 0.95), (0.5, 0.2)], higher_is_better=True) == [0, 2, 3]
+    assert pareto_front([]) == []
+
+
+def test_variant_labels_name_only_the_keys_that_differ():
+    runs = label_variants(load_runs(RUNS)[0])
+    rows = {r.row for r in runs if r.dataset == "dtu" and r.method == "ibgs"}
+    assert rows == {f"ibgs [losses.eigvec.weight={w}, method.knn_k={k}]" for w, k in
+                    (("0.0", 5), ("0.01", 3), ("0.01", 5), ("0.01", 8))}
+    assert {r.row for r in runs if r.method == "2dgs"} == {"2dgs"}  # seeds and scenes are not variants
+
+
+def _copy_runs(tmp_path) -> Path:
+    runs = tmp_path / "runs"
+    shutil.copytree(RUNS, runs)
+    return runs
+
+
+def test_incomplete_records_become_statuses_and_warnings_not_crashes(tmp_path):
+    runs = _copy_runs(tmp_path)
+    some = sorted(runs.glob("tnt/spot-tnt/3dgs/*/record.json"))[0]
+    data = json.loads(some.read_text())
+    data.update(status="running", metrics={}, timings={}, environment={})
+    some.write_text(json.dumps(data))
+    no_metric = sorted(runs.glob("tnt/spot-tnt/2dgs/*/record.json"))[0]
+    data = json.loads(no_metric.read_text())
+    data["metrics"] = {"precision": 0.5}
+    no_metric.write_text(json.dumps(data))
+    broken = runs / "dtu" / "scan24" / "gof" / "broken" / "record.json"
+    broken.parent.mkdir(parents=True)
+    broken.write_text("{not json")
+    duplicate = runs / "copy" / "record.json"
+    duplicate.parent.mkdir()
+    shutil.copy(some, duplicate)
+    (runs / "sweeps" / "bad.json").write_text('{"name": "bad"}')
+    out = tmp_path / "out"
+    write_report(runs, out, plots=False)
+    md = (out / "leaderboard.md").read_text()
+    assert "| 3dgs | 0.250 | 1 running | 0.250 (1/2 scenes) |" in md
+    assert "| 2dgs | – | 1 no metric |" in md
+    assert "dtu/scan24/gof/broken/record.json: unreadable record skipped" in md
+    assert "found 2 times" in md and "sweeps/bad.json: unreadable sweep manifest skipped" in md
+    assert not (out / "plots").exists()
+    assert "<img" not in (out / "index.html").read_text()
+
+
+def test_no_records_is_a_clear_error(tmp_path):
+    with pytest.raises(GsbenchError, match=f"no run records .* under '{tmp_path}'"):
+        write_report(tmp_path, tmp_path / "out")
+    with pytest.raises(GsbenchError, match="does not exist"):
+        write_report(tmp_path / "nowhere", tmp_path / "out")
+
+
+def test_missing_matplotlib_names_the_extra(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.backends.backend_agg", None)
+    with pytest.raises(GsbenchError, match=r"pip install gsbench\[report\]"):
+        write_report(RUNS, tmp_path / "out")
+
+
+def test_cli_report(tmp_path, capsys):
+    assert main(["report", str(RUNS), "--out", str(tmp_path / "r"), "--no-plots"]) == 0
+    assert "leaderboard.md, leaderboard.csv, index.html" in capsys.readouterr().out
+    assert main(["report", str(tmp_path / "empty-or-missing"), "--out", str(tmp_path / "r2")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_reported_numbers_are_well_formed():
+    """Every built-in method that declares REPORTED names a dataset's ranking metric and a source."""
+    declared = 0
+    for name in METHODS.names():
+        cls = METHODS.get(name)
+        for dataset, entry in (vars(cls).get("REPORTED") or {}).items():
+            declared += 1
+            assert entry["metric"] == {"dtu": "chamfer", "tnt": "f1"}[dataset], name
+            assert isinstance(entry["mean"], float) and entry["source"], name
+            assert all(isinstance(v, float) for v in entry.get("scenes", {}).values()), name
+    assert declared >= 6
