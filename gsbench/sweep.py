@@ -33,7 +33,7 @@ import itertools
 import json
 import time
 import traceback
-from concurrent.futures import CancelledError, as_completed
+from concurrent.futures import FIRST_COMPLETED, CancelledError, wait
 from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,6 +46,9 @@ from gsbench.errors import ConfigError
 SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "seeds", "executor")
 IDENTITY_KEYS = ("method", "scene", "preset", "seed")
 EXECUTOR_KEYS = ("kind", "workers", "threads", "address")
+# The sweep waits for runs in slices of this many seconds: a SIGINT the kernel delivers to another
+# thread (torch's, tqdm's) only sets CPython's flag, and an untimed wait would never look at it.
+SIGNAL_POLL_SECONDS = 0.5
 
 
 @dataclass
@@ -335,8 +338,11 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
     try:
         for sweep_run in todo:
             futures[executor.submit(run_one, sweep_run.config)] = sweep_run
-        for future in as_completed(futures):
-            tally.finish(futures[future], _outcome(future, futures[future]))
+        pending = set(futures)
+        while pending:  # a timed wait: a Ctrl-C delivered to another thread still wakes this one
+            done, pending = wait(pending, timeout=SIGNAL_POLL_SECONDS, return_when=FIRST_COMPLETED)
+            for future in sorted(done, key=list(futures).index):
+                tally.finish(futures[future], _outcome(future, futures[future]))
     except KeyboardInterrupt:
         interrupted = True
         echo(f"interrupted: cancelling {len(tally.unfinished)} unfinished runs")
