@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import _thread
 import json
+import signal
 import threading
 from concurrent.futures import Executor, Future
 from pathlib import Path
@@ -201,7 +202,13 @@ def test_ctrl_c_cancels_the_unfinished_runs_keeps_finished_records_and_exits_130
     monkeypatch.setattr(gsbench.executors, "make_executor", lambda *a, **k: executor)
     calls = fake_runs(monkeypatch)
     out = tmp_path / "runs"
-    assert main(["sweep", str(write(tmp_path, THREE_SEEDS)), "--out", str(out)]) == 130
+    # Python's own SIGINT handler for this test: in the full suite an earlier test left another one
+    # installed (cause not found), and interrupt_main does nothing without Python's handler
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert main(["sweep", str(write(tmp_path, THREE_SEEDS)), "--out", str(out)]) == 130
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert calls == [0] and executor.terminated
     manifest = json.loads((out / "sweeps" / "sweep.json").read_text())
     assert [e["status"] for e in manifest["runs"]] == ["ok", "cancelled", "cancelled"]
