@@ -25,6 +25,7 @@ import pytest
 
 from gsbench.cli import main
 from gsbench.errors import GsbenchError
+from gsbench.report.aggregate import natural_key
 from gsbench.report.build import write_report
 from gsbench.report.collect import label_variants, load_runs
 from gsbench.report.pareto import pareto_front
@@ -110,6 +111,12 @@ def test_variant_labels_name_only_the_keys_that_differ():
     assert rows == {f"ibgs [losses.eigvec.weight={w}, method.knn_k={k}]" for w, k in
                     (("0.0", 5), ("0.01", 3), ("0.01", 5), ("0.01", 8))}
     assert {r.row for r in runs if r.method == "2dgs"} == {"2dgs"}  # seeds and scenes are not variants
+
+
+def test_rows_sort_numbers_by_value():
+    names = ["ibgs [method.knn_k=10]", "ibgs [method.knn_k=2]", "3dgs", "ibgs [w=0.1]", "ibgs [w=0.01]"]
+    assert sorted(names, key=natural_key) == ["3dgs", "ibgs [method.knn_k=2]", "ibgs [method.knn_k=10]",
+                                              "ibgs [w=0.01]", "ibgs [w=0.1]"]
 
 
 def _copy_runs(tmp_path) -> Path:

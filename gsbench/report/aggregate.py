@@ -10,6 +10,7 @@ the (scene, seed) pairs a row lacks among its seeds; for a sweep, the manifest e
 
 from __future__ import annotations
 
+import re
 import statistics
 from dataclasses import dataclass, field
 
@@ -148,15 +149,22 @@ def make_row(name: str, runs: list[Run], metric: str, missing: dict[str, int], m
     return Row(name, sorted({r.method for r in runs} | set(methods)), dict(sorted(cells.items())), speed)
 
 
+def natural_key(name: str) -> tuple:
+    """Sort key reading the numbers in a row name as numbers: ``knn_k=2`` before ``knn_k=10``."""
+    parts = re.split(r"(\d+(?:\.\d+)?)", name)
+    return tuple(float(p) if i % 2 else p for i, p in enumerate(parts))
+
+
 def leaderboard(runs: list[Run], dataset: str, spec: MetricSpec, reported: dict[str, Reported]) -> Board:
-    """The method × scene board of ``dataset``: one row per configuration (`Run.row`), sorted by name."""
+    """The method × scene board of ``dataset``: one row per configuration (`Run.row`), sorted by name
+    (`natural_key`)."""
     runs = [r for r in runs if r.dataset == dataset]
     scenes = sorted({r.scene for r in runs})
     groups: dict[str, list[Run]] = {}
     for run in runs:
         groups.setdefault(run.row, []).append(run)
     rows = []
-    for name in sorted(groups):
+    for name in sorted(groups, key=natural_key):
         group = groups[name]
         seeds = {r.seed for r in group}
         missing = {s: len(seeds - {r.seed for r in group if r.scene == s}) for s in scenes}
