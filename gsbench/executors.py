@@ -8,6 +8,8 @@ on ProcessPoolExecutor): cancel the pending tasks, stop the running ones now and
   one task at a time with ``threads`` OpenMP / torch threads; ``workers × threads`` must fit the cores.
   Processes are spawned, not forked (torch and OpenMP state does not survive a fork). Workers ignore
   SIGINT, so a Ctrl-C in the terminal reaches only the sweep, which decides what to stop.
+- Both run every task in a fresh process: a run's peak memory is the process high-water mark
+  (``ru_maxrss``, which never decreases), so a reused worker would report the largest earlier run's.
 - ``ray`` (`RayExecutor`, extra ``gsbench[ray]``): each task is a Ray task with ``num_cpus = threads``,
   on the cluster at ``address`` or on a local cluster of ``workers × threads`` CPUs started for the
   sweep (no dashboard, usage statistics off, logs in a temp folder). Tasks write their records
@@ -74,12 +76,12 @@ def _init_local_worker(threads: int) -> None:
 
 
 class LocalExecutor(ProcessPoolExecutor):
-    """``workers`` spawned processes with ``threads`` threads each (module docstring)."""
+    """``workers`` spawned processes with ``threads`` threads each, a new one per task (module docstring)."""
 
     def __init__(self, workers: int, threads: int):
         check_fits_cores(workers, threads)
         super().__init__(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                         initializer=_init_local_worker, initargs=(threads,))
+                         initializer=_init_local_worker, initargs=(threads,), max_tasks_per_child=1)
 
     if sys.version_info < (3, 14):
         def terminate_workers(self) -> None:
@@ -135,7 +137,7 @@ class RayExecutor(Executor):
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
         if fn not in self._remote_fns:
-            self._remote_fns[fn] = self.ray.remote(num_cpus=self.threads, max_retries=0)(fn)
+            self._remote_fns[fn] = self.ray.remote(num_cpus=self.threads, max_retries=0, max_calls=1)(fn)
         ref = self._remote_fns[fn].remote(*args, **kwargs)
         future = ref.future()
         self._tasks.append((ref, future))

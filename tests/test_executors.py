@@ -45,6 +45,12 @@ def test_local_workers_have_their_threads_and_leave_ctrl_c_to_the_sweep():
         assert executor.submit(signal.getsignal, signal.SIGINT).result() == signal.SIG_IGN
 
 
+def test_local_executor_runs_each_task_in_a_fresh_process():
+    # a run's peak memory is its process's ru_maxrss: a reused worker would report an earlier run's peak
+    with LocalExecutor(1, 1) as executor:
+        assert len({executor.submit(os.getpid).result() for _ in range(3)}) == 3
+
+
 def test_terminate_workers_cancels_queued_tasks_and_stops_running_ones():
     executor = LocalExecutor(1, 1)
     running, queued = executor.submit(time.sleep, 60), executor.submit(time.sleep, 60)
@@ -118,3 +124,16 @@ def test_local_executor_runs_two_tiny_runs_survives_a_failure_and_resumes(tiny_s
 @pytest.mark.slow
 def test_ray_executor_runs_two_tiny_runs_on_a_local_cluster(tiny_spot, tmp_path, capsys, restore_threads):
     sweep_twice(tiny_spot, tmp_path, capsys, "--executor", "ray")
+
+
+@pytest.mark.ray
+@pytest.mark.slow
+def test_ray_runs_each_task_in_a_fresh_worker(restore_threads):
+    def pid() -> int:  # local, so Ray pickles it by value (workers cannot import the test module)
+        return os.getpid()
+
+    executor = make_executor("ray", workers=1, threads=1, echo=lambda *_: None)
+    try:
+        assert len({executor.submit(pid).result(timeout=120) for _ in range(3)}) == 3
+    finally:
+        executor.shutdown()
