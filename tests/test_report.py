@@ -153,6 +153,20 @@ def test_incomplete_records_become_statuses_and_warnings_not_crashes(tmp_path):
     assert "<img" not in (out / "index.html").read_text()
 
 
+def test_memory_is_the_training_high_water_mark_not_the_evaluators(tmp_path):
+    runs = _copy_runs(tmp_path)
+    some = sorted(runs.glob("tnt/spot-tnt/3dgs/*/record.json"))[0]
+    data = json.loads(some.read_text())
+    data["peak_rss_bytes"] = {"load": 2**28, "train": 3 * 2**28, "extract": 2**31, "evaluate": 2**32}
+    some.write_text(json.dumps(data))
+    (run,) = [r for r in load_runs(runs)[0] if r.run_id == data["run_id"]]
+    assert run.train_peak_rss_bytes == 3 * 2**28
+    del data["peak_rss_bytes"]["train"]  # a run that failed before training ended has no training peak
+    some.write_text(json.dumps(data))
+    (run,) = [r for r in load_runs(runs)[0] if r.run_id == data["run_id"]]
+    assert run.train_peak_rss_bytes is None
+
+
 def test_no_records_is_a_clear_error(tmp_path):
     with pytest.raises(GsbenchError, match=f"no run records .* under '{tmp_path}'"):
         write_report(tmp_path, tmp_path / "out")

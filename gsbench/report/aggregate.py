@@ -22,7 +22,7 @@ SPEED = {  # key -> how to read it from a run
     "train": lambda r: r.timings.get("train"),
     "total": lambda r: r.timings.get("total"),
     "it_per_s": lambda r: r.it_per_s,
-    "peak_rss": lambda r: r.peak_rss_bytes,
+    "train_rss": lambda r: r.train_peak_rss_bytes,
     "gaussians": lambda r: r.num_gaussians,
 }
 

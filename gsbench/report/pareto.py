@@ -26,7 +26,7 @@ def pareto_front(points: list[tuple[float, float]], higher_is_better: bool = Fal
 COSTS = {  # Row.speed key -> (short name, axis label)
     "train": ("train", "training time (s)"),
     "total": ("total", "total time (s)"),
-    "peak_rss": ("memory", "peak RSS (MiB)"),
+    "train_rss": ("memory", "peak RSS in training (MiB)"),
     "gaussians": ("Gaussians", "Gaussians"),
 }
 

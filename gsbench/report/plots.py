@@ -1,7 +1,7 @@
 """Figures of the report as PNG bytes (matplotlib, the ``report`` extra), drawn on the Agg canvas
 without pyplot, so no global backend state or display is touched.
 
-- `speed_figure`: per dataset, four panels (training time, total time, peak RSS, Gaussians) against
+- `speed_figure`: per dataset, four panels (training time, total time, peak RSS in training, Gaussians) against
   the mean metric; rows with every scene are filled and compete for the Pareto front (joined by a
   line), incomplete rows are hollow.
 - `grid_figure`: a one-key numeric sweep (e.g. IBGS K) against the metric, one line per scene, error
@@ -17,7 +17,7 @@ from gsbench.errors import missing_dependency
 from gsbench.report.aggregate import Board
 from gsbench.report.pareto import COSTS, cost_points
 
-SCALE = {"peak_rss": 1 / 2**20}  # bytes -> MiB on the memory axis
+SCALE = {"train_rss": 1 / 2**20}  # bytes -> MiB on the memory axis
 LABEL_CHARS = 40
 
 

@@ -17,7 +17,9 @@ from gsbench.report.pareto import COSTS, cost_points
 from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
-              "the same thread count on an equally loaded machine of the same kind (see Environment).")
+              "the same thread count on an equally loaded machine of the same kind (see Environment). Memory: the "
+              "process's peak RSS through training (the record's train stage); mesh extraction and evaluation "
+              "are left out, they are the same protocol for every method.")
 
 
 def _slug(text: str) -> str:
@@ -94,7 +96,7 @@ def fronts(board: Board) -> dict[str, set[str]]:
 
 SPEED_COLUMNS = (  # Row.speed key -> format of its mean
     ("train", lambda v: number(v, 1)), ("total", lambda v: number(v, 1)), ("it_per_s", lambda v: number(v, 2)),
-    ("peak_rss", mib), ("gaussians", count),
+    ("train_rss", mib), ("gaussians", count),
 )
 
 
@@ -104,7 +106,7 @@ def _stat_cell(value: Stat | None, show) -> TCell:
 
 def speed_table(board: Board) -> Table:
     """Per row: budget, threads, times, memory, size, mean metric, and the Pareto fronts it is on."""
-    header = ["method", "iterations", "threads", "train (s)", "total (s)", "it/s", "peak RSS (MiB)", "Gaussians",
+    header = ["method", "iterations", "threads", "train (s)", "total (s)", "it/s", "train peak RSS (MiB)", "Gaussians",
               f"mean {board.spec.label}", "Pareto front"]
     on = fronts(board)
     rows = []
@@ -267,7 +269,7 @@ def runs_table(runs: list[Run], specs: dict[str, MetricSpec], sweeps: dict[str, 
 
 CSV_COLUMNS = ("dataset", "metric", "unit", "higher_is_better", "method", "variant", "scene", "n_ok", "n_other",
                "n_missing", "mean", "std", "best", "complete", "reported", "iterations", "threads", "train_s",
-               "total_s", "peak_rss_mib", "gaussians")
+               "total_s", "train_peak_rss_mib", "gaussians")
 
 
 def _csv_number(value) -> str:
@@ -312,7 +314,7 @@ def _csv_speed(runs: list[Run]) -> list[str]:
     iterations = ";".join(str(i) for i in sorted({r.iterations for r in runs if r.iterations is not None}))
     threads = ";".join(str(t) for t in sorted({r.threads for r in runs if r.threads is not None}))
     means = {key: stat(read(r) for r in ok) for key, read in SPEED.items()}
-    rss = means["peak_rss"].mean / 2**20 if means["peak_rss"] else None
+    rss = means["train_rss"].mean / 2**20 if means["train_rss"] else None
     return [iterations, threads, _csv_number(means["train"].mean if means["train"] else None),
             _csv_number(means["total"].mean if means["total"] else None), _csv_number(rss),
             _csv_number(means["gaussians"].mean if means["gaussians"] else None)]
