@@ -45,6 +45,7 @@ from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError
 from gsbench.gaussians import Gaussians
 from gsbench.losses import TermSpec
+from gsbench.mesh.cleanup import canonical_order
 from gsbench.mesh.tsdf import tsdf_fusion
 from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, rasterize
 from gsbench.strategy import DefaultStrategy, Strategy
@@ -109,13 +110,14 @@ def expon_lr(t: float, lr0: float, lr1: float) -> float:
 
 
 def _export_atomic(mesh, out_path: Path) -> None:
-    """Export a trimesh to a temp file in the target folder, then ``os.replace`` it into place."""
+    """Export a trimesh in `canonical_order` to a temp file in the target folder, then ``os.replace`` it
+    into place."""
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{out_path.stem}.", suffix=out_path.suffix, dir=out_path.parent)
     os.close(fd)
     try:
-        mesh.export(tmp)
+        canonical_order(mesh).export(tmp)
         os.replace(tmp, out_path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from gsbench.config import MeshConfig
 from gsbench.data.loader import load_scene, make_scene
 from gsbench.mesh import MeshError
-from gsbench.mesh.cleanup import keep_largest_clusters
+from gsbench.mesh.cleanup import canonical_order, keep_largest_clusters, to_trimesh
 from gsbench.mesh.tsdf import fusion_parameters, tsdf_fusion
 
 VOXEL = 0.02
@@ -116,6 +116,30 @@ def test_keep_largest_clusters():
     assert len(kept.triangles) == sizes[0] + sizes[1]
     assert len(np.asarray(kept.vertices)) == len(np.unique(np.asarray(kept.triangles)))
     assert len(keep_largest_clusters(_o3d_spheres([6, 10, 2]), 0).triangles) == sum(sizes)
+
+
+def test_canonical_order_depends_on_the_geometry_only():
+    mesh = to_trimesh(_o3d_spheres([6, 10]).compute_vertex_normals())
+    mesh.visual.vertex_colors = np.random.default_rng(0).integers(0, 256, (len(mesh.vertices), 4), np.uint8)
+    rng = np.random.default_rng(1)
+    perm = rng.permutation(len(mesh.vertices))  # the same mesh, vertices and faces listed in another order
+    faces = np.argsort(perm)[mesh.faces][rng.permutation(len(mesh.faces))]
+    faces = np.roll(faces, 1, axis=1)  # and each face starting at another corner (same orientation)
+    shuffled = trimesh.Trimesh(mesh.vertices[perm], faces, vertex_colors=mesh.visual.vertex_colors[perm],
+                               process=False)
+    a, b = canonical_order(mesh), canonical_order(shuffled)
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    assert np.array_equal(a.visual.vertex_colors, b.visual.vertex_colors)
+    # nothing changed but the order: the same triangles, corners in the same cyclic order, same colours
+    def triangles(m):
+        corners = np.concatenate([m.vertices[m.faces], m.visual.vertex_colors[m.faces][..., :3]], -1)
+        rank = np.lexsort(m.vertices[m.faces].reshape(-1, 3).T[::-1]).argsort().reshape(-1, 3)
+        start = (rank.argmin(1)[:, None] + np.arange(3)) % 3  # each face from its smallest corner
+        rows = np.take_along_axis(corners, start[..., None], 1).reshape(len(corners), -1)
+        return rows[np.lexsort(rows.T[::-1])]
+
+    assert np.array_equal(triangles(a), triangles(mesh))
+    assert np.all(np.diff(a.vertices[:, 0]) >= 0)
 
 
 @pytest.mark.parametrize("pixel", [(1, 1), (2, 3), (5, 7)])
