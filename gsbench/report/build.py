@@ -145,7 +145,7 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
         written.append(out / "plots" / plot.name)
     page_sections = sections + [Section("runs", "All runs", [], [runs_table(runs, primary, sweep_labels)])]
     generated = generated or datetime.now(timezone.utc).isoformat(timespec="seconds")
-    page = document_html(TITLE, [*intro, f"Runs folder: {runs_dir.resolve()}"], page_sections, warnings, generated)
+    page = document_html(TITLE, [*intro, f"Runs folder: {runs_dir}"], page_sections, warnings, generated)
     (out / "index.html").write_text(page)
     written.append(out / "index.html")
     return written
