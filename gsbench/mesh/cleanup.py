@@ -51,7 +51,7 @@ def canonical_order(mesh):
 
     open3d's TSDF extraction lists the same triangles in a different order from one process to the next
     (measured: bit-identical vertex and triangle sets, different order), and the evaluators' seeded
-    surface sampling follows the face order, so one trained model's Chamfer varied by 0.03% between
+    surface sampling follows the face order, so one trained model's Chamfer varied by up to 0.05% between
     runs. In this order a mesh file, and its metrics, depend on the geometry only (vertices at equal
     positions keep their relative order: extractors that merge vertices per edge have none).
     """
