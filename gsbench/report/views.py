@@ -17,9 +17,9 @@ from gsbench.report.pareto import COSTS, cost_points
 from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
-              "the same thread count on an equally loaded machine of the same kind (see Environment). Memory: the "
-              "process's peak RSS through training (the record's train stage); mesh extraction and evaluation "
-              "are left out, they are the same protocol for every method.")
+              "the same thread count on an equally loaded machine of the same kind (see Environment).")
+MEMORY_NOTE = ("Memory: the process's peak RSS through training (the record's train stage); mesh extraction and "
+               "evaluation are left out, they are the same protocol for every method.")
 
 
 def _slug(text: str) -> str:
@@ -121,7 +121,7 @@ def speed_table(board: Board) -> Table:
             TCell(", ".join(front) or MISSING, len(front), "front" if front else ""),
         ])
     threads = sorted({t for row in board.rows for t in row.threads})
-    notes = [TIMES_NOTE,
+    notes = [TIMES_NOTE, MEMORY_NOTE,
              f"Pareto front: no other row (with a value on every scene) is at most as costly and at least as good "
              f"in mean {board.spec.label}; costs: {', '.join(short for short, _ in COSTS.values())}."]
     if len(threads) > 1:
