@@ -58,7 +58,10 @@ def test_relative_parameters_are_scale_invariant(spot):
         mesh = tsdf_fusion([d * s for d in ds], scaled_cams, CFG, scene_radius=s)
         assert abs(len(mesh.faces) - len(base.faces)) <= 0.01 * len(base.faces)
         d = cKDTree(base.vertices).query(mesh.vertices / s)[0]
-        assert d.max() < 0.05 * VOXEL, (s, d.max())
+        # open3d projects voxels in float32: at km scale (camera t ~ 3e3) a handful of voxels whose
+        # projection lands on a pixel edge read the neighbouring pixel (5 of ~9 000 vertices move
+        # by 0.6 voxel); every other vertex is where it is at scale 1
+        assert np.mean(d < 0.05 * VOXEL) > 0.999 and d.max() < VOXEL, (s, np.sort(d)[-10:] / VOXEL)
     absolute = fusion_parameters(replace(CFG, absolute=True), scene_radius=1e3)
     assert absolute["voxel_size"] == VOXEL
 
@@ -152,3 +155,39 @@ def test_a_view_with_a_few_stray_pixels_is_skipped_not_a_crash(spot, pixel):
     mesh = tsdf_fusion([depths[0], stray], scene.cameras[:2], CFG, scene.radius)
     alone = tsdf_fusion([depths[0]], scene.cameras[:1], CFG, scene.radius)
     assert len(mesh.faces) > 100 and abs(len(mesh.faces) - len(alone.faces)) <= 0.01 * len(alone.faces)
+
+
+def _fused_plane_offset(slope: tuple[float, float]) -> float:
+    """Mean signed distance (in voxels) of the TSDF mesh of a plane's exact depth to that plane.
+
+    Plane z = 2 + a x + b y seen by a camera at the origin; depth sampled at pixel centres (i + 0.5);
+    voxel = one pixel footprint at the plane's centre; vertices near the image border are ignored
+    (the truncation band is cut off there).
+    """
+    from gsbench.data.camera import Camera
+
+    width, height, f = 64, 48, 60.0
+    cam = Camera(K=np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]]), R=np.eye(3),
+                 t=np.zeros(3), width=width, height=height)
+    normal = np.array([-slope[0], -slope[1], 1.0])  # n·X = 2
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays = np.stack([(u - cam.cx) / f, (v - cam.cy) / f, np.ones_like(u)], axis=-1)
+    depth = (2.0 / (rays @ normal)).astype(np.float32)  # camera z of each pixel ray's hit (ray z = 1)
+    voxel = 2.0 / f
+    cfg = MeshConfig(voxel_size=voxel, sdf_trunc=4 * voxel, depth_trunc=10.0, absolute=True, num_clusters=0)
+    vertices = np.asarray(tsdf_fusion([depth], [cam], cfg).vertices)
+    uv, _ = cam.project(vertices)
+    inner = (uv[:, 0] > 6) & (uv[:, 0] < width - 6) & (uv[:, 1] > 6) & (uv[:, 1] < height - 6)
+    assert inner.sum() > 200
+    return float(((vertices[inner] @ normal - 2.0) / np.linalg.norm(normal)).mean() / voxel)
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_tilted_plane_fuses_without_pixel_shift(axis):
+    """A half-pixel error in the intrinsic handed to open3d (the old ``cx - 0.5``) moves the fused
+    plane by half a footprint times its slope, ±0.34 voxel at slope ±0.8 (sign with the slope); the
+    TSDF's own discretisation bias is the same for both slopes (−0.02 to −0.06 voxel). So: the part
+    that flips with the slope is under 0.05 voxel, and each offset under 0.1 voxel."""
+    up, down = (_fused_plane_offset(tuple(s if k == axis else 0.0 for k in range(2))) for s in (0.8, -0.8))
+    assert abs(up - down) / 2 < 0.05, (up, down)
+    assert max(abs(up), abs(down)) < 0.1, (up, down)
