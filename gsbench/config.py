@@ -53,10 +53,15 @@ def config_root() -> Path:
 
 @dataclass
 class DataConfig:
-    """How the scene is loaded. ``downscale`` divides the image size (DTU/TnT papers use 2)."""
+    """How the scene is loaded and its masks used. ``downscale`` divides the image size (DTU/TnT papers
+    use 2). ``use_masks``: the scene's masks zero the depth outside the object before TSDF fusion and
+    reach the loss terms (2DGS on DTU). ``mask_target``: also composite the GT image over the render
+    background outside the mask, so training never sees the real background (the 2023 3DGS intent;
+    off by default: the papers train DTU on full images)."""
 
     downscale: float = 1.0
     use_masks: bool = True
+    mask_target: bool = False
     holdout_every: int = 0
     white_background: bool = False
 
@@ -79,6 +84,8 @@ class RasterConfig:
     near_plane: float = 0.2
     far_plane: float = 100.0
     antialias2d: float = 0.0
+    eps2d: float = -1.0  # screen-space dilation of the EWA covariance; < 0: the kernel's default (ewa 0.3)
+    surfel_filter: float = 2.0  # k of the surfel kernel's low-pass term k|Δ|² (2DGS: 2); 0: off
     sh_degree: int = 3
 
 

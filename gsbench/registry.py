@@ -91,6 +91,7 @@ EVALUATORS = Registry(
         "tnt_f1": "gsbench.evaluators.tnt_f1:TnTF1",
         "normal_similarity": "gsbench.evaluators.normal_similarity:NormalSimilarity",
         "image": "gsbench.evaluators.image:ImageMetrics",
+        "surface_offset": "gsbench.evaluators.surface_offset:SurfaceOffset",
     },
     "gsbench.evaluators",
 )

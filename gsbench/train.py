@@ -20,10 +20,13 @@ stays 100 steps unless ``train.scale_refine_interval`` (`scaled_strategy` says w
 run therefore densifies every 100 steps over steps 50–1500, resets opacity every 300 steps, starts
 λ_d at 300 and λ_n at 700: the same fractions of the run as the paper's 30 000 steps.
 
-Masks (``data.use_masks`` with a scene that has masks): the GT image is composited over the render
-background, ``gt' = mask·gt + (1 − mask)·bg`` (the 2023 3DGS intent, §0 "Masks", §6 item 16), so
-background pixels ask for empty space: Gaussians there only raise the loss and are pruned instead of
-spawned. ``batch.mask`` is also passed to the terms (their ``use_mask`` parameter, off by default).
+Masks (``data.use_masks`` with a scene that has masks): ``batch.mask`` is passed to the terms (their
+``use_mask`` parameter, off by default); the GT image is used whole, as 2DGS, GOF and RaDe-GS train on
+DTU. With ``data.mask_target`` as well, the GT image is composited over the render background,
+``gt' = mask·gt + (1 − mask)·bg`` (the 2023 3DGS intent), so background pixels ask for empty space:
+Gaussians there only raise the loss and are pruned instead of spawned. On a scene whose background
+is black anyway (synthetic/spot and the other object-in-black scenes) the two differ only at the
+anti-aliased silhouette pixels.
 
 Checkpoints (``checkpoint.pt`` every ``train.checkpoint_every`` steps, ``checkpoint-final.pt`` at the
 end, both written atomically) hold the method state (parameters, Adam moments), the strategy state,
@@ -180,14 +183,15 @@ class TrainResult:
 
 
 def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list]:
-    """GT tensors per view, composited over ``background`` outside the mask when masks are used."""
+    """GT tensors per view (composited over ``background`` outside the mask with ``data.mask_target``)
+    and the masks handed to the loss terms (None without ``data.use_masks``)."""
     bg = torch.tensor(background, dtype=torch.float32)
     use = cfg.data.use_masks and scene.masks is not None
     images, masks = [], []
     for i, img in enumerate(scene.images):
         image = torch.as_tensor(np.asarray(img, dtype=np.float32))
         mask = torch.as_tensor(np.asarray(scene.masks[i], dtype=bool)) if use else None
-        if mask is not None:
+        if mask is not None and cfg.data.mask_target:
             image = torch.where(mask[..., None], image, bg)
         images.append(image)
         masks.append(mask)

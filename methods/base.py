@@ -240,8 +240,11 @@ class Method:
     def raster_settings(self) -> RasterSettings:
         """The render settings of the current step (``raster`` config, background, active SH degree)."""
         r = self.cfg.raster
+        if r.surfel_filter < 0:
+            raise ConfigError(f"raster.surfel_filter must be >= 0 (0 switches the filter off), got {r.surfel_filter}")
         return RasterSettings(sh_degree=self.sh_degree, background=self.background, near_plane=r.near_plane,
-                              far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d)
+                              far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d,
+                              eps2d=None if r.eps2d < 0 else r.eps2d, surfel_filter=r.surfel_filter)
 
     def raster_input(self) -> RasterGaussians:
         """The activated Gaussians the kernel renders (active SH degree, the method's 3D filter)."""

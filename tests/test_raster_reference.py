@@ -455,3 +455,16 @@ def test_integrate_consistent_with_rendered_alpha():
     r = ref.pixel_rays(torch.tensor([[i + 0.5, j + 0.5]], dtype=D), cam)[0]
     O = ref.integrate_reference(g, [cam], (50.0 * r)[None], "raymax", RasterSettings())
     torch.testing.assert_close(O[0], out.alpha[j, i])
+
+
+@pytest.mark.parametrize("surfel_filter", [0.0, 0.5, 8.0])
+def test_gradcheck_surfel_filter_variants(surfel_filter):
+    """The surfel low-pass filter switched off (k = 0), wider (0.5) and narrower (8) than 2DGS's k = 2."""
+    settings = RasterSettings(sh_degree=1, background=(0.2, 0.4, 0.6), near_plane=0.5, far_plane=20.0,
+                              surfel_filter=surfel_filter)
+    g = grad_scene("surfel")
+    assert_smooth(g, GRAD_CAM, "surfel", settings)
+    wg = with_grad(g)
+    inputs = tuple(getattr(wg, p) for p in PARAMS)
+    for output in ("rgb", "depth"):
+        assert torch.autograd.gradcheck(render_fn(g, GRAD_CAM, "surfel", output, settings), inputs, fast_mode=True)

@@ -149,6 +149,9 @@ def test_masked_targets_show_the_background_outside_the_mask(tiny_spot):
     cfg = resolve_run("2dgs", str(tiny_spot), preset="quick", overrides=TINY)
     scene = load_scene(cfg.scene, downscale=1)
     scene.images = [np.full_like(img, 0.7) for img in scene.images]
+    images, masks = _target_images(scene, cfg, (0.0, 0.0, 1.0))  # default: full images, masks to the terms
+    assert masks[0] is not None and torch.allclose(images[0], torch.tensor(0.7))
+    cfg.data.mask_target = True
     images, masks = _target_images(scene, cfg, (0.0, 0.0, 1.0))
     mask = masks[0]
     assert mask is not None and mask.any() and (~mask).any()

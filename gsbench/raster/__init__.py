@@ -320,6 +320,7 @@ def rasterize(
     a.detach_dist = int(bool(settings.detach_distortion_weights))
     a.fx, a.fy, a.cx, a.cy = camera.fx, camera.fy, camera.cx, camera.cy
     a.near_z, a.far_z = settings.near, settings.far
+    a.surfel_k = float(settings.surfel_filter)
     a.bounds = bounds.data_ptr()
     a.depth_key = depth_key.data_ptr()
     a.tile_offsets = offsets.data_ptr()

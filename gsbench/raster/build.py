@@ -49,7 +49,7 @@ class GsArgs(ctypes.Structure):
             "kernel", "dtype", "width", "height", "tiles_x", "tiles_y", "n_gauss", "n_params", "nthreads",
             "want_rgb", "want_depth", "want_median", "want_normal", "want_dist", "detach_dist",
         )
-    ] + [(name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "near_z", "far_z")] + [
+    ] + [(name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "near_z", "far_z", "surfel_k")] + [
         (name, ctypes.c_void_p)
         for name in (
             "params", "bounds", "depth_key", "tile_offsets", "tile_list",

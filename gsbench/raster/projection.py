@@ -369,10 +369,12 @@ def project_torch(
             hny = cny * cny - _dot(fvec, X1 * X1)
             ext_x = torch.sqrt(torch.clamp(fx * fx * hnx, min=1e-4))
             ext_y = torch.sqrt(torch.clamp(fy * fy * hny, min=1e-4))
-            radius = torch.ceil(torch.maximum(torch.maximum(ext_x, ext_y), torch.full_like(ext_x, 3.0 * 0.707106)))
+            k = settings.surfel_filter  # the low-pass disc's 3σ, σ = 1/√k (2DGS: 3·0.707106)
+            floor = 3.0 / math.sqrt(k) if k > 0 else 0.0
+            radius = torch.ceil(torch.maximum(torch.maximum(ext_x, ext_y), torch.full_like(ext_x, floor)))
             radius = torch.where(ok, radius, torch.zeros_like(radius))
             valid = ok
-            bounds = _surfel_bounds(X.detach().double(), means2d.detach().double(), tau, camera)
+            bounds = _surfel_bounds(X.detach().double(), means2d.detach().double(), tau, camera, settings.surfel_filter)
         conic = torch.zeros(n, 3, dtype=dtype)
 
     # kernel payload
@@ -511,8 +513,10 @@ def _raymax_bounds(M: torch.Tensor, mu: torch.Tensor, tau: torch.Tensor, camera:
     return torch.stack(out, -1)
 
 
-def _surfel_bounds(X: torch.Tensor, m2: torch.Tensor, tau: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """Pixel box of u²+v² <= 2 tau (exact ellipse box, 2DGS §2.3 with cutoff² = 2 tau) ∪ the low-pass disc."""
+def _surfel_bounds(X: torch.Tensor, m2: torch.Tensor, tau: torch.Tensor, camera: Camera,
+                   filter_k: float) -> torch.Tensor:
+    """Pixel box of u²+v² <= 2 tau (exact ellipse box, 2DGS §2.3 with cutoff² = 2 tau) ∪ the low-pass
+    disc k|Δ|² <= 2 tau (none when the filter is off, k = 0)."""
     k = torch.clamp(2.0 * tau, min=0.0)
     X0, X1, X2 = X[:, 0, :], X[:, 1, :], X[:, 2, :]
     dd = k * (X2[:, 0] ** 2 + X2[:, 1] ** 2) - X2[:, 2] ** 2
@@ -529,8 +533,10 @@ def _surfel_bounds(X: torch.Tensor, m2: torch.Tensor, tau: torch.Tensor, camera:
         pad = 1e-3 * (hi - lo).abs() + 0.01
         out += [torch.where(ok, lo - pad, torch.full_like(lo, -BIG)), torch.where(ok, hi + pad, torch.full_like(hi, BIG))]
     box = torch.stack(out, -1)
-    # low-pass disc: 2|Δ|² <= 2 tau  ->  |Δ| <= sqrt(tau)
-    r = torch.sqrt(torch.clamp(tau, min=0.0)) * 1.001 + 0.01
+    if filter_k <= 0:
+        return box
+    # low-pass disc: k|Δ|² <= 2 tau  ->  |Δ| <= sqrt(2 tau / k)
+    r = torch.sqrt(torch.clamp(2.0 * tau / filter_k, min=0.0)) * 1.001 + 0.01
     disc = torch.stack([m2[:, 0] - r, m2[:, 0] + r, m2[:, 1] - r, m2[:, 1] + r], -1)
     return torch.stack(
         [

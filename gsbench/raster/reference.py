@@ -21,7 +21,7 @@ Decisions (where the contract leaves room; the fast path must match these):
     μ·n == 0 (edge-on, 2DGS §2.2–2.3). Culled Gaussians have ``means2d = 0``.
  4. ``means2d``: ewa/rade/raymax the projected centre ``(fx μx/μz + cx, fy μy/μz + cy)`` (unclamped);
     surfel the centre of the exact 3σ screen box (2DGS §2.3, cutoff 3), radius
-    ``ceil(max(extent_x, extent_y, 3·0.707106))`` with ``extent = sqrt(max(1e-4, h))``.
+    ``ceil(max(extent_x, extent_y, 3/√k))`` (k = ``surfel_filter``, 2DGS: 3·0.707106) with ``extent = sqrt(max(1e-4, h))``.
     ``means2d.grad`` is the exact partial derivative of the loss w.r.t. this tensor (other
     per-Gaussian quantities held fixed): zero for raymax (α does not depend on it), only the
     low-pass-filter branch for surfel. ``extras["absgrad"]`` is Σ_pixels |g_x|+|g_y| of the same
@@ -81,8 +81,6 @@ ALPHA_MIN = 1.0 / 255.0  # 3DGS §1.4
 T_STOP = 1e-4  # 3DGS §1.4
 JACOBIAN_CLAMP = 1.3  # 3DGS §1.2 step 3
 SURFEL_CUTOFF = 3.0  # 2DGS §2.3
-SURFEL_FILTER_INV_SQUARE = 2.0  # 2DGS §2.4
-SURFEL_MIN_EXTENT = 0.707106  # 2DGS §2.3 (FilterSize)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -262,12 +260,13 @@ def _ewa_conic(mu, z_safe, cov, K, camera: Camera, kernel: str, settings: Raster
     return conic, factor, radius, bad
 
 
-def _surfel_setup(mu, rot_cam, scales, K):
+def _surfel_setup(mu, rot_cam, scales, K, filter_k: float):
     """2DGS homography rows, box centre, radius and normal (2DGS §2.2–2.3).
 
     H = K·[s_u R_cw t_u | s_v R_cw t_v | μ] (rows Tu, Tv, Tw); box with f = (9, 9, −1)/d,
     d = 9(Tw.x² + Tw.y²) − Tw.z²: centre = (Σ f Tu Tw, Σ f Tv Tw), h = centre² − Σ f T², extent
-    = sqrt(max(1e-4, h)), radius = ceil(max(extent, 3·0.707106)). Normal n = R_cw t_w flipped by the
+    = sqrt(max(1e-4, h)), radius = ceil(max(extent, 3/√k)) (k = ``surfel_filter``; 2DGS's k = 2 gives
+    its 3·0.707106; k = 0: ceil(extent)). Normal n = R_cw t_w flipped by the
     constant sign(−μ·n). Returns (H, centre, radius (no grad), normal, bad (N,) bool).
     """
     cols = torch.stack([rot_cam[:, :, 0] * scales[:, 0:1], rot_cam[:, :, 1] * scales[:, 1:2], mu], -1)  # (N,3,3)
@@ -285,7 +284,8 @@ def _surfel_setup(mu, rot_cam, scales, K):
     with torch.no_grad():
         h = centre**2 - torch.stack([(f * Tu * Tu).sum(-1), (f * Tv * Tv).sum(-1)], -1)
         extent = torch.sqrt(torch.clamp(h, min=1e-4))
-        radius = torch.ceil(torch.clamp(extent.max(-1).values, min=SURFEL_CUTOFF * SURFEL_MIN_EXTENT))
+        floor = SURFEL_CUTOFF / math.sqrt(filter_k) if filter_k > 0 else 0.0
+        radius = torch.ceil(torch.clamp(extent.max(-1).values, min=floor))
     return H, centre, radius, normal, bad
 
 
@@ -319,7 +319,7 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
 
     fields: dict = {}
     if kernel == "surfel":
-        H, means2d, radius, normal, bad = _surfel_setup(mu, rot_cam, scales, K)
+        H, means2d, radius, normal, bad = _surfel_setup(mu, rot_cam, scales, K, settings.surfel_filter)
         fields.update(surfel_H=H, normal=normal)
     else:
         cov = rot_cam @ torch.diag_embed(scales * scales) @ rot_cam.transpose(-1, -2)
@@ -462,8 +462,8 @@ def pair_terms(
         hit = p[..., 2] != 0
         s = _safe_div(p[..., :2], p[..., 2:3], hit[..., None])
         rho3d = (s * s).sum(-1)
-        rho2d = SURFEL_FILTER_INV_SQUARE * ((m2d - pix[:, None, :]) ** 2).sum(-1)
-        rho = torch.minimum(rho3d, rho2d)
+        rho2d = settings.surfel_filter * ((m2d - pix[:, None, :]) ** 2).sum(-1)
+        rho = torch.minimum(rho3d, rho2d) if settings.surfel_filter > 0 else rho3d
         depth = (s * Tw[None, :, :2]).sum(-1) + Tw[None, :, 2]
         ok = hit & (depth >= near)
         out["G"] = torch.exp(-0.5 * torch.where(ok, rho, torch.zeros_like(rho)))

@@ -27,7 +27,8 @@ Per pixel, per Gaussian i (front to back, sorted per 16x16 tile by centre camera
               G = exp(−q/2); skip if t* <= near; z_i = t*; normal ``n_i = −normalize(A r)``.
               The EWA conic (eps2d = 0) is used only for radius/binning and the densification proxy.
 - ``surfel``: 2DGS ray–splat intersection (2DGS §2.2–2.4) with H = K[R_cw s_u t_u | R_cw s_v t_v | μ]
-              evaluated at p; ρ = min(u²+v², 2·|centre − p|²); G = exp(−ρ/2); z_i = the intersection
+              evaluated at p; ρ = min(u²+v², k·|centre − p|²) with k = ``surfel_filter`` (the 2DGS
+              paper's low-pass filter of σ = 1/√k px; 2DGS uses k = 2, σ = √2/2; k = 0: ρ = u²+v²); G = exp(−ρ/2); z_i = the intersection
               depth (skip if z_i < near); n_i = R_cw t_w flipped to face the camera (sign is a constant).
 - α_i = min(0.99, o_eff·G); skip if α_i < 1/255; the pixel stops before blending i if T·(1−α_i) < 1e-4.
 - w_i = α_i T_i with T_i = Π_{j<i}(1 − α_j).
@@ -94,6 +95,8 @@ class RasterSettings:
     """Options of one render. Lengths ``near_plane`` and ``far_plane`` are relative to ``scene_radius``.
 
     ``eps2d`` None means the kernel's default (ewa 0.3, rade 0.0, raymax 0.0; unused by surfel).
+    ``surfel_filter`` is k of the surfel kernel's screen-space low-pass term k·|centre − p|² (2DGS: 2;
+    0 switches the filter off; unused by the other kernels).
     """
 
     sh_degree: int = 0
@@ -102,6 +105,7 @@ class RasterSettings:
     far_plane: float = 100.0
     scene_radius: float = 1.0
     eps2d: float | None = None
+    surfel_filter: float = 2.0
     antialias2d: float = 0.0
     detach_distortion_weights: bool = False
     tile_size: int = 16

@@ -46,7 +46,7 @@ extern "C" {
 struct GsArgs {
     int64_t kernel, dtype, width, height, tiles_x, tiles_y, n_gauss, n_params, nthreads;
     int64_t want_rgb, want_depth, want_median, want_normal, want_dist, detach_dist;
-    double fx, fy, cx, cy, near_z, far_z;
+    double fx, fy, cx, cy, near_z, far_z, surfel_k;  // surfel_k: low-pass k in ρ2d = k|Δ|² (0 = off)
     const void* params;         // (N, P)
     const void* bounds;         // (N, 4) xmin xmax ymin ymax
     const void* depth_key;      // (N,) centre z (distortion shift)
@@ -153,7 +153,7 @@ struct Eval {
 
 template <int K, typename T>
 __attribute__((always_inline)) inline void eval_lane(Eval<K, T>& e, const T* __restrict p, T px, T py, T rx, T ry,
-                                                      T invr, T nearz, bool need_normal) {
+                                                      T invr, T nearz, T surfel_k, bool need_normal) {
     if constexpr (K == K_EWA || K == K_RADE) {
         e.dx = px - p[P_MX];
         e.dy = py - p[P_MY];
@@ -213,8 +213,9 @@ __attribute__((always_inline)) inline void eval_lane(Eval<K, T>& e, const T* __r
         const T rho3 = e.s0 * e.s0 + e.s1 * e.s1;
         e.dx = p[P_MX] - px;
         e.dy = p[P_MY] - py;
-        const T rho2 = T(2) * (e.dx * e.dx + e.dy * e.dy);
-        e.branch3d = rho3 <= rho2;
+        // the 2DGS paper's object-space low-pass filter, k = 1/σ² = 2 there; surfel_k = 0 switches it off
+        const T rho2 = surfel_k * (e.dx * e.dx + e.dy * e.dy);
+        e.branch3d = surfel_k <= T(0) || rho3 <= rho2;
         const T rho = e.branch3d ? rho3 : rho2;
         e.z = e.t;
         e.ok = !par && e.z >= nearz;
@@ -235,7 +236,8 @@ void forward_impl(GsArgs& A) {
     const T* __restrict P = (const T*)A.params;
     const T* __restrict BND = (const T*)A.bounds;
     const T* __restrict DK = (const T*)A.depth_key;
-    const T fx = (T)A.fx, fy = (T)A.fy, cx = (T)A.cx, cy = (T)A.cy, nearz = (T)A.near_z, farz = (T)A.far_z;
+    const T fx = (T)A.fx, fy = (T)A.fy, cx = (T)A.cx, cy = (T)A.cy, nearz = (T)A.near_z, farz = (T)A.far_z,
+            surfel_k = (T)A.surfel_k;
     const bool w_rgb = A.want_rgb, w_depth = A.want_depth, w_med = A.want_median, w_nrm = A.want_normal,
                w_dist = A.want_dist;
     T* o_rgb = (T*)A.out_rgb;
@@ -301,7 +303,7 @@ void forward_impl(GsArgs& A) {
                         T invr = T(1);
                         if constexpr (K == K_RADE) invr = T(1) / std::sqrt(rx * rx + ry * ry + T(1));
                         Eval<K, T> e;
-                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, GEOM && w_nrm);
+                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, surfel_k, GEOM && w_nrm);
                         const T al = std::min(T(0.99), o * e.G);
                         const bool v = act[i] > T(0) && e.ok && al >= T(1.0 / 255.0);
                         const T Ti = Tr[i];
@@ -395,7 +397,8 @@ void backward_impl(GsArgs& A) {
     const T* __restrict P = (const T*)A.params;
     const T* __restrict BND = (const T*)A.bounds;
     const T* __restrict DK = (const T*)A.depth_key;
-    const T fx = (T)A.fx, fy = (T)A.fy, cx = (T)A.cx, cy = (T)A.cy, nearz = (T)A.near_z, farz = (T)A.far_z;
+    const T fx = (T)A.fx, fy = (T)A.fy, cx = (T)A.cx, cy = (T)A.cy, nearz = (T)A.near_z, farz = (T)A.far_z,
+            surfel_k = (T)A.surfel_k;
     const T* g_rgb = (const T*)A.g_rgb;
     const T* g_alpha = (const T*)A.g_alpha;
     const T* g_depth = GEOM ? (const T*)A.g_depth : nullptr;
@@ -502,7 +505,7 @@ void backward_impl(GsArgs& A) {
                         T invr = T(1);
                         if constexpr (K == K_RADE) invr = T(1) / std::sqrt(rx * rx + ry * ry + T(1));
                         Eval<K, T> e;
-                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, GEOM && b_nrm);
+                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, surfel_k, GEOM && b_nrm);
                         const T oG = o * e.G;
                         const T al = std::min(T(0.99), oG);
                         const bool v = kk < lastk[i] && e.ok && al >= T(1.0 / 255.0);
@@ -605,8 +608,8 @@ void backward_impl(GsArgs& A) {
                                 gs0 = drho * T(2) * e.s0;
                                 gs1 = drho * T(2) * e.s1;
                             } else {
-                                gmx = drho * T(4) * e.dx;
-                                gmy = drho * T(4) * e.dy;
+                                gmx = drho * T(2) * surfel_k * e.dx;
+                                gmy = drho * T(2) * surfel_k * e.dy;
                             }
                             const T vm = v ? T(1) : T(0);
                             gs0 *= vm;
