@@ -53,6 +53,22 @@ def cmd_scene_check(args) -> int:
     return 0 if report["ok"] else 1
 
 
+def cmd_scene_floor(args) -> int:
+    from gsbench.evaluators.api import format_table
+    from gsbench.mesh.floor import floor_report
+    from gsbench.records import write_json_atomic
+
+    out = Path(args.out)
+    report = floor_report(args.name, preset=args.preset, overrides=args.set or (), out=out)
+    res, mesh = report["config"]["resolution"], report["config"]["mesh"]
+    print(f"TSDF of the exact depth of {args.name} at {res[0]}x{res[1]} (voxel_size {mesh['voxel_size']}, "
+          f"sdf_trunc {mesh['sdf_trunc']}, masks {report['config']['use_masks']}):")
+    print(format_table(report))
+    write_json_atomic(out / "floor.json", report)
+    print(f"mesh and results written to {out}")
+    return 0
+
+
 def cmd_config(args) -> int:
     import yaml
 
@@ -114,7 +130,7 @@ def cmd_eval(args) -> int:
     from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file, format_table
     from gsbench.records import write_json_atomic
 
-    scene = load_scene(args.scene)
+    scene = load_scene(args.scene, downscale=args.downscale)
     names = args.evaluator or default_evaluators(scene)
     options = {name: {"frame": args.frame} for name in names}
     results = evaluate_mesh_file(Path(args.mesh), scene, names, options)
@@ -160,6 +176,12 @@ def build_parser() -> argparse.ArgumentParser:
     check = scene.add_parser("check", help="validate a scene folder and print what was found")
     check.add_argument("dir")
     check.set_defaults(func=cmd_scene_check)
+    floor = scene.add_parser("floor", help="the meshing floor: TSDF of a synthetic scene's exact depth, evaluated")
+    floor.add_argument("name", help="a built-in scene, e.g. synthetic/dtu-spot")
+    floor.add_argument("--preset", default="cpu", help="resolution and mesh settings as a run with this preset")
+    floor.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. mesh.voxel_size=0.002")
+    floor.add_argument("--out", default="runs/floor", help="folder for floor.ply and floor.json")
+    floor.set_defaults(func=cmd_scene_floor)
 
     config = sub.add_parser("config", help="print the resolved config of a run")
     config.add_argument("--method", required=True)
@@ -205,6 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--evaluator", action="append", help="evaluator name (repeatable; default by format)")
     evaluate.add_argument("--frame", choices=("normalised", "dataset"), default="normalised",
                           help="frame of the mesh: normalised (what gsbench methods write) or dataset (DTU mm world, TnT COLMAP)")
+    evaluate.add_argument("--downscale", type=float, default=1.0,
+                          help="load the scene's images downscaled (the run's data.downscale): sets the pixel "
+                               "footprint surface_offset reports in")
     evaluate.add_argument("--out", default=None, help="write the results JSON here")
     evaluate.set_defaults(func=cmd_eval)
 

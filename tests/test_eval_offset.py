@@ -84,3 +84,15 @@ def test_scene_without_exact_surface_is_a_clear_error(spot, tmp_path):
 
     with pytest.raises(EvaluationError, match="gt_mesh.ply"):
         SurfaceOffset().validate(replace(scene, root=tmp_path))
+
+
+def test_scene_floor_fuses_exact_depth_at_the_training_resolution(tiny_spot, tmp_path):
+    """`gsbench scene floor`: the exact depth re-rendered at the run's resolution fuses onto the surface."""
+    from gsbench.mesh.floor import floor_report
+
+    report = floor_report(str(tiny_spot), preset="quick", overrides=["data.downscale=1", "mesh.voxel_size=0.02",
+                                                                     "mesh.sdf_trunc=0.08"], out=tmp_path)
+    assert report["config"]["resolution"] == [64, 48] and (tmp_path / "floor.ply").is_file()
+    offset = report["results"]["surface_offset"]["metrics"]
+    assert abs(offset["offset_median_px"]) < 0.1 and offset["offset_abs_median_px"] < 0.2, offset
+    assert report["results"]["dtu_chamfer"]["metrics"]["chamfer"] < 3.0  # mm; one pixel is ~3.4 mm at 64x48

@@ -1,0 +1,71 @@
+"""The meshing floor of a built-in synthetic scene: TSDF fusion of its exact depth, scored like a run.
+
+No method can beat the mesh that the same TSDF settings make from the *exact* depth maps at the
+training resolution: that mesh is the floor a method's numbers are read against. `floor_report`:
+
+1. resolve the run config of ``3dgs`` on the scene with the preset and overrides (only the dataset
+   and preset layers matter: ``data.downscale``, ``data.use_masks`` and the ``mesh`` TSDF settings;
+   3DGS's method layer sets no mesh parameter);
+2. re-plan the scene from its ``gsbench_scene.json`` (built-in name, format, resolution, seed) and
+   ray-cast every training camera at the training resolution (`gsbench.data.render.Renderer`; the
+   stored ``gt_depth/`` maps are at the generated resolution, and a downscaled depth map is not the
+   depth at the downscaled pixel centres);
+3. fuse them with `gsbench.mesh.tsdf.tsdf_fusion` exactly as a method's depth would be (masks when
+   ``data.use_masks``), write the mesh, and evaluate it with the scene's evaluators plus
+   ``surface_offset``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from gsbench.data.camera import Scene
+from gsbench.errors import DataError
+
+
+def exact_depth_maps(scene: Scene) -> list[np.ndarray]:
+    """Camera-z depth of every camera of ``scene`` (normalised frame, the scene's loaded resolution)."""
+    from gsbench.data.meta import read_meta  # noqa: PLC0415
+    from gsbench.data.render import Renderer  # noqa: PLC0415
+    from gsbench.data.synthetic import plan_scene  # noqa: PLC0415
+
+    meta = read_meta(scene.root)
+    if "builtin" not in meta:
+        raise DataError(f"{scene.root}: not a built-in synthetic scene (no 'builtin' in gsbench_scene.json); "
+                        "fix: the meshing floor needs the exact surface, give a synthetic/<name> scene")
+    plan = plan_scene(meta["builtin"], fmt=meta["format"], res=tuple(meta["resolution"]), seed=meta["seed"])
+    factor = scene.cameras[0].width / plan.cameras[0].width
+    renderer = Renderer(plan.surface, specular=plan.spec.specular)
+    cameras = [c.scaled(factor) for c in plan.cameras]
+    return [renderer.render(cam).depth * plan.depth_scale
+            for cam in tqdm(cameras, desc="exact depth", unit="view", disable=None, leave=False)]
+
+
+def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Path) -> dict:
+    """Fuse the exact depth of ``scene_name`` and evaluate it (module docstring); the mesh goes to
+    ``out/floor.ply``. Returns `gsbench.evaluators.api.evaluate_mesh_file`'s report plus the config."""
+    from gsbench.data.loader import load_scene  # noqa: PLC0415
+    from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file  # noqa: PLC0415
+    from gsbench.mesh.cleanup import canonical_order  # noqa: PLC0415
+    from gsbench.mesh.tsdf import tsdf_fusion  # noqa: PLC0415
+    from gsbench.runner import resolve_run  # noqa: PLC0415
+
+    cfg = resolve_run("3dgs", scene_name, preset=preset, overrides=overrides)
+    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
+    depths = exact_depth_maps(scene)
+    masks = scene.masks if cfg.data.use_masks and scene.masks is not None else None
+    mesh = tsdf_fusion(depths, scene.cameras, cfg.mesh, scene.radius, masks=masks)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    mesh_path = out / "floor.ply"
+    canonical_order(mesh).export(mesh_path)
+    names = [n for n in (cfg.eval.evaluators or default_evaluators(scene)) if n != "image"]
+    names += [] if "surface_offset" in names else ["surface_offset"]
+    options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in names else {}
+    report = evaluate_mesh_file(mesh_path, scene, names, options)
+    report["config"] = {"preset": preset, "overrides": list(overrides), "resolution": [scene.cameras[0].width,
+                        scene.cameras[0].height], "mesh": vars(cfg.mesh).copy(), "use_masks": masks is not None}
+    return report
