@@ -3,12 +3,15 @@
 Per pixel (i, j) the ray goes through ``(i + 0.5, j + 0.5)`` (gsbench convention) with camera-space
 direction ``K⁻¹ (u, v, 1)``, whose z is 1, so the hit parameter is the camera z (depth).
 - mask, depth (camera z, 0 outside) and normal (camera space, unit, facing the camera, 0 outside)
-  come from the pixel-centre ray; the normal is the triangle's geometric normal, i.e. the exact
+  come from the pixel-centre ray; for a multi-part surface (an object in its environment,
+  ``environment.py``) depth and normal are those of the first hit of any part and the mask is
+  "the first hit is the object" (part 0), like a DTU object mask; the normal is the triangle's geometric normal, i.e. the exact
   normal of the mesh the GT points are sampled from.
 - RGB averages ``supersample`` x ``supersample`` rays per pixel (box-filtered anti-aliasing; the
   background is black). Shading: ``albedo * (ambient + (1 - ambient) max(0, n·l))`` with a fixed
   light direction ``l`` in the object frame, plus, when ``specular`` > 0, a white Blinn-Phong term
-  ``specular * max(0, n·h)^shininess`` (view dependent).
+  ``specular * max(0, n·h)^shininess`` (view dependent). Triangles marked ``unlit`` (a sky) show
+  their albedo unshaded.
 """
 
 from __future__ import annotations
@@ -77,6 +80,9 @@ class Renderer:
             half = LIGHT - d / np.linalg.norm(d, axis=1, keepdims=True)
             half /= np.linalg.norm(half, axis=1, keepdims=True)
             color += (self.specular * np.clip(np.sum(n * half, axis=1), 0.0, None) ** self.shininess * (ndotl > 0))[:, None]
+        if self.surface.unlit is not None:
+            unlit = self.surface.unlit[ans["primitive_ids"][hit].astype(np.int64)]
+            color[unlit] = albedo[unlit]
         rgb[hit] = np.clip(color, 0.0, 1.0)
         return rgb
 
@@ -84,8 +90,11 @@ class Renderer:
         """Render one view (see the module docstring)."""
         dirs, ans = self._cast(camera, 0.5, 0.5)
         hit = np.isfinite(ans["t_hit"])
+        mask = hit
+        if self.surface.parts is not None:
+            mask = hit & (self.surface.parts[np.where(hit, ans["primitive_ids"], 0).astype(np.int64)] == 0)
         offsets = (np.arange(self.supersample) + 0.5) / self.supersample
         rgb = sum(self._shade(camera, *self._cast(camera, dx, dy)) for dx in offsets for dy in offsets)
         depth = np.where(hit, ans["t_hit"], 0.0).astype(np.float32)
         normal_cam = np.where(hit[..., None], np.einsum("ij,hwj->hwi", camera.R, self._facing_normals(dirs, ans)), 0.0).astype(np.float32)
-        return View(rgb=(rgb / self.supersample**2).astype(np.float32), mask=hit, depth=depth, normal=normal_cam)
+        return View(rgb=(rgb / self.supersample**2).astype(np.float32), mask=mask, depth=depth, normal=normal_cam)

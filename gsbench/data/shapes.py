@@ -2,15 +2,23 @@
 
 Object frame: z up, the bounding-box centre at the origin, the largest bounding-box side = 1.
 Shapes: ``spot`` (Keenan Crane's Spot, ``gsbench/assets/spot``, public domain; its OBJ is y-up and is
-rotated to z-up, head towards +y) and ``plate`` (a 1 x 0.7 x 0.012 box slab, lying in the xy plane).
+rotated to z-up, head towards +y), ``plate`` (a 1 x 0.7 x 0.012 box slab, lying in the xy plane) and
+the procedural objects of ``objects.py`` (``stool``, ``bowl``, ``vase``, ``pebbles``, ``blocks``).
 Albedos: ``texture`` (Spot's UV texture, bilinear), ``procedural`` (a solid 3D texture: a smoothed
 checker of random colours times low-frequency sinusoids, so it looks the same from every side and
-needs no UVs) and ``uniform`` (one colour).
+needs no UVs), ``uniform`` (one colour), and the solid textures of ``textures.py`` named ``wood``,
+``glaze``, ``fine``, ``facade`` (walls with windows, gravel roofs) and ``painted`` (one colour per
+face direction, from the triangle normals, times a fine grain).
+
+A `Surface` may hold several parts (an object standing in its environment, ``environment.py``):
+``parts`` then gives each triangle's part index, part 0 being the object, and ``unlit`` (optional,
+bool per triangle) marks self-luminous triangles (a sky) that the renderer shows unshaded.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Callable
 
@@ -33,6 +41,8 @@ class Surface:
     vertices: np.ndarray
     triangles: np.ndarray
     albedo: Albedo
+    parts: np.ndarray | None = None
+    unlit: np.ndarray | None = None
 
     @property
     def radius(self) -> float:
@@ -95,21 +105,61 @@ def _uniform_albedo(color=(0.72, 0.62, 0.5)) -> Albedo:
     return lambda points, tri, bary: np.broadcast_to(c, (len(points), 3)).copy()
 
 
+@lru_cache(maxsize=8)
+def _built_cached(shape: str):
+    from gsbench.data.objects import BUILDERS  # noqa: PLC0415
+
+    vertices, triangles = BUILDERS[shape]()
+    return _to_object_frame(vertices), triangles
+
+
+def _built(shape: str):
+    """A procedural object (objects.py) in the object frame; memoised (marching cubes takes seconds)."""
+    vertices, triangles = _built_cached(shape)
+    return vertices.copy(), triangles.copy()
+
+
 def _plate():
     o3d = import_open3d()
     box = o3d.geometry.TriangleMesh.create_box(*PLATE_SIZE)
     return _to_object_frame(np.asarray(box.vertices, dtype=np.float64)), np.asarray(box.triangles, dtype=np.int64)
 
 
+def _painted_albedo(vertices: np.ndarray, triangles: np.ndarray, seed: int) -> Albedo:
+    from gsbench.data.textures import Noise  # noqa: PLC0415
+
+    palette = np.array([(0.82, 0.22, 0.16), (0.95, 0.78, 0.22), (0.22, 0.45, 0.78), (0.3, 0.62, 0.32),
+                        (0.85, 0.85, 0.8), (0.55, 0.3, 0.6)])
+    e1, e2 = vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]]
+    n = np.cross(e1, e2)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    sector = np.floor(np.mod(np.arctan2(n[:, 1], n[:, 0]) / (2 * np.pi) * 5 + 0.5, 5)).astype(np.int64)
+    colour = np.where(n[:, 2] > 0.9, 4, np.where(n[:, 2] < -0.9, 5, sector % 4))
+    noise = Noise(seed)
+
+    def albedo(points, tri, bary):
+        grain = 0.72 + 0.56 * noise.fbm(points, 0.025, 4)
+        return np.clip(palette[colour[tri]] * grain[:, None], 0.0, 1.0)
+
+    return albedo
+
+
+TEXTURE_ALBEDOS = ("wood", "glaze", "fine")
+
+
 def make_surface(shape: str, albedo: str, seed: int) -> Surface:
     """Build the named shape with the named albedo (see the module docstring)."""
+    from gsbench.data.objects import BUILDERS  # noqa: PLC0415
+
     uvs = None
     if shape == "spot":
         vertices, triangles, uvs = _read_spot()
     elif shape == "plate":
         vertices, triangles = _plate()
+    elif shape in BUILDERS:
+        vertices, triangles = _built(shape)
     else:
-        raise DataError(f"unknown synthetic shape {shape!r}; expected spot or plate")
+        raise DataError(f"unknown synthetic shape {shape!r}; expected spot, plate or one of {sorted(BUILDERS)}")
     if albedo == "texture":
         if uvs is None:
             raise DataError(f"shape {shape!r} has no UV texture; use albedo procedural or uniform")
@@ -118,6 +168,21 @@ def make_surface(shape: str, albedo: str, seed: int) -> Surface:
         fn = _procedural_albedo(seed)
     elif albedo == "uniform":
         fn = _uniform_albedo()
+    elif albedo == "painted":
+        fn = _painted_albedo(vertices, triangles, seed)
+    elif albedo == "facade":
+        from gsbench.data.environment import triangle_normals  # noqa: PLC0415
+        from gsbench.data.textures import facade  # noqa: PLC0415
+
+        fn = facade(seed, triangle_normals(vertices, triangles), window=(0.02, 0.03), floor_height=0.06)
+    elif albedo == "wood":
+        from gsbench.data.textures import wood  # noqa: PLC0415
+
+        fn = wood(seed, light=(0.66, 0.38, 0.24), dark=(0.3, 0.14, 0.07), plank=0.3, ring=0.02)
+    elif albedo in TEXTURE_ALBEDOS:
+        from gsbench.data import textures  # noqa: PLC0415
+
+        fn = getattr(textures, albedo)(seed)
     else:
-        raise DataError(f"unknown albedo {albedo!r}; expected texture, procedural or uniform")
+        raise DataError(f"unknown albedo {albedo!r}; expected texture, procedural, uniform, painted or one of {TEXTURE_ALBEDOS}")
     return Surface(vertices=vertices, triangles=triangles, albedo=fn)

@@ -33,6 +33,28 @@ hull of the GT in xy grown by 2% of the object size, z range likewise), ``{name}
 (COLMAP -> GT), ``{name}_COLMAP_SfM.log`` (camera-to-world, COLMAP frame, image-name order).
 tau = 0.5% of the object size (GT units), stored in the meta file.
 
+Scenes with an environment (added in generator v7, which left the older scenes' content unchanged
+and only fixed the ``.mat`` header text so that equal scenes are equal bytes; ``environment.py``,
+objects in ``objects.py``, textures in ``textures.py``): the object stands on a table in a room
+(``dtu-*``: Spot, a stool with thin legs, a bowl with a handle, stepped prisms with sharp edges, a
+finely patterned vase, a uniform pebble stack) or on the ground among props, buildings or under a
+sky dome (``tnt-spot``, ``tnt-yard``, ``tnt-sky``). Object and environment are ray-cast together;
+images are full views (no black background), masks are the pixels whose centre ray first hits the
+object (DTU masks), and ``gt_depth``/``gt_normal`` are the first hit of anything. Their GT:
+
+- DTU: the stl holds the object samples and the table-top samples within 0.8 object sizes (80 mm)
+  of the object's axis (minus the footprint), each kept when seen by >= 2 views (`seen_by_views`:
+  the test of `visible_counts` for depth maps without background); ``ObsMask`` is built from the
+  same samples; ``Plane`` = z > table top + 1 mm (``DTU_PLANE_ABOVE_TABLE``), so completeness
+  ignores the table while accuracy still scores reconstructed table points inside ``ObsMask``
+  against the stl table. They are written in the 2DGS ``dtu-colmap`` layout by default.
+- TnT: ``{name}.ply`` holds the object and the ground inside the crop volume (``World.gt_polygon`` x
+  ``gt_z``, written as the crop json), samples tau/2 apart; props and backdrops lie outside the crop.
+- SfM-like init points (`_init_points`): 25,000 noisy first hits of random pixel rays of the views,
+  so they cover the object, the table and the room as the images do.
+- ``gt_mesh.ply`` is the object only; ``gt_scene_mesh.ply`` is everything ray-cast (object and
+  environment, dataset frame, not subdivided).
+
 Both layouts also get ``gt_depth/{stem}.npy`` (camera z, normalised frame) and ``gt_normal/{stem}.npy``
 (camera-space unit normals) per view, and the ``gsbench_scene.json`` meta file.
 
@@ -50,11 +72,12 @@ import numpy as np
 
 from gsbench.data.builtin import BUILTIN_SCENES
 from gsbench.data.camera import Camera, Normalisation
+from gsbench.data.environment import World
 from gsbench.data.shapes import Surface, make_surface
 from gsbench.data.similarity import decompose, similarity, transform_camera, transform_points
 from gsbench.errors import DataError
 
-GENERATOR_VERSION = 6
+GENERATOR_VERSION = 7
 DEFAULT_RES = 0.25
 SCAN_BASE = 1001
 GT_MESH_NAME = "gt_mesh.ply"
@@ -66,6 +89,10 @@ TAU_FRACTION = 0.005
 INIT_POINTS = 10_000
 INIT_NOISE = 0.004
 CROP_MARGIN = 0.02
+WORLD_INIT_POINTS = 25_000
+WORLD_INIT_NOISE = 0.002  # x the distance from the camera
+DTU_PLANE_ABOVE_TABLE = 1.0  # mm
+SCENE_MESH_NAME = "gt_scene_mesh.ply"
 
 
 @dataclass(frozen=True)
@@ -94,6 +121,8 @@ FORMATS = {
 class SyntheticSpec:
     """What makes a built-in scene special; None fields take the layout's `FormatDefaults`.
 
+    ``fmt`` is the layout it is written in by default (``dtu``, ``dtu-colmap`` or ``tnt``);
+    ``environment`` (``environment.py``: room, ground, yard, sky) puts the object in surroundings.
     ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
     rotation ``colmap_euler`` (xyz degrees), object centre at ``colmap_center``) apply only when the
     scene is written in its own layout ``fmt``.
@@ -111,6 +140,7 @@ class SyntheticSpec:
     colmap_scale: float = 0.4
     colmap_euler: tuple[float, float, float] = (20.0, -35.0, 110.0)
     colmap_center: tuple[float, float, float] = (0.3, -1.2, 2.0)
+    environment: str | None = None
 
 
 SPECS = {
@@ -122,6 +152,16 @@ SPECS = {
     "synthetic/spot-km": SyntheticSpec(fmt="tnt", size=1500.0, offset=(512_300.0, 4_205_700.0, 850.0),
                                        units="m (km-scale object, UTM-like coordinates)", colmap_scale=1e-3,
                                        colmap_center=(1200.0, -800.0, 40.0)),
+    "synthetic/dtu-spot": SyntheticSpec(fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-stool": SyntheticSpec(shape="stool", albedo="wood", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-bowl": SyntheticSpec(shape="bowl", albedo="glaze", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-blocks": SyntheticSpec(shape="blocks", albedo="painted", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-fine": SyntheticSpec(shape="vase", albedo="fine", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-plain": SyntheticSpec(shape="pebbles", albedo="uniform", fmt="dtu-colmap", environment="room"),
+    "synthetic/tnt-spot": SyntheticSpec(fmt="tnt", environment="ground"),
+    "synthetic/tnt-yard": SyntheticSpec(shape="yard", albedo="facade", fmt="tnt", environment="yard", distance=1.8, size=20.0,
+                                        offset=(35.0, -12.0, 3.0), colmap_scale=0.1),
+    "synthetic/tnt-sky": SyntheticSpec(fmt="tnt", environment="sky"),
 }
 
 
@@ -141,6 +181,12 @@ class ScenePlan:
     units: str
     scan: int | None = None
     tau: float | None = None
+    world: World | None = None
+
+    @property
+    def rendered(self) -> Surface:
+        """What the views see: the object in its environment, or the object alone."""
+        return self.surface if self.world is None else self.world.surface
 
     @property
     def obj_to_dataset(self) -> np.ndarray:
@@ -204,19 +250,25 @@ def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0) -> Sc
         raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
     base = fmt.split("-")[0]
     d = FORMATS[base]
-    own = base == spec.fmt
+    own = base == spec.fmt.split("-")[0]
     size = spec.size if own and spec.size else d.size
     offset = spec.offset if own and spec.offset else d.offset
     width, height = _image_size(d.full_size, res)
     f = d.focal * width
     K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
     surface = make_surface(spec.shape, spec.albedo, seed)
+    world = None
+    if spec.environment:
+        from gsbench.data.environment import make_environment  # noqa: PLC0415
+
+        world = make_environment(spec.environment, surface, seed)
     r = surface.radius
     poses = make_rig(spec.rig or d.rig, d.views, (spec.distance or d.distance) * r, 0.03 * r, np.random.default_rng(seed))
     cameras = [Camera(K=K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png") for k, (R, t) in enumerate(poses)]
     obj_to_gt = similarity(size, Rotation.from_euler("z", d.yaw, degrees=True).as_matrix(), offset)
     plan = ScenePlan(name=name, fmt=fmt, seed=seed, spec=spec, surface=surface, cameras=cameras, obj_to_gt=obj_to_gt,
-                     gt_to_dataset=np.eye(4), normalisation=Normalisation(), units=(spec.units if own else None) or d.units)
+                     gt_to_dataset=np.eye(4), normalisation=Normalisation(), units=(spec.units if own else None) or d.units,
+                     world=world)
     if base == "dtu":
         plan.normalisation = Normalisation(scale=1.1 * r * size, center=np.asarray(offset, dtype=np.float64), radius=1.0)
         plan.scan = SCAN_BASE + list(BUILTIN_SCENES).index(name)
@@ -256,7 +308,7 @@ def write_scene(plan: ScenePlan, out: Path) -> None:
     dirs = [image_dir, out / "gt_depth", out / "gt_normal"] + ([out / "mask"] if plan.fmt != "tnt" else [])
     for folder in dirs:
         folder.mkdir(parents=True, exist_ok=True)
-    renderer = Renderer(plan.surface, specular=plan.spec.specular)
+    renderer = Renderer(plan.rendered, specular=plan.spec.specular)
     depths = []
     for k, cam in enumerate(tqdm(plan.cameras, desc=f"rendering {plan.name}", unit="view", disable=None)):
         view = renderer.render(cam)
@@ -273,6 +325,8 @@ def write_scene(plan: ScenePlan, out: Path) -> None:
         _write_dtu(plan, out, depths)
     max_edge = None if plan.tau is None else plan.tau / decompose(plan.obj_to_gt)[0]
     write_gt_mesh(out / GT_MESH_NAME, plan.surface, plan.obj_to_dataset, max_edge)
+    if plan.world is not None:
+        write_gt_mesh(out / SCENE_MESH_NAME, plan.world.surface, plan.obj_to_dataset, None)
     write_meta(out, plan_meta(plan))
 
 
@@ -295,33 +349,62 @@ def write_gt_mesh(path: Path, surface: Surface, to_dataset: np.ndarray, max_edge
 
 
 def _init_points(plan: ScenePlan, to_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """SfM-like init points (noisy surface samples with albedo colours) mapped into ``to_frame``."""
-    from gsbench.data.groundtruth import sample_init_points  # noqa: PLC0415
+    """SfM-like init points mapped into ``to_frame``: noisy object surface samples with albedo colours,
+    or, for a scene with an environment, noisy first hits of random pixel rays of the views."""
+    from gsbench.data.groundtruth import sample_init_points, sample_view_points  # noqa: PLC0415
 
-    points, colors = sample_init_points(plan.surface, INIT_POINTS, INIT_NOISE, plan.seed)
+    if plan.world is None:
+        points, colors = sample_init_points(plan.surface, INIT_POINTS, INIT_NOISE, plan.seed)
+    else:
+        points, colors = sample_view_points(plan.world.surface, plan.cameras, WORLD_INIT_POINTS, WORLD_INIT_NOISE, plan.seed)
     return transform_points(to_frame, points), colors
 
 
-def _write_dtu(plan: ScenePlan, out: Path, depths: list[np.ndarray]) -> None:
+def save_mat(path: Path, arrays: dict, **kwargs) -> None:
+    """``scipy.io.savemat`` with a fixed header text (scipy writes the creation time into it), so the
+    same scene gives the same bytes."""
     from scipy.io import savemat  # noqa: PLC0415
 
+    savemat(path, arrays, **kwargs)
+    with open(path, "r+b") as f:
+        f.write(b"MATLAB 5.0 MAT-file, written by gsbench".ljust(116, b" "))
+
+
+def _write_dtu(plan: ScenePlan, out: Path, depths: list[np.ndarray]) -> None:
     from gsbench.data.colmap import write_colmap_model  # noqa: PLC0415
     from gsbench.data.dtu import write_cameras_npz  # noqa: PLC0415
-    from gsbench.data.groundtruth import observation_mask, sample_surface, visible_counts, write_point_cloud  # noqa: PLC0415
+    from gsbench.data.groundtruth import (  # noqa: PLC0415
+        observation_mask, sample_surface, sample_world_gt, seen_by_views, visible_counts, write_point_cloud)
 
     size = decompose(plan.obj_to_gt)[0]
-    points_obj = sample_surface(plan.surface, DTU_GT_SPACING / size, plan.seed)
+
+    def samples(spacing):
+        if plan.world is None:
+            return sample_surface(plan.surface, spacing / size, plan.seed)
+        return sample_world_gt(plan.world, spacing / size, plan.seed)[0]
+
+    points_obj = samples(DTU_GT_SPACING)
     points_mm = transform_points(plan.obj_to_gt, points_obj)
-    scanned = visible_counts(points_obj, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    if plan.world is None:
+        scanned = visible_counts(points_obj, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    else:  # full depth maps (no background): see groundtruth.visible_counts
+        scanned = seen_by_views(points_obj, plan.cameras, depths, TAU_FRACTION, DTU_MIN_VIEWS)
     write_point_cloud(out / "Points" / "stl" / f"stl{plan.scan:03d}_total.ply", points_mm[scanned])
-    coarse = sample_surface(plan.surface, DTU_OBS_RES / 2 / size, plan.seed)  # ObsMask needs only ~voxel density
-    seen = visible_counts(coarse, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    if plan.world is None:
+        coarse = samples(DTU_OBS_RES / 2)  # ObsMask needs only ~voxel density
+        seen = visible_counts(coarse, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    else:  # generator v6 made ObsMask from its own coarser samples; the new scenes reuse the stl samples
+        coarse, seen = points_obj, scanned
     obs, bb = observation_mask(transform_points(plan.obj_to_gt, coarse), seen, DTU_OBS_RES, DTU_OBS_DILATION)
     (out / "ObsMask").mkdir()
-    savemat(out / "ObsMask" / f"ObsMask{plan.scan}_10.mat", {"ObsMask": obs, "BB": bb, "Res": np.array([[DTU_OBS_RES]])},
-            do_compression=True)
-    plane = np.array([[0.0], [0.0], [1.0], [-(points_mm[:, 2].min() - 1.0)]])
-    savemat(out / "ObsMask" / f"Plane{plan.scan}.mat", {"P": plane})
+    save_mat(out / "ObsMask" / f"ObsMask{plan.scan}_10.mat", {"ObsMask": obs, "BB": bb, "Res": np.array([[DTU_OBS_RES]])},
+             do_compression=True)
+    if plan.world is None:
+        plane = np.array([[0.0], [0.0], [1.0], [-(points_mm[:, 2].min() - 1.0)]])
+    else:
+        table_top = transform_points(plan.obj_to_gt, np.array([[0.0, 0.0, plan.world.ground_z]]))[0, 2]
+        plane = np.array([[0.0], [0.0], [1.0], [-(table_top + DTU_PLANE_ABOVE_TABLE)]])
+    save_mat(out / "ObsMask" / f"Plane{plan.scan}.mat", {"P": plane})
     norm = plan.normalisation
     scale_mat = similarity(norm.scale, None, norm.center)
     write_cameras_npz(out / "cameras.npz", plan.dataset_cameras, scale_mat)
@@ -335,19 +418,27 @@ def _write_tnt(plan: ScenePlan, out: Path) -> None:
     from scipy.spatial import ConvexHull  # noqa: PLC0415
 
     from gsbench.data.colmap import write_colmap_model  # noqa: PLC0415
-    from gsbench.data.groundtruth import sample_surface, write_point_cloud  # noqa: PLC0415
+    from gsbench.data.groundtruth import sample_surface, sample_world_gt, write_point_cloud  # noqa: PLC0415
     from gsbench.data.tnt import write_crop_json, write_log  # noqa: PLC0415
 
     name = plan.short_name
     size = decompose(plan.obj_to_gt)[0]
-    points_gt = transform_points(plan.obj_to_gt, sample_surface(plan.surface, plan.tau / 2 / size, plan.seed))
+    if plan.world is None:
+        points_gt = transform_points(plan.obj_to_gt, sample_surface(plan.surface, plan.tau / 2 / size, plan.seed))
+        xy = points_gt[:, :2]
+        hull = xy[ConvexHull(xy).vertices]
+        centre = hull.mean(axis=0)
+        grown = centre + (hull - centre) * (1.0 + CROP_MARGIN * size / np.linalg.norm(hull - centre, axis=1, keepdims=True))
+        margin = CROP_MARGIN * size
+        z_range = (points_gt[:, 2].min() - margin, points_gt[:, 2].max() + margin)
+    else:
+        world = plan.world
+        points_gt = transform_points(plan.obj_to_gt, sample_world_gt(world, plan.tau / 2 / size, plan.seed)[0])
+        polygon = np.column_stack([world.gt_polygon, np.full(len(world.gt_polygon), world.ground_z)])
+        grown = transform_points(plan.obj_to_gt, polygon)[:, :2]  # the GT frame's z is the object's (yaw only)
+        z_range = tuple(transform_points(plan.obj_to_gt, np.array([[0.0, 0.0, z] for z in world.gt_z]))[:, 2])
     write_point_cloud(out / f"{name}.ply", points_gt)
-    xy = points_gt[:, :2]
-    hull = xy[ConvexHull(xy).vertices]
-    centre = hull.mean(axis=0)
-    grown = centre + (hull - centre) * (1.0 + CROP_MARGIN * size / np.linalg.norm(hull - centre, axis=1, keepdims=True))
-    margin = CROP_MARGIN * size
-    write_crop_json(out / f"{name}.json", grown, points_gt[:, 2].min() - margin, points_gt[:, 2].max() + margin)
+    write_crop_json(out / f"{name}.json", grown, *z_range)
     np.savetxt(out / f"{name}_trans.txt", np.linalg.inv(plan.gt_to_dataset))
     cameras = plan.dataset_cameras
     write_log(out / f"{name}_COLMAP_SfM.log", [c.camera_to_world for c in cameras])
