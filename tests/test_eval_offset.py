@@ -96,3 +96,24 @@ def test_scene_floor_fuses_exact_depth_at_the_training_resolution(tiny_spot, tmp
     offset = report["results"]["surface_offset"]["metrics"]
     assert abs(offset["offset_median_px"]) < 0.1 and offset["offset_abs_median_px"] < 0.2, offset
     assert report["results"]["dtu_chamfer"]["metrics"]["chamfer"] < 3.0  # mm; one pixel is ~3.4 mm at 64x48
+
+
+def test_scene_floor_renders_the_surroundings(tmp_path):
+    """On a scene with surroundings and no masks (TnT-like) the floor fuses what the images show: the
+    ground and the courtyard around the object, far beyond the GT crop, not the object alone."""
+    import open3d as o3d
+
+    from gsbench.data.loader import load_scene, make_scene
+    from gsbench.evaluators import gt_io
+    from gsbench.mesh.floor import floor_report
+
+    root = make_scene("synthetic/tnt-spot", out=tmp_path / "tnt-spot", res=(96, 54))
+    report = floor_report(str(root), preset="quick", overrides=["data.downscale=1"], out=tmp_path / "floor")
+    scene = load_scene(root)
+    trans = gt_io.read_matrix4(root / "tnt-spot_trans.txt")
+    mesh = trimesh.load(tmp_path / "floor" / "floor.ply", process=False)
+    verts = scene.normalisation.apply(np.asarray(mesh.vertices)) @ trans[:3, :3].T + trans[:3, 3]
+    gt = np.asarray(o3d.io.read_point_cloud(str(root / "tnt-spot.ply")).points)
+    gt_extent, mesh_extent = np.ptp(gt[:, :2], axis=0), np.ptp(verts[:, :2], axis=0)
+    assert (mesh_extent > 2 * gt_extent).all(), (mesh_extent, gt_extent)
+    assert report["results"]["tnt_f1"]["metrics"]["precision"] > 0.5

@@ -7,7 +7,8 @@ training resolution: that mesh is the floor a method's numbers are read against.
    and preset layers matter: ``data.downscale``, ``data.use_masks`` and the ``mesh`` TSDF settings;
    3DGS's method layer sets no mesh parameter);
 2. re-plan the scene from its ``gsbench_scene.json`` (built-in name, format, resolution, seed) and
-   ray-cast every training camera at the training resolution (`gsbench.data.render.Renderer`; the
+   ray-cast every training camera at the training resolution (`gsbench.data.render.Renderer`, the
+   object with its surroundings, as the images show it; the
    stored ``gt_depth/`` maps are at the generated resolution, and a downscaled depth map is not the
    depth at the downscaled pixel centres);
 3. fuse them with `gsbench.mesh.tsdf.tsdf_fusion` exactly as a method's depth would be (masks when
@@ -38,7 +39,7 @@ def exact_depth_maps(scene: Scene) -> list[np.ndarray]:
                         "fix: the meshing floor needs the exact surface, give a synthetic/<name> scene")
     plan = plan_scene(meta["builtin"], fmt=meta["format"], res=tuple(meta["resolution"]), seed=meta["seed"])
     factor = scene.cameras[0].width / plan.cameras[0].width
-    renderer = Renderer(plan.surface, specular=plan.spec.specular)
+    renderer = Renderer(plan.rendered, specular=plan.spec.specular)  # the object and its surroundings
     cameras = [c.scaled(factor) for c in plan.cameras]
     return [renderer.render(cam).depth * plan.depth_scale
             for cam in tqdm(cameras, desc="exact depth", unit="view", disable=None, leave=False)]
