@@ -39,7 +39,7 @@ def cmd_list(args) -> int:
 def cmd_scene_make(args) -> int:
     from gsbench.data.loader import check_scene, make_scene
 
-    path = make_scene(args.name, fmt=args.format, out=args.out, res=args.res, seed=args.seed)
+    path = make_scene(args.name, fmt=args.format, out=args.out, res=args.res, seed=args.seed, supersample=args.supersample)
     print(f"scene written to {path}")
     print(json.dumps(check_scene(path), indent=2, default=str))
     return 0
@@ -172,6 +172,8 @@ def build_parser() -> argparse.ArgumentParser:
     make.add_argument("--out", default=None, help="folder (default: the cache, $GSBENCH_DATA)")
     make.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), default=None, help="image size")
     make.add_argument("--seed", type=int, default=0)
+    make.add_argument("--supersample", type=int, default=None,
+                      help="rays per pixel side of the images (2: area-sampled; 1: the pixel centre only)")
     make.set_defaults(func=cmd_scene_make)
     check = scene.add_parser("check", help="validate a scene folder and print what was found")
     check.add_argument("dir")

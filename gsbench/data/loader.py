@@ -73,6 +73,8 @@ def load_scene(path_or_name, *, downscale: float = 1.0, load_images: bool = True
 
 
 def _default_folder(plan, custom_size: bool) -> Path:
+    from gsbench.data.synthetic import DEFAULT_SUPERSAMPLE  # noqa: PLC0415
+
     cam = plan.cameras[0]
     parts = [plan.short_name]
     if plan.fmt != plan.spec.fmt:
@@ -81,19 +83,26 @@ def _default_folder(plan, custom_size: bool) -> Path:
         parts.append(f"{cam.width}x{cam.height}")
     if plan.seed != 0:
         parts.append(f"s{plan.seed}")
+    if plan.supersample != DEFAULT_SUPERSAMPLE:
+        parts.append(f"ss{plan.supersample}")
     return cache_dir() / "synthetic" / "-".join(parts)
 
 
-def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int = 0) -> Path:
+def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int = 0, supersample: int | None = None) -> Path:
     """Generate built-in scene ``name`` (``synthetic/spot`` or ``spot``) and return its folder.
 
     ``fmt``: ``dtu``, ``dtu-colmap`` or ``tnt`` (default: the scene's own). ``res``: None (0.25 of the
     full size), a float factor of the full size, or ``(W, H)``. ``out``: the folder (default: the cache).
-    Nothing is written when ``out`` already holds this exact scene.
+    ``supersample``: rays per pixel side of the images (None: the default 2, area-sampled; 1: one ray
+    through each pixel centre, as the rasterizer samples). Nothing is written when ``out`` already holds this exact scene.
     """
     from gsbench.data.synthetic import plan_meta, plan_scene, write_scene  # noqa: PLC0415
 
     plan = plan_scene(name, fmt, res, seed)
+    if supersample is not None:
+        if supersample < 1:
+            raise DataError(f"supersample must be >= 1 (rays per pixel side), got {supersample}; fix: e.g. --supersample 1")
+        plan.supersample = int(supersample)
     meta = plan_meta(plan)
     out = Path(out) if out else _default_folder(plan, custom_size=res is not None)
     if out.exists():

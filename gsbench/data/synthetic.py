@@ -93,6 +93,7 @@ WORLD_INIT_POINTS = 25_000
 WORLD_INIT_NOISE = 0.002  # x the distance from the camera
 DTU_PLANE_ABOVE_TABLE = 1.0  # mm
 SCENE_MESH_NAME = "gt_scene_mesh.ply"
+DEFAULT_SUPERSAMPLE = 2  # rays per pixel side of the RGB images (area sampling); 1 = the pixel centre only
 
 
 @dataclass(frozen=True)
@@ -182,6 +183,7 @@ class ScenePlan:
     scan: int | None = None
     tau: float | None = None
     world: World | None = None
+    supersample: int = DEFAULT_SUPERSAMPLE
 
     @property
     def rendered(self) -> Surface:
@@ -292,6 +294,8 @@ def plan_meta(plan: ScenePlan) -> dict:
         meta["scan"] = plan.scan
     if plan.tau is not None:
         meta["tau"] = plan.tau
+    if plan.supersample != DEFAULT_SUPERSAMPLE:
+        meta["supersample"] = plan.supersample
     return meta
 
 
@@ -308,7 +312,7 @@ def write_scene(plan: ScenePlan, out: Path) -> None:
     dirs = [image_dir, out / "gt_depth", out / "gt_normal"] + ([out / "mask"] if plan.fmt != "tnt" else [])
     for folder in dirs:
         folder.mkdir(parents=True, exist_ok=True)
-    renderer = Renderer(plan.rendered, specular=plan.spec.specular)
+    renderer = Renderer(plan.rendered, specular=plan.spec.specular, supersample=plan.supersample)
     depths = []
     for k, cam in enumerate(tqdm(plan.cameras, desc=f"rendering {plan.name}", unit="view", disable=None)):
         view = renderer.render(cam)
