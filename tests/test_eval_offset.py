@@ -117,3 +117,14 @@ def test_scene_floor_renders_the_surroundings(tmp_path):
     gt_extent, mesh_extent = np.ptp(gt[:, :2], axis=0), np.ptp(verts[:, :2], axis=0)
     assert (mesh_extent > 2 * gt_extent).all(), (mesh_extent, gt_extent)
     assert report["results"]["tnt_f1"]["metrics"]["precision"] > 0.5
+
+
+def test_renderer_depth_is_the_render_depth(spot):
+    """`Renderer.depth` (what the floor fuses) is `Renderer.render`'s depth without the colour work."""
+    from gsbench.data.render import Renderer
+    from gsbench.data.synthetic import plan_scene
+
+    plan = plan_scene("synthetic/spot", res=(48, 36))
+    renderer = Renderer(plan.rendered)
+    for cam in plan.cameras[:3]:
+        np.testing.assert_array_equal(renderer.depth(cam), renderer.render(cam).depth)

@@ -86,6 +86,11 @@ class Renderer:
         rgb[hit] = np.clip(color, 0.0, 1.0)
         return rgb
 
+    def depth(self, camera: Camera) -> np.ndarray:
+        """Camera-z depth of the pixel-centre rays (0 where nothing is hit): `render`'s depth alone."""
+        _, ans = self._cast(camera, 0.5, 0.5)
+        return np.where(np.isfinite(ans["t_hit"]), ans["t_hit"], 0.0).astype(np.float32)
+
     def render(self, camera: Camera) -> View:
         """Render one view (see the module docstring)."""
         dirs, ans = self._cast(camera, 0.5, 0.5)

@@ -41,7 +41,7 @@ def exact_depth_maps(scene: Scene) -> list[np.ndarray]:
     factor = scene.cameras[0].width / plan.cameras[0].width
     renderer = Renderer(plan.rendered, specular=plan.spec.specular)  # the object and its surroundings
     cameras = [c.scaled(factor) for c in plan.cameras]
-    return [renderer.render(cam).depth * plan.depth_scale
+    return [renderer.depth(cam) * plan.depth_scale
             for cam in tqdm(cameras, desc="exact depth", unit="view", disable=None, leave=False)]
 
 
@@ -63,8 +63,8 @@ def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Pat
     out.mkdir(parents=True, exist_ok=True)
     mesh_path = out / "floor.ply"
     canonical_order(mesh).export(mesh_path)
-    names = [n for n in (cfg.eval.evaluators or default_evaluators(scene)) if n != "image"]
-    names += [] if "surface_offset" in names else ["surface_offset"]
+    names = [n for n in (cfg.eval.evaluators or default_evaluators(scene)) if n not in ("image", "surface_offset")]
+    names.append("surface_offset")
     options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in names else {}
     report = evaluate_mesh_file(mesh_path, scene, names, options)
     report["config"] = {"preset": preset, "overrides": list(overrides), "resolution": [scene.cameras[0].width,

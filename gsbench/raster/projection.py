@@ -515,7 +515,7 @@ def _raymax_bounds(M: torch.Tensor, mu: torch.Tensor, tau: torch.Tensor, camera:
 
 def _surfel_bounds(X: torch.Tensor, m2: torch.Tensor, tau: torch.Tensor, camera: Camera,
                    filter_k: float) -> torch.Tensor:
-    """Pixel box of u²+v² <= 2 tau (exact ellipse box, 2DGS §2.3 with cutoff² = 2 tau) ∪ the low-pass
+    """Pixel box of u²+v² <= 2 tau (the exact box of the splat's ellipse, cutoff² = 2 tau) ∪ the low-pass
     disc k|Δ|² <= 2 tau (none when the filter is off, k = 0)."""
     k = torch.clamp(2.0 * tau, min=0.0)
     X0, X1, X2 = X[:, 0, :], X[:, 1, :], X[:, 2, :]
