@@ -1,8 +1,10 @@
 """The Evaluator interface shared by every metric family, and the result dictionary it returns.
 
 An evaluator is a versioned protocol: ``name``, ``version`` (bumped whenever a number it reports can
-change), ``requires`` (``"mesh"`` and/or ``"renders"``), and ``metrics`` (each with its direction and
-unit). ``evaluate`` returns::
+change), ``requires`` (``"mesh"`` and/or ``"renders"``), ``needs`` (what it needs from the scene:
+``"gt"`` ground truth, ``"masks"`` object masks, ``"held_out"`` views not trained on; the runner
+resolves the evaluator list against these before loading images, `gsbench.evaluators.resolve`), and
+``metrics`` (each with its direction and unit). ``evaluate`` returns::
 
     {"metrics": {metric: float},
      "protocol": {"name": ..., "version": ..., <every option that can change a number>},
@@ -79,6 +81,7 @@ class Evaluator(ABC):
     name: ClassVar[str]
     version: ClassVar[int] = 1
     requires: ClassVar[tuple[str, ...]] = ("mesh",)
+    needs: ClassVar[tuple[str, ...]] = ("gt",)
     metrics: ClassVar[dict[str, MetricInfo]]
     Options: ClassVar[type]
 

@@ -87,6 +87,7 @@ class ImageMetrics(Evaluator):
     name = "image"
     version = 1
     requires = ("renders",)
+    needs = ("held_out",)
     metrics = {"psnr": MetricInfo(True, "dB"), "ssim": MetricInfo(True, "")}
     Options = ImageOptions
 

@@ -139,6 +139,8 @@ class Scene:
     """Everything a method and an evaluator need about one scene.
 
     ``images``: list of float32 HxWx3 arrays in [0, 1]; ``masks``: list of bool HxW arrays or None;
+    ``mask_paths``: the mask files (set by the layouts that have masks, also when ``masks`` is not
+    loaded), so what a scene offers is known before its images are decoded (`has_masks`).
     ``points``/``colors``: optional SfM initialisation (N,3) in the normalised frame, colours in [0,1].
     Cameras are in the normalised frame. ``fmt`` is ``dtu``, ``dtu-colmap`` or ``tnt``.
     """
@@ -154,10 +156,16 @@ class Scene:
     normalisation: Normalisation = field(default_factory=Normalisation)
     gt: GroundTruth | None = None
     image_names: list[str] = field(default_factory=list)
+    mask_paths: list[Path] | None = None
 
     @property
     def radius(self) -> float:
         return self.normalisation.radius
+
+    @property
+    def has_masks(self) -> bool:
+        """True when the scene has object masks, loaded or not."""
+        return self.masks is not None or bool(self.mask_paths)
 
     def summary(self) -> dict:
         """A small JSON-able description: counts, image size, normalisation, GT files found."""

@@ -167,6 +167,7 @@ def load_dtu(root: Path, *, downscale: float = 1.0, load_images: bool = True, gt
         name=meta.get("name", root.name), fmt="dtu", root=root, cameras=cameras, images=images, masks=mask_arrays,
         normalisation=normalisation_from_scale_mat(scale_mat),
         gt=dtu_ground_truth(root, scan_number(root, meta), gt_root), image_names=[p.name for p in paths],
+        mask_paths=masks,
     )
 
 
@@ -192,4 +193,5 @@ def load_dtu_colmap(root: Path, *, downscale: float = 1.0, load_images: bool = T
         masks=mask_arrays, points=model.points if len(model.points) else None,
         colors=model.colors if len(model.points) else None, normalisation=norm,
         gt=dtu_ground_truth(root, scan_number(root, meta), gt_root), image_names=[p.name for p in paths],
+        mask_paths=masks,
     )
