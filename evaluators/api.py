@@ -9,21 +9,16 @@ from gsbench.errors import RegistryError
 from gsbench.registry import EVALUATORS
 from gsbench.evaluators.base import Evaluator
 
-# Mesh evaluators that apply to a scene by its GroundTruth kind.
-DEFAULT_FOR_KIND: dict[str, tuple[str, ...]] = {
-    "dtu": ("dtu_chamfer", "normal_similarity"),
-    "tnt": ("tnt_f1", "normal_similarity"),
-}
-
-
 def get_evaluator(name: str) -> Evaluator:
     """An instance of the registered evaluator ``name``; RegistryError with a suggestion otherwise."""
     return EVALUATORS.get(name)()
 
 
 def default_evaluators(scene: Scene) -> tuple[str, ...]:
-    """The mesh evaluators for the scene's GT kind (``normal_similarity`` for other kinds)."""
-    return DEFAULT_FOR_KIND.get(scene.gt.kind if scene.gt else "", ("normal_similarity",))
+    """The dataset's default mesh evaluators that apply to ``scene`` (`gsbench.evaluators.resolve`)."""
+    from gsbench.evaluators.resolve import plan_evaluation  # noqa: PLC0415
+
+    return plan_evaluation(scene, "tnt" if scene.fmt == "tnt" else "dtu", (), held_out=0).mesh
 
 
 def evaluate_mesh_file(mesh_path, scene: Scene, names=None, options: dict | None = None) -> dict:
@@ -44,7 +39,8 @@ def evaluate_mesh_file(mesh_path, scene: Scene, names=None, options: dict | None
 
 
 def format_table(report: dict) -> str:
-    """A small fixed-width text table of an `evaluate_mesh_file` report, warnings listed below it."""
+    """A small fixed-width text table of an `evaluate_mesh_file` report, warnings and skipped evaluators
+    (``report["skipped"]``, {name: reason}) listed below it."""
     rows = [("evaluator", "metric", "value", "unit", "better")]
     warnings = []
     for name, res in report["results"].items():
@@ -54,7 +50,8 @@ def format_table(report: dict) -> str:
             rows.append((f"{name}@{res['protocol']['version']}", metric, f"{value:.4f}", mi.unit,
                          "higher" if mi.higher_is_better else "lower"))
         warnings += [f"warning ({name}): {w}" for w in res["diagnostics"].get("warnings", [])]
+    skipped = [f"skipped ({name}): {reason}" for name, reason in report.get("skipped", {}).items()]
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(f"{c:<{w}}" for c, w in zip(r, widths)).rstrip() for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines + warnings)
+    return "\n".join(lines + warnings + skipped)

@@ -118,8 +118,8 @@ def require_gt(scene: Scene, kind: str, evaluator: str):
     gt = scene.gt
     if gt is None:
         raise EvaluationError(
-            f"{evaluator}: scene '{scene.name}' has no ground truth; expected a '{kind}' GroundTruth "
-            f"(fix: load the scene with its GT folder)"
+            f"{evaluator}: scene '{scene.name}' has no ground truth ({scene.gt_missing or 'none found'}); "
+            f"fix: --gt PATH, the folder holding the '{kind}' ground truth"
         )
     if gt.kind != kind:
         raise EvaluationError(

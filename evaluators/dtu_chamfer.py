@@ -108,7 +108,7 @@ class DTUChamfer(Evaluator):
     def validate(self, scene: Scene) -> None:
         check_files(self.name, dtu_gt_files(scene),
                     "download the DTU evaluation data (Points/stl and ObsMask from the DTU MVS SampleSet) "
-                    "and point the scene's GT root at the folder holding Points/ and ObsMask/")
+                    "and pass --gt PATH, the folder holding Points/ and ObsMask/")
 
     def evaluate(self, mesh, scene: Scene, **options) -> dict:
         opts = self.options(**options)

@@ -53,7 +53,8 @@ def gt_surface_file(scene: Scene) -> Path:
     """The GT file the scene's kind provides (see the module docstring)."""
     if scene.gt is None:
         raise EvaluationError(
-            f"normal_similarity: scene '{scene.name}' has no ground truth (fix: pass gt_mesh= or gt_points=)"
+            f"normal_similarity: scene '{scene.name}' has no ground truth ({scene.gt_missing or 'none found'}); "
+            "fix: --gt PATH, the folder holding it (or the gt_mesh/gt_points options from Python)"
         )
     root = Path(scene.gt.root)
     if scene.gt.kind == "dtu":
@@ -120,7 +121,7 @@ class NormalSimilarity(Evaluator):
 
     def validate(self, scene: Scene) -> None:
         check_files(self.name, {"GT surface": gt_surface_file(scene)},
-                    "provide the scene's ground-truth points or mesh, or pass gt_mesh=/gt_points=")
+                    "provide the scene's ground-truth points or mesh (--gt PATH), or the gt_mesh/gt_points options")
 
     def evaluate(self, mesh, scene: Scene, **options) -> dict:
         opts = self.options(**options)

@@ -131,7 +131,7 @@ class TnTF1(Evaluator):
     def validate(self, scene: Scene) -> None:
         check_files(self.name, tnt_gt_files(scene),
                     "download the Tanks and Temples training-set ground truth (GT/{scene}/: .ply, .json, "
-                    "_trans.txt, _COLMAP_SfM.log) and point the scene's GT root at that folder")
+                    "_trans.txt, _COLMAP_SfM.log) and pass --gt PATH, that folder")
 
     def evaluate(self, mesh, scene: Scene, **options) -> dict:
         opts = self.options(**options)

@@ -12,7 +12,7 @@ import os
 import sys
 from pathlib import Path
 
-from gsbench.errors import GsbenchError
+from gsbench.errors import DataError, GsbenchError
 
 
 def _set_threads(threads: int | None) -> None:
@@ -48,7 +48,7 @@ def cmd_scene_make(args) -> int:
 def cmd_scene_check(args) -> int:
     from gsbench.data.loader import check_scene
 
-    report = check_scene(Path(args.dir))
+    report = check_scene(Path(args.dir), gt_root=args.gt)
     print(json.dumps(report, indent=2, default=str))
     return 0 if report["ok"] else 1
 
@@ -84,6 +84,7 @@ def cmd_config(args) -> int:
         overrides=args.set or (),
         method_config_cls=getattr(method_cls, "Config", None),
         seed=args.seed,
+        gt=args.gt,
     )
     print(f"# run id {cfg.run_id}")
     print(yaml.safe_dump(cfg.to_dict(), sort_keys=False), end="")
@@ -94,7 +95,7 @@ def cmd_run(args) -> int:
     from gsbench.runner import resolve_run, run
 
     cfg = resolve_run(args.method, args.scene, preset=args.preset, user_files=args.config or (),
-                      overrides=args.set or (), seed=args.seed)
+                      overrides=args.set or (), seed=args.seed, gt=args.gt)
     if args.out is not None:
         cfg.out = args.out
     if args.threads is not None:
@@ -126,14 +127,22 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_eval(args) -> int:
+    from gsbench.config import dataset_of
     from gsbench.data.loader import load_scene
-    from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file, format_table
+    from gsbench.evaluators.api import evaluate_mesh_file, format_table
+    from gsbench.evaluators.resolve import plan_evaluation
     from gsbench.records import write_json_atomic
 
-    scene = load_scene(args.scene, downscale=args.downscale)
-    names = args.evaluator or default_evaluators(scene)
-    options = {name: {"frame": args.frame} for name in names}
-    results = evaluate_mesh_file(Path(args.mesh), scene, names, options)
+    if not Path(args.mesh).is_file():
+        raise DataError(f"{args.mesh}: mesh file not found; fix: --mesh names a .ply (a run folder's mesh.ply)")
+    size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt}
+    header = load_scene(args.scene, load_images=False, **size)
+    plan = plan_evaluation(header, dataset_of(args.scene), args.evaluator or (), held_out=0)
+    scene = load_scene(args.scene, **size)
+    options = {name: {"frame": args.frame} for name in plan.mesh}
+    results = evaluate_mesh_file(Path(args.mesh), scene, plan.mesh, options) if plan.mesh else \
+        {"mesh": args.mesh, "scene": scene.name, "results": {}}
+    results["skipped"] = {n: r for n, r in plan.skipped.items() if n != "image"}
     print(format_table(results))
     if args.out:
         write_json_atomic(Path(args.out), results)
@@ -157,6 +166,10 @@ def cmd_report(args) -> int:
     return 0
 
 
+GT_HELP = ("folder holding the ground truth when it is not beside the scene: DTU's Points/ and ObsMask/ "
+           "(the official SampleSet), or a TnT scene's .ply, .json, _trans.txt and _COLMAP_SfM.log")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsbench", description="Benchmark surface-reconstruction Gaussian splatting.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -175,8 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     make.add_argument("--supersample", type=int, default=None,
                       help="rays per pixel side of the images (2: area-sampled; 1: the pixel centre only)")
     make.set_defaults(func=cmd_scene_make)
-    check = scene.add_parser("check", help="validate a scene folder and print what was found")
+    check = scene.add_parser("check", help="validate a scene folder and print what was found (reads no pixels)")
     check.add_argument("dir")
+    check.add_argument("--gt", default=None, help=GT_HELP)
     check.set_defaults(func=cmd_scene_check)
     floor = scene.add_parser("floor", help="the meshing floor: TSDF of a synthetic scene's exact depth, evaluated")
     floor.add_argument("name", help="a built-in scene, e.g. synthetic/dtu-spot")
@@ -192,6 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     config.add_argument("--config", action="append", help="user YAML file (repeatable)")
     config.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. train.iterations=500")
     config.add_argument("--seed", type=int, default=None)
+    config.add_argument("--gt", default=None, help=GT_HELP)
     config.set_defaults(func=cmd_config)
 
     run = sub.add_parser("run", help="train a method on a scene, extract its mesh, evaluate it, write the record")
@@ -202,6 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. train.iterations=500")
     run.add_argument("--out", default=None, help="runs folder (default: the config's out, runs/)")
     run.add_argument("--seed", type=int, default=None)
+    run.add_argument("--gt", default=None, help=GT_HELP)
     run.add_argument("--threads", type=int, default=argparse.SUPPRESS, help="OpenMP / torch threads (0 = all)")
     run.set_defaults(func=cmd_run)
 
@@ -226,12 +242,17 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = sub.add_parser("eval", help="evaluate a mesh against a scene's ground truth")
     evaluate.add_argument("--mesh", required=True)
     evaluate.add_argument("--scene", required=True)
-    evaluate.add_argument("--evaluator", action="append", help="evaluator name (repeatable; default by format)")
+    evaluate.add_argument("--evaluator", action="append",
+                          help="evaluator name (repeatable; default: the dataset's, those the scene can feed)")
     evaluate.add_argument("--frame", choices=("normalised", "dataset"), default="normalised",
                           help="frame of the mesh: normalised (what gsbench methods write) or dataset (DTU mm world, TnT COLMAP)")
     evaluate.add_argument("--downscale", type=float, default=1.0,
                           help="load the scene's images downscaled (the run's data.downscale): sets the pixel "
                                "footprint surface_offset reports in")
+    evaluate.add_argument("--max-size", type=int, nargs=2, metavar=("LONG", "SHORT"), default=None,
+                          help="fit the images in this many pixels (the run's data.max_size; the cpu preset's is "
+                               "240 150): the resolution silhouette compares masks at")
+    evaluate.add_argument("--gt", default=None, help=GT_HELP)
     evaluate.add_argument("--out", default=None, help="write the results JSON here")
     evaluate.set_defaults(func=cmd_eval)
 

@@ -39,7 +39,8 @@ import yaml
 from gsbench.errors import ConfigError
 
 CONFIG_ROOT = Path(__file__).resolve().parent.parent / "configs"
-EXECUTION_ONLY_KEYS = ("threads", "out")
+EXECUTION_ONLY_KEYS = ("threads", "out", "gt")
+HOLDOUT_WITHOUT_GT = 8  # data.holdout_every "auto" (-1) on a scene without ground truth: 3DGS --eval
 
 
 def config_root() -> Path:
@@ -54,15 +55,21 @@ def config_root() -> Path:
 @dataclass
 class DataConfig:
     """How the scene is loaded and its masks used. ``downscale`` divides the image size (DTU/TnT papers
-    use 2). ``use_masks``: the scene's masks zero the depth outside the object before TSDF fusion and
+    use 2); ``max_size`` [long side, short side] in pixels caps it whatever the files on disk
+    (`gsbench.data.resolution.fit_downscale`; the cpu and quick presets set it, [] = no cap).
+    ``holdout_every``: every k-th view (``i % k == 0``) is held out of training and scored by the
+    ``image`` evaluator; 0 = none; -1 = auto: 8 on a scene without ground truth (its only image
+    measure of quality, as 3DGS ``--eval``), else 0 — resolved when the config is (`resolve`).
+    ``use_masks``: the scene's masks zero the depth outside the object before TSDF fusion and
     reach the loss terms (2DGS on DTU). ``mask_target``: also composite the GT image over the render
     background outside the mask, so training never sees the real background (the 2023 3DGS intent;
     off by default: the papers train DTU on full images)."""
 
     downscale: float = 1.0
+    max_size: list = field(default_factory=list)
     use_masks: bool = True
     mask_target: bool = False
-    holdout_every: int = 0
+    holdout_every: int = -1
     white_background: bool = False
 
 
@@ -121,7 +128,8 @@ class MeshConfig:
 
 @dataclass
 class EvalConfig:
-    """Evaluators to run; empty means the default for the scene's format."""
+    """Evaluators to run. Empty: the dataset's defaults (`gsbench.evaluators.resolve`), each skipped with
+    its reason when the scene lacks what it needs; named: every one must apply, checked before loading."""
 
     evaluators: list = field(default_factory=list)
     dtu_culling: bool = True
@@ -145,6 +153,7 @@ class RunConfig:
     seed: int = 0
     threads: int = 0
     out: str = "runs"
+    gt: str = ""  # --gt: folder holding the ground truth when it is not beside the scene (not part of the run id)
     method: dict = field(default_factory=lambda: {"name": ""})
     losses: dict = field(default_factory=dict)
     data: DataConfig = field(default_factory=DataConfig)
@@ -318,11 +327,13 @@ def resolve(
     overrides=(),
     method_config_cls=None,
     seed: int | None = None,
+    gt: str | None = None,
 ) -> RunConfig:
     """Resolve every layer into a validated `RunConfig`.
 
     ``method_config_cls`` is the method plugin's ``Config`` dataclass (its defaults are the paper's);
-    when None the method section is taken as given (used before a method is registered).
+    when None the method section is taken as given (used before a method is registered). ``gt`` is
+    the ground-truth folder (``--gt``). ``data.holdout_every = -1`` is resolved here (`DataConfig`).
     """
     root = config_root()
     merged: dict = {"method": {"name": method}, "scene": scene, "preset": preset}
@@ -343,6 +354,8 @@ def resolve(
         merged = _merge(merged, _normalise_method(parse_override(text)))
     if seed is not None:
         merged["seed"] = seed
+    if gt:
+        merged["gt"] = str(gt)
     if merged["method"].get("name") != method:
         raise ConfigError(
             f"a config layer changed the method to '{merged['method'].get('name')}'; "
@@ -350,4 +363,12 @@ def resolve(
         )
     merged["method"] = _build_method(merged["method"], method_config_cls)
     merged["losses"] = _build_losses(merged.get("losses", {}))
-    return _build(RunConfig, merged, "")
+    cfg = _build(RunConfig, merged, "")
+    if cfg.data.holdout_every < -1:
+        raise ConfigError(f"data.holdout_every must be >= 0 (every k-th view held out; 0 = none) or -1 (auto), "
+                          f"got {cfg.data.holdout_every}")
+    if cfg.data.holdout_every == -1:
+        from gsbench.data.loader import has_ground_truth  # noqa: PLC0415  (file checks only)
+
+        cfg.data.holdout_every = 0 if has_ground_truth(cfg.scene, cfg.gt or None) else HOLDOUT_WITHOUT_GT
+    return cfg

@@ -2,7 +2,9 @@
 
 Schema (DESIGN.md §3 RunRecord, frameworks.md §3.4), version `SCHEMA_VERSION`:
 identity (method, scene, dataset, seed, run_id, status, error_tail), resolved config and effective loss
-terms, eval protocols, metrics, timings per stage in seconds (``load``, ``train``, ``extract``,
+terms, ``inputs`` (what was trained on: the resolution and the size on disk, the downscale factor, the
+views trained and held out, masks, the initial Gaussian count), eval protocols, metrics, ``skipped``
+evaluators with the reason each could not score the scene, timings per stage in seconds (``load``, ``train``, ``extract``,
 ``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of method-specific
 phases inside training, e.g. IBGS ``train.knn``), iterations/s, Gaussian count, peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
@@ -45,8 +47,10 @@ class RunRecord:
     error_tail: str = ""
     config: dict = field(default_factory=dict)
     losses: dict = field(default_factory=dict)
+    inputs: dict = field(default_factory=dict)
     eval_protocol: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     it_per_s: float | None = None
     num_gaussians: int | None = None

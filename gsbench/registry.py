@@ -92,6 +92,8 @@ EVALUATORS = Registry(
         "normal_similarity": "gsbench.evaluators.normal_similarity:NormalSimilarity",
         "image": "gsbench.evaluators.image:ImageMetrics",
         "surface_offset": "gsbench.evaluators.surface_offset:SurfaceOffset",
+        "silhouette": "gsbench.evaluators.silhouette:Silhouette",
+        "mesh_stats": "gsbench.evaluators.mesh_stats:MeshStats",
     },
     "gsbench.evaluators",
 )

@@ -14,11 +14,18 @@ rest); ``total`` is their sum and ``wall_this_invocation`` the wall time of this
 process high-water mark at the end of each stage (``ru_maxrss`` never decreases, so a stage's value
 includes the earlier ones in that process).
 
-Evaluation: the evaluators named in ``eval.evaluators``, else `default_evaluators` of the scene;
-``dtu_chamfer`` gets ``cull = eval.dtu_culling``. With ``data.holdout_every > 0`` the held-out views
-(``i % holdout_every == 0``, not trained on) are rendered and scored by the ``image`` evaluator
-(inside the masks when ``data.use_masks``). A failure anywhere writes the record with status
-``failed`` and the traceback tail, then re-raises.
+Evaluation is planned before anything is loaded (`gsbench.evaluators.resolve.plan_evaluation` on the
+scene read without its images): ``eval.evaluators`` when named (each must apply, else an error before
+loading), else the dataset's defaults, each skipped with its reason in the record (``skipped``) when
+the scene lacks what it needs, so a capture without ground truth runs to ``ok``. ``dtu_chamfer`` gets
+``cull = eval.dtu_culling``. The held-out views (``data.holdout_every``; by default every 8th view of
+a scene without ground truth) are rendered and scored by the ``image`` evaluator (inside the masks
+when ``data.use_masks``). ``eval.json`` is recomputed when the plan differs from the one it holds
+(e.g. ``--gt`` given after a first run). A failure anywhere after the plan writes the record with
+status ``failed`` and the traceback tail, then re-raises.
+
+Progress: one line per stage on stderr (`gsbench.progress.stage`), and training's own progress lines
+when stderr is not a terminal.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import torch
 import yaml
 
 from gsbench.config import RunConfig, dataset_of, resolve
+from gsbench.progress import stage
 from gsbench.records import RunRecord, capture_environment, peak_rss_bytes, sha256_file, write_json_atomic
 from gsbench.registry import METHODS
 from gsbench.train import (FINAL_CHECKPOINT, Trainer, load_checkpoint, scaled_losses, schedule_scale, set_threads,
@@ -46,11 +54,37 @@ ERROR_TAIL_LINES = 30
 
 
 def resolve_run(method: str, scene: str, *, preset: str = "cpu", user_files=(), overrides=(),
-                seed: int | None = None) -> RunConfig:
+                seed: int | None = None, gt: str | None = None) -> RunConfig:
     """`gsbench.config.resolve` with the method plugin's ``Config`` (its paper defaults)."""
     cls = METHODS.get(method)
     return resolve(method, scene, preset=preset, user_files=user_files, overrides=overrides,
-                   method_config_cls=cls.Config, seed=seed)
+                   method_config_cls=cls.Config, seed=seed, gt=gt)
+
+
+def load_run_scene(cfg: RunConfig, *, load_images: bool = True):
+    """The scene of ``cfg`` at its resolution (``data.downscale``, ``data.max_size``) with its ``--gt``."""
+    from gsbench.data.loader import load_scene  # noqa: PLC0415
+
+    return load_scene(cfg.scene, downscale=cfg.data.downscale, max_size=cfg.data.max_size,
+                      load_images=load_images, gt_root=cfg.gt or None)
+
+
+def plan_run_evaluation(cfg: RunConfig, scene):
+    """`plan_evaluation` of ``cfg``'s evaluators on ``scene`` (loaded with or without images)."""
+    from gsbench.evaluators.resolve import plan_evaluation  # noqa: PLC0415
+
+    held_out = split_views(len(scene.cameras), cfg.data.holdout_every)[1]
+    return plan_evaluation(scene, dataset_of(cfg.scene), cfg.eval.evaluators, len(held_out))
+
+
+def scene_inputs(scene, cfg: RunConfig) -> dict:
+    """The record's ``inputs``: what the run trains on (`gsbench.records` module docstring)."""
+    train, held = split_views(len(scene.cameras), cfg.data.holdout_every)
+    cam = scene.cameras[0]
+    return {"resolution": [cam.width, cam.height], "source_resolution": list(scene.source_size or ()),
+            "downscale": scene.downscale, "views_trained": len(train), "views_held_out": len(held),
+            "masks": scene.has_masks, "sfm_points": 0 if scene.points is None else int(len(scene.points)),
+            "ground_truth": None if scene.gt is None else str(scene.gt.root)}
 
 
 def run_dir(cfg: RunConfig) -> Path:
@@ -80,14 +114,15 @@ def _flatten_metrics(report: dict) -> dict:
     return flat
 
 
-def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path) -> dict:
-    from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file, get_evaluator  # noqa: PLC0415
+def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
+    from gsbench.evaluators.api import evaluate_mesh_file, get_evaluator  # noqa: PLC0415
 
-    names = [n for n in (cfg.eval.evaluators or default_evaluators(scene)) if n != "image"]
-    options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in names else {}
-    report = evaluate_mesh_file(mesh_path, scene, names, options)
+    options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in plan.mesh else {}
+    report = evaluate_mesh_file(mesh_path, scene, plan.mesh, options) if plan.mesh else \
+        {"mesh": str(mesh_path), "scene": scene.name, "results": {}}
+    report["plan"], report["skipped"] = list(plan.names), plan.skipped
     held_out = split_views(len(scene.cameras), cfg.data.holdout_every)[1]
-    if held_out:
+    if plan.image:
         with torch.no_grad():
             renders = [method.render(scene.cameras[i], {"rgb"}).rgb.clamp(0, 1).numpy() for i in held_out]
         use_masks = bool(cfg.data.use_masks and scene.masks is not None)
@@ -101,17 +136,23 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     from gsbench.evaluators.api import format_table  # noqa: PLC0415
 
     threads = set_threads(cfg.threads)
+    stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
+    header = load_run_scene(cfg, load_images=False)
+    plan = plan_run_evaluation(cfg, header)
+    for name, reason in plan.skipped.items():
+        stage(f"evaluator {name} skipped: {reason}")
     folder = run_dir(cfg)
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     record = RunRecord(run_id=cfg.run_id, method=cfg.method["name"], scene=cfg.scene, dataset=dataset_of(cfg.scene),
                        seed=cfg.seed, config=cfg.to_dict(),
                        losses={"schedule": scaled_losses(cfg.losses, schedule_scale(cfg.train.iterations))},
-                       environment=capture_environment(threads))
+                       environment=capture_environment(threads), inputs=scene_inputs(header, cfg),
+                       skipped=dict(plan.skipped))
     stages = _Stages(folder / STAGES)
     start = time.perf_counter()
     try:
-        report = _run_stages(cfg, folder, stages, record)
+        report = _run_stages(cfg, folder, stages, record, plan)
         record.status = "ok"
     except BaseException:
         record.status = "failed"
@@ -132,35 +173,49 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     return record
 
 
-def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord) -> dict:
-    """The stages proper; fills ``record`` and returns the evaluation report."""
-    from gsbench.data.loader import load_scene  # noqa: PLC0415
+def _stored_report(eval_path: Path, plan) -> dict | None:
+    """``eval.json`` when it holds this plan's evaluators, else None (the stage is recomputed)."""
+    if not eval_path.is_file():
+        return None
+    report = json.loads(eval_path.read_text())
+    return report if report.get("plan") == list(plan.names) else None
 
+
+def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord, plan) -> dict:
+    """The stages proper; fills ``record`` and returns the evaluation report."""
     t0 = time.perf_counter()
-    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
+    cam = record.inputs["resolution"]
+    stage(f"loading {record.inputs['views_trained'] + record.inputs['views_held_out']} views at {cam[0]}x{cam[1]}")
+    scene = load_run_scene(cfg)
     stages.done("load", time.perf_counter() - t0)
 
     method = METHODS.get(cfg.method["name"])()
     method.setup(scene, cfg)
+    record.inputs["initial_gaussians"] = len(method.gaussians)
     record.losses["params"] = method.term_params()
     final, mesh_path, eval_path = folder / FINAL_CHECKPOINT, folder / MESH, folder / EVAL
+    report = _stored_report(eval_path, plan)
     if not final.is_file():
+        stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
         result = Trainer(method, scene, cfg, folder).fit()
         stages.done("train", result.seconds, it_per_s=result.it_per_s, num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases)
-    elif not (mesh_path.is_file() and eval_path.is_file()):
+    elif not (mesh_path.is_file() and report is not None):
         method.load_state_dict(load_checkpoint(final)["method"])
 
     if not mesh_path.is_file():
+        stage(f"extracting the mesh ({cfg.mesh.extractor})")
         t0 = time.perf_counter()
         size = method.extract_mesh(scene, cfg, mesh_path)
         stages.done("extract", time.perf_counter() - t0, **size)
+        report = None
 
-    if not eval_path.is_file():
+    if report is None:
+        stage(f"evaluating: {', '.join(plan.names) or 'nothing applies'}")
         t0 = time.perf_counter()
-        write_json_atomic(eval_path, _evaluate(method, scene, cfg, mesh_path))
+        report = _evaluate(method, scene, cfg, mesh_path, plan)
+        write_json_atomic(eval_path, report)
         stages.done("evaluate", time.perf_counter() - t0)
-    report = json.loads(eval_path.read_text())
 
     train, extract = stages.data["train"], stages.data["extract"]
     record.metrics = _flatten_metrics(report)

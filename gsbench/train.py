@@ -34,6 +34,24 @@ the python/numpy/torch RNG states, the camera stack and the step, so a resumed r
 to an uninterrupted one with the same seed and thread count. ``metrics.jsonl`` gets one line every
 ``train.log_every`` steps: step, each term (unweighted), total, num_gaussians, it/s. Training time
 (`TrainResult.seconds`, summed over resumes) counts the steps and logging, not checkpoint writes.
+
+Phases: `Trainer.train_step` times each part of a step with ``time.perf_counter`` and adds it to
+`Trainer.phases` (`STEP_PHASES`): ``render`` (the method's forward render), ``loss`` (`total_loss`),
+``backward`` (``strategy.step_pre_backward`` + ``loss.backward()``), ``densify``
+(``strategy.step_post_backward``), ``optimizer`` (Adam step + ``zero_grad``) and ``checks`` (the
+finiteness tests of the loss and of the parameters). The sums are part of the checkpoint (a
+checkpoint without them, written before they existed, resumes from zeros), so a resumed run's phases
+cover all its steps like `TrainResult.seconds`, and they sum to at most that (the rest is the
+schedule update, camera sampling, logging and progress output). `TrainResult.phases` holds them next
+to the method's own phases (`Method.training_phases`, e.g. IBGS's ``knn`` and ``local_geometry``
+in methods/ibgs.py); the method's keep their names, and a step phase whose name a method also uses
+is reported as ``step.<name>`` instead. Method phases run *inside* the step phases (IBGS's
+eigen-decomposition within ``render`` and ``backward``), so the two sets overlap and must not be
+added together. The runner (gsbench/runner.py) records every entry as ``train.<name>``.
+
+Progress: the tqdm bar draws itself only on a terminal; when stderr is not one (a run logged to a
+file), `gsbench.progress.ProgressLines` prints a line with the step, it/s, the latest total loss, N
+and the ETA every `Trainer.progress_interval` seconds (30 by default) and a final line at the end.
 """
 
 from __future__ import annotations
@@ -55,11 +73,14 @@ from gsbench.config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.losses import Batch, active_terms, required_outputs, total_loss
+from gsbench.progress import DEFAULT_INTERVAL, ProgressLines
 from gsbench.strategy import REFERENCE_ITERATIONS
 
 CHECKPOINT = "checkpoint.pt"
 FINAL_CHECKPOINT = "checkpoint-final.pt"
 METRICS = "metrics.jsonl"
+STEP_PHASES = ("render", "loss", "backward", "densify", "optimizer", "checks")
+STEP_PHASE_PREFIX = "step."
 
 
 def scale_step(value: int, scale: float) -> int:
@@ -172,7 +193,8 @@ class CameraSampler:
 @dataclass
 class TrainResult:
     """What training produced: steps done in total, seconds spent (over all resumes), it/s, final N, and
-    the seconds of method-specific phases within training (`Method.training_phases`)."""
+    the seconds per phase within training: the Trainer's step phases (`STEP_PHASES`) and the method's
+    own (`Method.training_phases`), both over all resumes (module docstring, "Phases")."""
 
     steps: int
     seconds: float
@@ -198,10 +220,24 @@ def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list
     return images, masks
 
 
-class Trainer:
-    """Runs ``method`` (already `setup`) on ``scene`` for ``cfg.train.iterations`` steps in ``run_dir``."""
+def merge_phases(step_phases: dict, method_phases: dict) -> dict:
+    """The method's phases under their own names plus the step phases; a step phase whose name the
+    method also uses gets `STEP_PHASE_PREFIX` (module docstring, "Phases")."""
+    merged = {name: float(v) for name, v in method_phases.items()}
+    for name, seconds in step_phases.items():
+        merged[STEP_PHASE_PREFIX + name if name in method_phases else name] = float(seconds)
+    return merged
 
-    def __init__(self, method, scene: Scene, cfg: RunConfig, run_dir):
+
+class Trainer:
+    """Runs ``method`` (already `setup`) on ``scene`` for ``cfg.train.iterations`` steps in ``run_dir``.
+
+    ``progress_interval``: seconds between the progress lines printed when stderr is not a terminal
+    (`gsbench.progress.ProgressLines`)."""
+
+    progress_interval: float = DEFAULT_INTERVAL
+
+    def __init__(self, method, scene: Scene, cfg: RunConfig, run_dir, progress_interval: float | None = None):
         self.method, self.scene, self.cfg = method, scene, cfg
         self.threads = set_threads(cfg.threads)
         self.run_dir = Path(run_dir)
@@ -217,11 +253,15 @@ class Trainer:
         self.images, self.masks = _target_images(scene, cfg, method.background)
         self.step = 0
         self.seconds = 0.0
+        self.phases = dict.fromkeys(STEP_PHASES, 0.0)
+        if progress_interval is not None:
+            self.progress_interval = float(progress_interval)
         active_terms(self.losses, 0, method.term_params(), method.loss_terms())  # validate names now
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"step": self.step, "seconds": self.seconds, "method": self.method.state_dict(),
+        return {"step": self.step, "seconds": self.seconds, "phases": dict(self.phases),
+                "method": self.method.state_dict(),
                 "strategy": {k: v.clone() for k, v in self.strategy_state.items()},
                 "sampler": self.sampler.state_dict(),
                 "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}}
@@ -234,6 +274,8 @@ class Trainer:
         np.random.set_state(state["rng"]["numpy"])
         torch.set_rng_state(state["rng"]["torch"])
         self.step, self.seconds = int(state["step"]), float(state["seconds"])
+        self.phases = dict.fromkeys(STEP_PHASES, 0.0)  # checkpoints from before phases existed: zeros
+        self.phases.update({k: float(v) for k, v in state.get("phases", {}).items()})
 
     def _truncate_metrics(self) -> None:
         """Drop metrics lines past the resumed step (written after the last checkpoint)."""
@@ -244,8 +286,10 @@ class Trainer:
 
     # ---- the loop -----------------------------------------------------------------------------
     def train_step(self, step: int) -> dict[str, float]:
-        """One optimisation step (module docstring); returns the unweighted term values and the total."""
-        m = self.method
+        """One optimisation step (module docstring); returns the unweighted term values and the total.
+
+        Each part's wall time is added to `phases` (module docstring, "Phases")."""
+        m, phases, clock = self.method, self.phases, time.perf_counter
         m.update_schedules(step, self.scale)
         idx = self.sampler.next()
         camera = self.scene.cameras[idx]
@@ -253,29 +297,46 @@ class Trainer:
         if not active:
             raise ConfigError(f"step {step}: no loss term is active (all weights 0 or outside start/end); "
                               f"configured: {self.losses}")
+        t = clock()
         try:
             render = m.render(camera, required_outputs(active))
         except NumericalError as exc:
             raise NumericalError(f"step {step}: {exc}") from exc
+        t1 = clock()
+        phases["render"] += t1 - t
+        t = t1
         loss, values = total_loss(active, render, Batch(self.images[idx], self.masks[idx], camera, step),
                                   m.loss_state())
-        if not torch.isfinite(loss):
+        t1 = clock()
+        phases["loss"] += t1 - t
+        finite = bool(torch.isfinite(loss))
+        t = clock()
+        phases["checks"] += t - t1
+        if not finite:
             bad = [k for k, v in values.items() if not np.isfinite(v)] or ["(weighted sum)"]
             raise NumericalError(f"step {step}: the loss is not finite (terms {bad}, view {idx}); lower the "
                                  "learning rates or the term weights, or resume from an earlier checkpoint")
         self.strategy.step_pre_backward(render)
         loss.backward()
+        t1 = clock()
+        phases["backward"] += t1 - t
         self.strategy.step_post_backward(m.gaussians, m.optimizer, self.strategy_state, step, render)
+        t = clock()
+        phases["densify"] += t - t1
         if len(m.gaussians) == 0:
             raise NumericalError(f"step {step}: densification pruned every Gaussian (prune opacity "
                                  f"{getattr(self.strategy, 'prune_opacity', '?')}); check the schedule and the data")
         if step < self.iterations:
             m.optimizer.step()
         m.optimizer.zero_grad(set_to_none=True)
+        t1 = clock()
+        phases["optimizer"] += t1 - t
         try:
             m.gaussians.check_finite()
         except NumericalError as exc:
             raise NumericalError(f"step {step}: {exc}") from exc
+        finally:
+            phases["checks"] += clock() - t1
         values["total"] = float(loss.detach())
         return values
 
@@ -292,6 +353,8 @@ class Trainer:
         t_cfg = self.cfg.train
         bar = tqdm(total=self.iterations, initial=self.step, desc=f"train {self.method.name}", unit="it",
                    disable=None, dynamic_ncols=True)
+        lines = ProgressLines(f"train {self.method.name}", self.iterations, initial=self.step,
+                              interval=self.progress_interval)
         window_start, window_steps = time.perf_counter(), 0
         with open(self.run_dir / METRICS, "a") as log:
             while self.step < self.iterations:
@@ -301,6 +364,7 @@ class Trainer:
                 window_steps += 1
                 bar.update(1)
                 n = len(self.method.gaussians)
+                lines.update(self.step, values.get("total"), n)
                 if self.step % max(1, t_cfg.log_every) == 0 or self.step == self.iterations:
                     rate = window_steps / max(time.perf_counter() - window_start, 1e-9)
                     log.write(json.dumps({"step": self.step, **values, "num_gaussians": n, "it_per_s": rate}) + "\n")
@@ -312,6 +376,7 @@ class Trainer:
                 if self.step < self.iterations and every > 0 and self.step % every == 0:
                     save_atomic(self.state_dict(), resume)
         bar.close()
+        lines.close()
         save_atomic(self.state_dict(), self.run_dir / FINAL_CHECKPOINT)
         resume.unlink(missing_ok=True)
         return self.result(resumed_from)
@@ -319,4 +384,4 @@ class Trainer:
     def result(self, resumed_from: int = 0) -> TrainResult:
         return TrainResult(steps=self.step, seconds=self.seconds, it_per_s=self.step / max(self.seconds, 1e-9),
                            num_gaussians=len(self.method.gaussians), resumed_from=resumed_from,
-                           phases=self.method.training_phases())
+                           phases=merge_phases(self.phases, self.method.training_phases()))

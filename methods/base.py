@@ -4,8 +4,21 @@
 "Method"); a subclass sets ``Config`` (its paper defaults) and ``INFO`` and overrides what differs.
 
 - ``setup(scene, cfg)``: Gaussians from ``scene.points`` (SfM, all of them unless ``max_init_points``)
-  or, without points (DTU IDR layout), ``random_init_points`` uniform in the scene sphere (§1.1;
-  3DGS uses 100 000 random points for Blender scenes); never more than ``train.max_gaussians``.
+  or, without points (DTU IDR layout), ``random_init_points`` random points (3DGS uses 100 000 random
+  points in a sphere for Blender scenes); never more than ``train.max_gaussians``. Where they go is
+  ``random_init_region``:
+
+  - ``visual_hull`` (default), when the scene has loaded masks: model only what the scene needs.
+    Gaussians outside the masks' visual hull (`gsbench.data.visual_hull`) can only model what the
+    masks exclude, so the points are the sphere's candidates inside the hull of the *training*
+    views' masks (held-out views' masks are never used; ``min_views=1``, ``dilate_px=1`` so the
+    silhouette keeps its points). Candidates are drawn exactly as the sphere init draws them (same
+    seeded generator, batches of n = ``random_init_points`` capped by ``train.max_gaussians``, random
+    colours), so the count is chosen from the hull's volume: the first batch's survivors, i.e. the
+    sphere init's density restricted to the hull. Below a floor of min(1000, n) further batches are
+    drawn (at most 50) until the floor is reached; never more than n. An empty hull is a `DataError`.
+  - ``sphere``, and any scene without masks: ``random_init_points`` uniform in the scene sphere
+    (`Gaussians.random_in_sphere`), the initialisation before the hull rule, bit for bit.
   Adam with eps 1e-15 and one group per parameter, ``group["name"]`` = `Gaussians.params` key (§1.8):
   means ``position_lr_init·extent``, sh_dc ``feature_lr``, sh_rest ``feature_lr/20``, opacity
   ``opacity_lr``, log-scales ``scaling_lr``, quaternions ``rotation_lr``.
@@ -42,7 +55,8 @@ from tqdm import tqdm
 
 from gsbench.config import RunConfig
 from gsbench.data.camera import Scene
-from gsbench.errors import ConfigError
+from gsbench.data.visual_hull import inside_visual_hull
+from gsbench.errors import ConfigError, DataError
 from gsbench.gaussians import Gaussians
 from gsbench.losses import TermSpec
 from gsbench.mesh.cleanup import canonical_order
@@ -53,6 +67,9 @@ from gsbench.train import scale_step, split_views
 
 ADAM_EPS = 1e-15  # §1.8 / §5
 DEPTH_OUTPUTS = {"expected": "depth", "median": "median_depth"}  # mesh.depth -> render output
+INIT_REGIONS = ("visual_hull", "sphere")  # method.random_init_region
+HULL_INIT_FLOOR = 1000  # fewest random points kept in a visual hull (min with random_init_points)
+HULL_INIT_MAX_BATCHES = 50  # candidate batches drawn at most to reach that floor
 
 
 @dataclass(frozen=True)
@@ -85,6 +102,7 @@ class GSConfig:
     sh_interval: int = 1000
     init_opacity: float = 0.1
     random_init_points: int = 100_000
+    random_init_region: str = "visual_hull"
     max_init_points: int = 0
     densify_grad_threshold: float = 0.0002
     percent_dense: float = 0.01
@@ -162,8 +180,12 @@ class Method:
         self.sh_degree = 0
 
     def initial_gaussians(self, scene: Scene, cfg: RunConfig) -> Gaussians:
-        """SfM points (seeded subsample to the caps) or ``random_init_points`` in the scene sphere (§1.1)."""
+        """SfM points (seeded subsample to the caps) or random points in the masks' visual hull or the
+        scene sphere (``random_init_region``, module docstring)."""
         p, dims = self.params, 2 if self.info().primitive == "2d" else 3
+        if p.random_init_region not in INIT_REGIONS:
+            raise ConfigError(f"method.random_init_region must be one of {', '.join(INIT_REGIONS)}, "
+                              f"got '{p.random_init_region}'")
         rng = np.random.default_rng(cfg.seed)
         if scene.points is not None and len(scene.points):
             points, colors = np.asarray(scene.points), scene.colors
@@ -176,9 +198,44 @@ class Method:
         n = p.random_init_points if cfg.train.max_gaussians <= 0 else min(p.random_init_points, cfg.train.max_gaussians)
         if n <= 0:
             raise ConfigError(f"scene '{scene.name}' has no SfM points, so method.random_init_points must be > 0")
-        g = Gaussians.random_in_sphere(n, scene.radius, dims=dims, max_sh_degree=cfg.raster.sh_degree, seed=cfg.seed)
+        if p.random_init_region == "visual_hull" and scene.masks is not None:
+            points, colors = self._points_in_visual_hull(scene, cfg, n)
+            g = Gaussians.from_points(points, colors, dims=dims, max_sh_degree=cfg.raster.sh_degree, seed=cfg.seed)
+        else:
+            g = Gaussians.random_in_sphere(n, scene.radius, dims=dims, max_sh_degree=cfg.raster.sh_degree,
+                                           seed=cfg.seed)
         g.params["opacity_logits"].data.fill_(math.log(p.init_opacity / (1 - p.init_opacity)))
         return g
+
+    @staticmethod
+    def _points_in_visual_hull(scene: Scene, cfg: RunConfig, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(points, colours) of the random init inside the training views' visual hull (module docstring):
+        batches of ``n`` candidates drawn as `Gaussians.random_in_sphere` draws them, the first batch's
+        survivors kept, more batches only to reach min(1000, n)."""
+        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        cameras, masks = [scene.cameras[i] for i in views], [scene.masks[i] for i in views]
+        floor = min(HULL_INIT_FLOOR, n)
+        rng = np.random.default_rng(cfg.seed)
+        points, colors, kept = [], [], 0
+        for _ in range(HULL_INIT_MAX_BATCHES):
+            direction = rng.normal(size=(n, 3))
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            candidates = direction * scene.radius * rng.uniform(0, 1, size=(n, 1)) ** (1 / 3)
+            candidate_colors = rng.uniform(0, 1, size=(n, 3))
+            inside = inside_visual_hull(candidates, cameras, masks, dilate_px=1, min_views=1)
+            points.append(candidates[inside])
+            colors.append(candidate_colors[inside])
+            kept += int(inside.sum())
+            if kept >= floor:
+                break
+        if kept == 0:
+            raise DataError(f"scene '{scene.name}': the visual hull of its {len(views)} training views' masks is "
+                            f"empty (none of {HULL_INIT_MAX_BATCHES} x {n} random points in the scene sphere is seen by a "
+                            "training view and inside the mask of every view that sees it); fix: check the masks "
+                            "(the object's pixels set, not all empty) and that the cameras see the scene sphere, "
+                            "or set method.random_init_region=sphere")
+        size = kept if len(points) == 1 else min(kept, floor)  # first batch: its density; more: the floor
+        return np.concatenate(points)[:size], np.concatenate(colors)[:size]
 
     def learning_rates(self) -> dict[str, float]:
         """Initial lr per parameter group (§1.8)."""

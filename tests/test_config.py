@@ -18,9 +18,10 @@ def test_layers_apply_in_order(tmp_path):
     user = tmp_path / "user.yaml"
     user.write_text("train: {iterations: 777}\nmethod: {knn_k: 7}\n")
     cfg = resolve("toy", "synthetic/spot", preset="quick", user_files=[user], method_config_cls=ToyConfig)
-    assert cfg.data.downscale == 8.0  # preset beats dataset (2.0)
+    assert cfg.data.downscale == 1.0 and cfg.data.max_size == [64, 48]  # preset beats dataset (2.0)
     assert cfg.mesh.voxel_size == 0.004  # dataset layer
-    assert cfg.eval.evaluators == ["dtu_chamfer", "normal_similarity"]
+    assert cfg.eval.evaluators == []  # the dataset's defaults, planned per scene (gsbench.evaluators.resolve)
+    assert cfg.data.holdout_every == 0  # auto: a built-in scene has its ground truth
     assert cfg.train.iterations == 777  # user file beats preset
     assert cfg.method == {"name": "toy", "knn_k": 7, "lr": 0.01}
     cfg2 = resolve("toy", "synthetic/spot", preset="quick", user_files=[user], overrides=["method.knn_k=9"],
@@ -30,8 +31,9 @@ def test_layers_apply_in_order(tmp_path):
 
 def test_tnt_scene_takes_tnt_dataset_layer():
     cfg = resolve("toy", "synthetic/spot-tnt", preset="cpu", method_config_cls=ToyConfig)
-    assert cfg.eval.evaluators[0] == "tnt_f1"
-    assert cfg.data.use_masks is False
+    assert cfg.data.use_masks is False and cfg.data.max_size == [240, 150]
+    paper = resolve("toy", "synthetic/spot-tnt", preset="paper", method_config_cls=ToyConfig)
+    assert paper.data.downscale == 2.0 and paper.data.max_size == []  # the papers' -r 2
 
 
 def test_set_parses_yaml_values():

@@ -205,7 +205,8 @@ def test_make_scene_skips_existing_and_check_reports(scenes):
     assert make_scene("spot", fmt="tnt", out=path, res=TNT_RES) == path
     assert (path / "gsbench_scene.json").stat().st_mtime_ns == stamp
     report = check_scene(path)
-    assert report["ok"] and report["format"] == "tnt" and report["cameras"] == 48 and all(report["gt_files"].values())
+    assert report["ok"] and report["format"] == "tnt" and report["cameras"] == 48
+    assert report["ground_truth"]["found"] and all(report["ground_truth"]["files"].values())
 
 
 def test_supersample_one_renders_pixel_centres_only(tmp_path):

@@ -25,7 +25,7 @@ def test_evaluate_mesh_file_and_table(tmp_path):
     mesh = tmp_path / "mesh.ply"
     F.dtu_sphere_mesh(subdivisions=4).export(mesh)
     report = api.evaluate_mesh_file(mesh, scene, options={"normal_similarity": {"n_samples": 5000}})
-    assert set(report["results"]) == {"dtu_chamfer", "normal_similarity"}
+    assert set(report["results"]) == {"dtu_chamfer", "normal_similarity", "silhouette", "mesh_stats"}
     table = api.format_table(report)
     assert "dtu_chamfer@1" in table and "accuracy" in table and "mm" in table and "lower" in table
     with pytest.raises(RegistryError, match="renders"):
@@ -47,3 +47,25 @@ def test_benchmark_workload_small():
     out = run_eval_benchmark(n_vertices=5_000, n_gt=20_000, n_views=2)
     assert out["workload"]["n_gt"] == 20_000 and out["threads"] >= 1
     assert out["metrics"]["accuracy"] < 0.3 and {"cull", "sample", "downsample", "accuracy"} <= set(out["seconds"])
+
+
+def test_plan_skips_defaults_the_scene_cannot_feed_and_rejects_named_ones(tmp_path):
+    from dataclasses import replace
+
+    from gsbench.evaluators.resolve import DEFAULT_EVALUATORS, plan_evaluation
+
+    scene = F.dtu_scene(F.make_dtu_gt(tmp_path / "gt"))
+    bare = replace(scene, gt=None, gt_missing="/data/Points/stl/stl024_total.ply not found", masks=None, mask_paths=None)
+    full = plan_evaluation(scene, "dtu", (), held_out=3)
+    assert full.names == DEFAULT_EVALUATORS["dtu"] and full.skipped == {} and full.image
+    plan = plan_evaluation(bare, "dtu", (), held_out=0)
+    assert plan.mesh == ("mesh_stats",) and not plan.image and not plan.named
+    assert set(plan.skipped) == {"dtu_chamfer", "normal_similarity", "silhouette", "image"}
+    assert "stl024_total.ply not found" in plan.skipped["dtu_chamfer"] and "--gt" in plan.skipped["dtu_chamfer"]
+    assert "masks" in plan.skipped["silhouette"] and "holdout_every" in plan.skipped["image"]
+    with pytest.raises(EvaluationError, match=r"dtu_chamfer: no ground truth.*image: no view is held out"):
+        plan_evaluation(bare, "dtu", ["dtu_chamfer", "mesh_stats", "image"], held_out=0)
+    only_images = plan_evaluation(bare, "dtu", ["image"], held_out=2)
+    assert only_images.mesh == () and only_images.image and only_images.named
+    with pytest.raises(RegistryError, match="did you mean"):
+        plan_evaluation(scene, "dtu", ["dtu_chamfr"], held_out=0)

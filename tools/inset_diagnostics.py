@@ -40,7 +40,8 @@ MESH_SAMPLES, CURVATURE_POINTS, EXACT_SAMPLES = 40_000, 6_000, 300_000
 
 def _run_scene(run: Path):
     cfg = yaml.safe_load((run / "config.yaml").read_text())
-    scene = load_scene(cfg["scene"], downscale=cfg["data"]["downscale"], load_images=False)
+    scene = load_scene(cfg["scene"], downscale=cfg["data"]["downscale"], max_size=cfg["data"].get("max_size", ()),
+                       load_images=False)
     gt = trimesh.load(gt_mesh_file(scene), process=False)
     return scene, gt, pixel_footprint(scene, (gt.bounds[0] + gt.bounds[1]) / 2)
 

@@ -139,6 +139,8 @@ class Scene:
     """Everything a method and an evaluator need about one scene.
 
     ``images``: list of float32 HxWx3 arrays in [0, 1]; ``masks``: list of bool HxW arrays or None;
+    ``gt_missing``: why ``gt`` is None (the files looked for), for messages and records.
+    ``source_size``: (W, H) of the files on disk; ``downscale``: the factor they were divided by.
     ``mask_paths``: the mask files (set by the layouts that have masks, also when ``masks`` is not
     loaded), so what a scene offers is known before its images are decoded (`has_masks`).
     ``points``/``colors``: optional SfM initialisation (N,3) in the normalised frame, colours in [0,1].
@@ -157,6 +159,9 @@ class Scene:
     gt: GroundTruth | None = None
     image_names: list[str] = field(default_factory=list)
     mask_paths: list[Path] | None = None
+    gt_missing: str = ""
+    source_size: tuple[int, int] | None = None
+    downscale: float = 1.0
 
     @property
     def radius(self) -> float:
@@ -180,4 +185,5 @@ class Scene:
             "init_points": 0 if self.points is None else int(len(self.points)),
             "scale_to_gt": self.normalisation.scale,
             "gt": None if self.gt is None else {"kind": self.gt.kind, "root": str(self.gt.root), "name": self.gt.name},
+            "gt_missing": self.gt_missing,
         }

@@ -18,8 +18,8 @@ Pixel convention: IDR/DTU matrices put pixel centres at integer coordinates; gsb
 ``i + 0.5``. Loading adds 0.5 to cx and cy (``K_gs = [[1,0,.5],[0,1,.5],[0,0,1]] K_dtu``); writing
 subtracts it (`world_mat`).
 
-Ground truth (kind ``dtu``) is looked up in ``gt_root`` if given, else in the scene folder, else in
-its parent: ``Points/stl/stl{scan:03d}_total.ply`` and ``ObsMask/``. The scan number comes from the
+Ground truth (kind ``dtu``) is looked up in ``gt_root`` (``--gt``) if given, else in the scene folder,
+else in its parent: ``Points/stl/stl{scan:03d}_total.ply`` and ``ObsMask/``. The scan number comes from the
 meta file or the folder name ``scan{id}``.
 """
 
@@ -33,6 +33,7 @@ import numpy as np
 from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
 from gsbench.data.images import image_size, list_images, read_views
 from gsbench.data.meta import optional_dir, read_meta
+from gsbench.data.resolution import fit_downscale
 from gsbench.errors import DataError
 
 PIXEL_SHIFT = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
@@ -123,15 +124,21 @@ def scan_number(root: Path, meta: dict) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def dtu_ground_truth(root: Path, scan: int | None, gt_root: Path | None = None) -> GroundTruth | None:
-    """The DTU GT handle if ``Points/stl/stl{scan:03d}_total.ply`` exists in a candidate folder."""
+def dtu_ground_truth(root: Path, scan: int | None, gt_root: Path | None = None) -> tuple[GroundTruth | None, str]:
+    """The DTU GT handle if ``Points/stl/stl{scan:03d}_total.ply`` exists in a candidate folder
+    (``gt_root``, else the scene folder and its parent), and otherwise None with the reason: the
+    files looked for, or that the scan number is unknown."""
+    candidates = [Path(gt_root)] if gt_root else [root, root.parent]
     if scan is None:
-        return None
-    for cand in ([Path(gt_root)] if gt_root else [root, root.parent]):
-        if (cand / "Points" / "stl" / f"stl{scan:03d}_total.ply").is_file():
+        return None, (f"no scan number for {root} (the folder is not named scan<N> and has no gsbench_scene.json "
+                      "'scan'), so Points/stl/stl<scan>_total.ply cannot be looked up")
+    rel = Path("Points") / "stl" / f"stl{scan:03d}_total.ply"
+    for cand in candidates:
+        if (cand / rel).is_file():
             return GroundTruth(kind="dtu", root=cand, name=f"scan{scan}", scan=scan,
-                               normal_maps=optional_dir(root / "gt_normal"), depth_maps=optional_dir(root / "gt_depth"))
-    return None
+                               normal_maps=optional_dir(root / "gt_normal"),
+                               depth_maps=optional_dir(root / "gt_depth")), ""
+    return None, f"{' or '.join(str(c / rel) for c in candidates)} not found"
 
 
 def _mask_paths(root: Path, n_images: int) -> list[Path]:
@@ -144,8 +151,10 @@ def _mask_paths(root: Path, n_images: int) -> list[Path]:
     return masks
 
 
-def load_dtu(root: Path, *, downscale: float = 1.0, load_images: bool = True, gt_root: Path | None = None) -> Scene:
-    """Load an IDR-layout DTU scene (see the module docstring)."""
+def load_dtu(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,
+             gt_root: Path | None = None) -> Scene:
+    """Load an IDR-layout DTU scene (see the module docstring); the images are divided by
+    `fit_downscale` of ``downscale`` and ``max_size``."""
     root = Path(root)
     folder = root / "image"
     if not folder.is_dir():
@@ -156,6 +165,7 @@ def load_dtu(root: Path, *, downscale: float = 1.0, load_images: bool = True, gt
     masks = _mask_paths(root, len(paths))
     projections, scale_mat = read_cameras_npz(root / "cameras.npz", len(paths))
     size = image_size(paths[0])
+    downscale = fit_downscale(*size, downscale, max_size)
     cameras = []
     for i, (P, path) in enumerate(zip(projections, paths)):
         K, R, t = decompose_projection(P, source=f"{root / 'cameras.npz'} world_mat_{i}")
@@ -163,15 +173,16 @@ def load_dtu(root: Path, *, downscale: float = 1.0, load_images: bool = True, gt
         cameras.append(cam if downscale == 1.0 else cam.scaled(1.0 / downscale))
     images, mask_arrays = read_views(paths, masks, [size] * len(paths), downscale, load_images)
     meta = read_meta(root)
+    gt, gt_missing = dtu_ground_truth(root, scan_number(root, meta), gt_root)
     return Scene(
         name=meta.get("name", root.name), fmt="dtu", root=root, cameras=cameras, images=images, masks=mask_arrays,
-        normalisation=normalisation_from_scale_mat(scale_mat),
-        gt=dtu_ground_truth(root, scan_number(root, meta), gt_root), image_names=[p.name for p in paths],
-        mask_paths=masks,
+        normalisation=normalisation_from_scale_mat(scale_mat), gt=gt, gt_missing=gt_missing,
+        image_names=[p.name for p in paths], mask_paths=masks, source_size=tuple(size), downscale=downscale,
     )
 
 
-def load_dtu_colmap(root: Path, *, downscale: float = 1.0, load_images: bool = True, gt_root: Path | None = None) -> Scene:
+def load_dtu_colmap(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,
+                    gt_root: Path | None = None) -> Scene:
     """Load the 2DGS DTU+COLMAP variant: ``images/``, ``mask/``, ``sparse/0``, optional ``cameras.npz``.
 
     The COLMAP cameras are already normalised; without ``cameras.npz`` the normalisation is the
@@ -185,13 +196,15 @@ def load_dtu_colmap(root: Path, *, downscale: float = 1.0, load_images: bool = T
     masks = _mask_paths(root, len(paths))
     npz = root / "cameras.npz"
     norm = normalisation_from_scale_mat(read_cameras_npz(npz, len(paths))[1]) if npz.exists() else Normalisation()
+    size = (model.cameras[0].width, model.cameras[0].height)
+    downscale = fit_downscale(*size, downscale, max_size)
     images, mask_arrays = read_views(paths, masks, [(c.width, c.height) for c in model.cameras], downscale, load_images)
     cameras = [c if downscale == 1.0 else c.scaled(1.0 / downscale) for c in model.cameras]
     meta = read_meta(root)
+    gt, gt_missing = dtu_ground_truth(root, scan_number(root, meta), gt_root)
     return Scene(
         name=meta.get("name", root.name), fmt="dtu-colmap", root=root, cameras=cameras, images=images,
         masks=mask_arrays, points=model.points if len(model.points) else None,
-        colors=model.colors if len(model.points) else None, normalisation=norm,
-        gt=dtu_ground_truth(root, scan_number(root, meta), gt_root), image_names=[p.name for p in paths],
-        mask_paths=masks,
+        colors=model.colors if len(model.points) else None, normalisation=norm, gt=gt, gt_missing=gt_missing,
+        image_names=[p.name for p in paths], mask_paths=masks, source_size=size, downscale=downscale,
     )

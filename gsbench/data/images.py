@@ -9,10 +9,29 @@ Conventions:
   ``round(H / downscale)``, the same rounding as `Camera.scaled(1 / downscale)`. Resampling is PIL's
   box (area) filter, which maps the image extent [0, W] onto [0, W']; with pixel centres at
   ``i + 0.5`` that is exactly a scaling of the rows of K, so `Camera.scaled` is exact.
+
+Decoded-image cache (`read_views`): decoding and box-downscaling every photo is most of a scene's
+load time (49 DTU photos at 1600x1200: ~30 s), paid again by every run and every resume, so the
+decoded, resized views of a scene are kept in ``<cache>/decoded/<key>.npz`` (``<cache>``:
+``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``, `gsbench.data.loader.cache_dir`). The key is a
+sha1 over each image's and mask's absolute path, size and mtime (ns), the downscale factor, whether
+masks were read and `DECODED_CACHE_VERSION`, so editing, replacing or touching a file, or a new
+downscale, is a miss. The file is an uncompressed ``np.savez`` of the uint8 images as PIL gives them
+after the resize (``image00000``, ...) and the bool masks (``mask00000``, ...), written atomically
+(temp file + ``os.replace``); the float32 conversion happens after loading, so a cached load is
+bit-identical to a decoded one. A cache file that cannot be read or does not match (view count,
+shapes, dtypes) is ignored and rewritten; a cache that cannot be written is skipped. The header
+checks (image sizes vs cameras, mask sizes) always run first; ``load_images=False`` never touches
+the cache. ``GSBENCH_IMAGE_CACHE=0`` (or ``false``/``no``/``off``) turns the cache off. Stale
+entries are not removed: delete ``<cache>/decoded/`` to reclaim the space.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +39,8 @@ import numpy as np
 from gsbench.errors import DataError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
+DECODED_CACHE_VERSION = 1
+IMAGE_CACHE_ENV = "GSBENCH_IMAGE_CACHE"
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -62,10 +83,19 @@ def _resize(img, downscale: float):
     return img.resize(scaled_size(*img.size, downscale), Image.Resampling.BOX)
 
 
+def decode_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
+    """uint8 HxWx3 after the box resize (what the decoded-image cache stores)."""
+    return np.asarray(_resize(_open(path).convert("RGB"), downscale), dtype=np.uint8)
+
+
+def to_float(rgb: np.ndarray) -> np.ndarray:
+    """uint8 -> float32 in [0, 1] (``/ 255``)."""
+    return np.asarray(rgb, dtype=np.float32) / 255.0
+
+
 def read_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
     """float32 HxWx3 in [0, 1]."""
-    img = _resize(_open(path).convert("RGB"), downscale)
-    return np.asarray(img, dtype=np.float32) / 255.0
+    return to_float(decode_rgb(path, downscale))
 
 
 def read_mask(path: Path, downscale: float = 1.0) -> np.ndarray:
@@ -98,13 +128,88 @@ def write_mask(path: Path, mask: np.ndarray) -> None:
     Image.fromarray(np.repeat((mask.astype(np.uint8) * 255)[..., None], 3, axis=2)).save(path)
 
 
-def read_views(image_paths, mask_paths, sizes, downscale: float, load_images: bool):
-    """Read all images (and masks, when ``mask_paths`` is not None), checking each has its expected size.
+# ---- decoded-image cache (module docstring) ----------------------------------------------------------
 
-    ``sizes`` is the (width, height) each image must have on disk. Returns ``(images, masks)``; both
-    are empty/None when ``load_images`` is False (only the headers are checked then).
-    """
-    images, masks = [], [] if mask_paths is not None else None
+
+def image_cache_enabled() -> bool:
+    """False when ``$GSBENCH_IMAGE_CACHE`` is ``0``/``false``/``no``/``off``."""
+    return os.environ.get(IMAGE_CACHE_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def decoded_cache_path(image_paths, mask_paths, downscale: float) -> Path:
+    """``<cache>/decoded/<sha1>.npz`` for these files (their path, size, mtime), downscale and mask flag."""
+    from gsbench.data.loader import cache_dir  # noqa: PLC0415  (lazy: loader imports this module's users)
+
+    def ident(path):
+        st = os.stat(path)
+        return [str(Path(path).resolve()), st.st_size, st.st_mtime_ns]
+
+    key = {"version": DECODED_CACHE_VERSION, "downscale": repr(float(downscale)), "masks": mask_paths is not None,
+           "images": [ident(p) for p in image_paths],
+           "mask_files": [ident(p) for p in mask_paths] if mask_paths is not None else []}
+    digest = hashlib.sha1(json.dumps(key, sort_keys=True).encode()).hexdigest()
+    return Path(cache_dir()) / "decoded" / f"{digest}.npz"
+
+
+def _expected_shapes(sizes, downscale: float) -> list[tuple[int, int]]:
+    """(H, W) of each view after the resize."""
+    out = []
+    for w, h in sizes:
+        w2, h2 = (w, h) if downscale == 1.0 else scaled_size(w, h, downscale)
+        out.append((h2, w2))
+    return out
+
+
+def _load_cached(path: Path, shapes, with_masks: bool):
+    """(uint8 images, bool masks or None) from ``path``, or None when it is missing, unreadable or does
+    not match ``shapes`` (any error is a miss: the caller decodes and rewrites the file)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            names = set(npz.files)
+            n = len(shapes)
+            want = {f"image{k:05d}" for k in range(n)} | ({f"mask{k:05d}" for k in range(n)} if with_masks else set())
+            if names != want:
+                return None
+            images, masks = [], [] if with_masks else None
+            for k, (h, w) in enumerate(shapes):
+                img = npz[f"image{k:05d}"]
+                if img.dtype != np.uint8 or img.shape != (h, w, 3):
+                    return None
+                images.append(img)
+                if with_masks:
+                    mask = npz[f"mask{k:05d}"]
+                    if mask.dtype != bool or mask.shape != (h, w):
+                        return None
+                    masks.append(mask)
+        return images, masks
+    except Exception:  # noqa: BLE001  a corrupt cache file is a miss, never a failed load
+        return None
+
+
+def _write_cached(path: Path, images, masks) -> None:
+    """Uncompressed ``np.savez`` to a temp file next to ``path``, then ``os.replace``; errors
+    (read-only or full disk) leave the cache without the entry and the load unaffected."""
+    arrays = {f"image{k:05d}": img for k, img in enumerate(images)}
+    if masks is not None:
+        arrays.update({f"mask{k:05d}": m for k, m in enumerate(masks)})
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+        tmp = None
+    except OSError:
+        pass
+    finally:
+        if tmp is not None:
+            Path(tmp).unlink(missing_ok=True)
+
+
+def _check_headers(image_paths, mask_paths, sizes) -> None:
     for k, (path, size) in enumerate(zip(image_paths, sizes)):
         found = image_size(path)
         if tuple(found) != tuple(size):
@@ -119,10 +224,39 @@ def read_views(image_paths, mask_paths, sizes, downscale: float, load_images: bo
                     f"{mask_paths[k]}: mask is {mfound[0]}x{mfound[1]} but its image is {size[0]}x{size[1]}; "
                     "fix: give masks the resolution of their images"
                 )
-        if load_images:
-            images.append(read_rgb(path, downscale))
-            if mask_paths is not None:
-                masks.append(read_mask(mask_paths[k], downscale))
+
+
+def read_views(image_paths, mask_paths, sizes, downscale: float, load_images: bool):
+    """Read all images (and masks, when ``mask_paths`` is not None), checking each has its expected size.
+
+    ``sizes`` is the (width, height) each image must have on disk. Returns ``(images, masks)``; both
+    are empty/None when ``load_images`` is False (only the headers are checked then). Decoded views
+    come from / go to the decoded-image cache (module docstring).
+    """
+    sizes = list(sizes)
+    image_paths = list(image_paths)[:len(sizes)]
+    sizes = sizes[:len(image_paths)]
+    mask_paths = list(mask_paths)[:len(image_paths)] if mask_paths is not None else None
+    _check_headers(image_paths, mask_paths, sizes)
     if not load_images:
-        masks = None
+        return [], None
+    with_masks = mask_paths is not None
+    cache = None
+    if image_cache_enabled():
+        try:
+            cache = decoded_cache_path(image_paths, mask_paths, downscale)
+        except OSError:  # a file vanished since its header was read: decode (and fail) as without a cache
+            cache = None
+    cached = _load_cached(cache, _expected_shapes(sizes, downscale), with_masks) if cache else None
+    if cached is not None:
+        raw, masks = cached
+    else:
+        raw = [decode_rgb(path, downscale) for path in image_paths]
+        masks = [read_mask(mask_paths[k], downscale) for k in range(len(image_paths))] if with_masks else None
+        if cache is not None:
+            _write_cached(cache, raw, masks)
+    images = []
+    for k in range(len(raw)):
+        images.append(to_float(raw[k]))
+        raw[k] = None  # free each uint8 view once converted
     return images, masks

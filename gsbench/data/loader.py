@@ -4,7 +4,7 @@
   ``synthetic/<name>`` (generated into the cache on first use).
 - `make_scene(name, ...)`: generate a built-in scene (``gsbench scene make``); skipped when the folder
   already holds the same scene (same ``gsbench_scene.json``).
-- `check_scene(path)`: what a folder holds and what is wrong with it (``gsbench scene check``).
+- `check_scene(path, gt_root)`: what a folder holds and what is wrong with it (``gsbench scene check``).
 
 Cache: ``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``; built-in scenes go to
 ``<cache>/synthetic/<name>`` (plus ``-<format>``, ``-<W>x<H>``, ``-s<seed>`` for non-default choices).
@@ -51,25 +51,51 @@ def _is_builtin_name(name) -> bool:
     return isinstance(name, str) and (name in BUILTIN_SCENES or name.startswith("synthetic/")) and not Path(name).is_dir()
 
 
-def load_scene(path_or_name, *, downscale: float = 1.0, load_images: bool = True, gt_root=None) -> Scene:
-    """Load a scene folder or built-in name; ``downscale`` >= 1 divides the image size.
+def _check_gt_root(gt_root) -> None:
+    if gt_root and not Path(gt_root).is_dir():
+        raise DataError(f"{gt_root}: ground-truth folder not found; fix: --gt must name the folder holding "
+                        "DTU Points/ and ObsMask/, or a TnT scene's .ply/.json/_trans.txt/_COLMAP_SfM.log")
 
-    ``load_images=False`` reads cameras and image headers only (``images`` is empty, ``masks`` None).
-    ``gt_root`` (DTU only) is the folder holding ``Points/`` and ``ObsMask/`` when it is not the scene
-    folder or its parent.
+
+def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images: bool = True, gt_root=None) -> Scene:
+    """Load a scene folder or built-in name; the images are divided by
+    `gsbench.data.resolution.fit_downscale` of ``downscale`` (>= 1) and ``max_size`` ([long, short] px).
+
+    ``load_images=False`` reads cameras and image headers only (``images`` is empty, ``masks`` None,
+    ``mask_paths`` set). ``gt_root`` (``--gt``) is the folder holding the ground truth when it is not
+    beside the scene: DTU ``Points/`` and ``ObsMask/`` (the official SampleSet), or a TnT scene's four
+    GT files.
     """
     if downscale < 1.0:
         raise DataError(f"downscale must be >= 1 (it divides the image size), got {downscale}")
+    _check_gt_root(gt_root)
     root = make_scene(path_or_name) if _is_builtin_name(path_or_name) else Path(path_or_name)
     fmt = detect_format(root)
+    kwargs = {"downscale": downscale, "max_size": tuple(max_size or ()), "load_images": load_images,
+              "gt_root": Path(gt_root) if gt_root else None}
     if fmt == "tnt":
         from gsbench.data.tnt import load_tnt  # noqa: PLC0415
 
-        return load_tnt(root, downscale=downscale, load_images=load_images)
+        return load_tnt(root, **kwargs)
     from gsbench.data.dtu import load_dtu, load_dtu_colmap  # noqa: PLC0415
 
-    loader = load_dtu if fmt == "dtu" else load_dtu_colmap
-    return loader(root, downscale=downscale, load_images=load_images, gt_root=Path(gt_root) if gt_root else None)
+    return (load_dtu if fmt == "dtu" else load_dtu_colmap)(root, **kwargs)
+
+
+def has_ground_truth(path_or_name, gt_root=None) -> bool:
+    """Whether a scene has its ground truth, from file checks only (built-in scenes always do)."""
+    if _is_builtin_name(path_or_name):
+        return True
+    root = Path(path_or_name)
+    _check_gt_root(gt_root)
+    if detect_format(root) == "tnt":
+        from gsbench.data.tnt import gt_files, scene_gt_name  # noqa: PLC0415
+
+        folder = Path(gt_root) if gt_root else root
+        return all(p.is_file() for p in gt_files(folder, scene_gt_name(root, read_meta(root))).values())
+    from gsbench.data.dtu import dtu_ground_truth, scan_number  # noqa: PLC0415
+
+    return dtu_ground_truth(root, scan_number(root, read_meta(root)), Path(gt_root) if gt_root else None)[0] is not None
 
 
 def _default_folder(plan, custom_size: bool) -> Path:
@@ -128,35 +154,49 @@ def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int 
     return out
 
 
-def _expected_gt(scene: Scene | None, root: Path, fmt: str) -> dict[str, bool]:
+def _ground_truth_files(scene: Scene | None, root: Path, fmt: str, gt_root) -> dict[str, bool]:
+    """Every ground-truth file the scene's protocol reads, with the paths filled in: found or not."""
     if fmt == "tnt":
         from gsbench.data.tnt import gt_files, scene_gt_name  # noqa: PLC0415
 
-        return {p.name: p.is_file() for p in gt_files(root, scene_gt_name(root, read_meta(root))).values()}
-    gt = scene.gt if scene is not None else None
-    if gt is None:
-        return {"Points/stl/stl{scan:03d}_total.ply": False}
-    return {rel: (gt.root / rel).is_file() for rel in (f"Points/stl/stl{gt.scan:03d}_total.ply",
-                                                       f"ObsMask/ObsMask{gt.scan}_10.mat", f"ObsMask/Plane{gt.scan}.mat")}
+        folder = Path(gt_root) if gt_root else root
+        return {str(p): p.is_file() for p in gt_files(folder, scene_gt_name(root, read_meta(root))).values()}
+    from gsbench.data.dtu import scan_number  # noqa: PLC0415
+
+    scan = scan_number(root, read_meta(root))
+    if scan is None:
+        return {}
+    folder = scene.gt.root if scene is not None and scene.gt is not None else Path(gt_root) if gt_root else root
+    return {str(folder / rel): (folder / rel).is_file() for rel in (
+        f"Points/stl/stl{scan:03d}_total.ply", f"ObsMask/ObsMask{scan}_10.mat", f"ObsMask/Plane{scan}.mat")}
 
 
-def check_scene(path) -> dict:
-    """Load a folder fully and report: format, counts, image size, GT files found/missing, errors."""
+def check_scene(path, gt_root=None) -> dict:
+    """What a folder holds and what is wrong with it: format, counts, image size, ground truth.
+
+    Reads cameras, points and image/mask headers only (no pixel is decoded). ``ok`` is True when the
+    scene loads: ground truth is optional (``ground_truth`` says what was found, or why not, and
+    which evaluators a run will skip without it).
+    """
     root = Path(path)
     report = {"path": str(root), "format": None, "ok": False, "errors": []}
     try:
         report["format"] = detect_format(root)
-        scene = load_scene(root)
+        scene = load_scene(root, load_images=False, gt_root=gt_root)
     except GsbenchError as exc:
         report["errors"].append(str(exc))
         scene = None
     if scene is not None:
         report.update(scene.summary())
-        report["images"] = len(scene.images)
-        report["masks"] = 0 if scene.masks is None else len(scene.masks)
+        report["images"] = len(scene.cameras)
+        report["masks"] = len(scene.mask_paths or ())
         report["gt_depth_maps"] = scene.gt is not None and scene.gt.depth_maps is not None
         report["gt_normal_maps"] = scene.gt is not None and scene.gt.normal_maps is not None
     if report["format"]:
-        report["gt_files"] = _expected_gt(scene, root, report["format"])
-        report["ok"] = not report["errors"] and all(report["gt_files"].values())
+        report["ground_truth"] = {
+            "found": scene is not None and scene.gt is not None,
+            "files": _ground_truth_files(scene, root, report["format"], gt_root),
+            "missing": "" if scene is None else scene.gt_missing,
+        }
+    report["ok"] = scene is not None and not report["errors"]
     return report

@@ -28,6 +28,7 @@ import numpy as np
 
 from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
 from gsbench.data.meta import optional_dir, read_meta
+from gsbench.data.resolution import fit_downscale
 from gsbench.data.similarity import similarity, transform_camera
 from gsbench.errors import DataError
 
@@ -102,14 +103,21 @@ def gt_files(root: Path, name: str) -> dict[str, Path]:
     return {suffix: root / f"{name}{suffix}" for suffix in GT_SUFFIXES}
 
 
-def load_tnt(root: Path, *, downscale: float = 1.0, load_images: bool = True) -> Scene:
-    """Load a TnT-layout scene (see the module docstring); cameras and SfM points are normalised."""
+def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,
+             gt_root: Path | None = None) -> Scene:
+    """Load a TnT-layout scene (see the module docstring); cameras and SfM points are normalised.
+
+    ``gt_root`` (``--gt``): the folder holding the four GT files when it is not the scene folder (the
+    official ``GT/{scene}/`` download); the images are divided by `fit_downscale` of ``downscale``
+    and ``max_size``."""
     from gsbench.data.colmap import colmap_image_paths, read_colmap_model  # noqa: PLC0415
     from gsbench.data.images import read_views  # noqa: PLC0415
 
     root = Path(root)
     model = read_colmap_model(root / "sparse" / "0")
     paths = colmap_image_paths(root, model.cameras)
+    size = (model.cameras[0].width, model.cameras[0].height)
+    downscale = fit_downscale(*size, downscale, max_size)
     images, _ = read_views(paths, None, [(c.width, c.height) for c in model.cameras], downscale, load_images)
     norm = nerfpp_normalisation(np.array([c.center for c in model.cameras]))
     cameras = normalise_cameras(model.cameras, norm)
@@ -117,15 +125,17 @@ def load_tnt(root: Path, *, downscale: float = 1.0, load_images: bool = True) ->
         cameras = [c.scaled(1.0 / downscale) for c in cameras]
     meta = read_meta(root)
     name = scene_gt_name(root, meta)
-    files = gt_files(root, name)
+    gt_folder = Path(gt_root) if gt_root else root
+    missing = [str(p) for p in gt_files(gt_folder, name).values() if not p.is_file()]
     gt = None
-    if all(p.is_file() for p in files.values()):
-        gt = GroundTruth(kind="tnt", root=root, name=name, tau=meta.get("tau", TNT_TAU.get(name)),
+    if not missing:
+        gt = GroundTruth(kind="tnt", root=gt_folder, name=name, tau=meta.get("tau", TNT_TAU.get(name)),
                          normal_maps=optional_dir(root / "gt_normal"), depth_maps=optional_dir(root / "gt_depth"))
     has_points = len(model.points) > 0
     return Scene(
         name=meta.get("name", root.name), fmt="tnt", root=root, cameras=cameras, images=images, masks=None,
         points=norm.invert(model.points) if has_points else None, colors=model.colors if has_points else None,
-        normalisation=norm, gt=gt, image_names=[p.name for p in paths],
+        normalisation=norm, gt=gt, gt_missing=f"{', '.join(missing)} not found" if missing else "",
+        image_names=[p.name for p in paths], source_size=size, downscale=downscale,
     )
 

@@ -4,7 +4,7 @@ No method can beat the mesh that the same TSDF settings make from the *exact* de
 training resolution: that mesh is the floor a method's numbers are read against. `floor_report`:
 
 1. resolve the run config of ``3dgs`` on the scene with the preset and overrides (only the dataset
-   and preset layers matter: ``data.downscale``, ``data.use_masks`` and the ``mesh`` TSDF settings;
+   and preset layers matter: ``data.downscale`` and ``data.max_size``, ``data.use_masks`` and the ``mesh`` TSDF settings;
    3DGS's method layer sets no mesh parameter);
 2. re-plan the scene from its ``gsbench_scene.json`` (built-in name, format, resolution, seed) and
    ray-cast every training camera at the training resolution (`gsbench.data.render.Renderer`, the
@@ -48,14 +48,13 @@ def exact_depth_maps(scene: Scene) -> list[np.ndarray]:
 def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Path) -> dict:
     """Fuse the exact depth of ``scene_name`` and evaluate it (module docstring); the mesh goes to
     ``out/floor.ply``. Returns `gsbench.evaluators.api.evaluate_mesh_file`'s report plus the config."""
-    from gsbench.data.loader import load_scene  # noqa: PLC0415
-    from gsbench.evaluators.api import default_evaluators, evaluate_mesh_file  # noqa: PLC0415
+    from gsbench.evaluators.api import evaluate_mesh_file  # noqa: PLC0415
     from gsbench.mesh.cleanup import canonical_order  # noqa: PLC0415
     from gsbench.mesh.tsdf import tsdf_fusion  # noqa: PLC0415
-    from gsbench.runner import resolve_run  # noqa: PLC0415
+    from gsbench.runner import load_run_scene, plan_run_evaluation, resolve_run  # noqa: PLC0415
 
     cfg = resolve_run("3dgs", scene_name, preset=preset, overrides=overrides)
-    scene = load_scene(cfg.scene, downscale=cfg.data.downscale)
+    scene = load_run_scene(cfg)
     depths = exact_depth_maps(scene)
     masks = scene.masks if cfg.data.use_masks and scene.masks is not None else None
     mesh = tsdf_fusion(depths, scene.cameras, cfg.mesh, scene.radius, masks=masks)
@@ -63,8 +62,7 @@ def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Pat
     out.mkdir(parents=True, exist_ok=True)
     mesh_path = out / "floor.ply"
     canonical_order(mesh).export(mesh_path)
-    names = [n for n in (cfg.eval.evaluators or default_evaluators(scene)) if n not in ("image", "surface_offset")]
-    names.append("surface_offset")
+    names = [n for n in plan_run_evaluation(cfg, scene).mesh if n != "surface_offset"] + ["surface_offset"]
     options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in names else {}
     report = evaluate_mesh_file(mesh_path, scene, names, options)
     report["config"] = {"preset": preset, "overrides": list(overrides), "resolution": [scene.cameras[0].width,

@@ -6,6 +6,11 @@ ranked by one metric. A `Cell` holds the runs of one row on one scene; its value
 mean is the mean of its scene means (each scene weighs the same, as in the papers); it is ranked only
 when the row has a value on every scene of the board. Missing runs are counted: for the leaderboard,
 the (scene, seed) pairs a row lacks among its seeds; for a sweep, the manifest entries without a record.
+
+A scene none of whose runs has the ranking metric, where a run's record says that metric's evaluator
+was skipped (``skipped``: the scene cannot feed it, e.g. a capture without ground truth), is left off
+the leaderboard (`unscored_scenes`, listed in ``Board.unscored``): its runs did not fail, they are
+judged by the measures that need no ground truth (the report's own table for them).
 """
 
 from __future__ import annotations
@@ -108,6 +113,7 @@ class Board:
     reported: dict[str, Reported] = field(default_factory=dict)
     grid_key: str | None = None
     grid_values: list[float] = field(default_factory=list)
+    unscored: list[str] = field(default_factory=list)  # scenes left off: the metric's evaluator was skipped
 
     def mean(self, row: Row) -> tuple[float | None, bool]:
         """(row mean over scenes, whether every scene has a value)."""
@@ -155,10 +161,27 @@ def natural_key(name: str) -> tuple:
     return tuple(float(p) if i % 2 else p for i, p in enumerate(parts))
 
 
+def unscored_scenes(runs: list[Run], spec: MetricSpec) -> list[str]:
+    """Scenes where no run has ``spec``'s metric and some run records its evaluator as skipped (any
+    evaluator when ``spec`` does not name one), sorted."""
+    scenes: dict[str, list[Run]] = {}
+    for run in runs:
+        scenes.setdefault(run.scene, []).append(run)
+    unscored = []
+    for scene, group in scenes.items():
+        if any(spec.name in r.metrics for r in group):
+            continue
+        if any((spec.evaluator in r.skipped) if spec.evaluator else bool(r.skipped) for r in group):
+            unscored.append(scene)
+    return sorted(unscored)
+
+
 def leaderboard(runs: list[Run], dataset: str, spec: MetricSpec, reported: dict[str, Reported]) -> Board:
     """The method × scene board of ``dataset``: one row per configuration (`Run.row`), sorted by name
-    (`natural_key`)."""
+    (`natural_key`); scenes that cannot be scored by ``spec`` are left off (`unscored_scenes`)."""
     runs = [r for r in runs if r.dataset == dataset]
+    unscored = unscored_scenes(runs, spec)
+    runs = [r for r in runs if r.scene not in unscored]
     scenes = sorted({r.scene for r in runs})
     groups: dict[str, list[Run]] = {}
     for run in runs:
@@ -170,7 +193,7 @@ def leaderboard(runs: list[Run], dataset: str, spec: MetricSpec, reported: dict[
         missing = {s: len(seeds - {r.seed for r in group if r.scene == s}) for s in scenes}
         rows.append(make_row(name, group, spec.name, missing))
     title = f"{DATASET_TITLES.get(dataset, dataset)} ({dataset}): {spec.label}, {spec.direction}"
-    return Board(title, dataset, spec, scenes, rows, reported)
+    return Board(title, dataset, spec, scenes, rows, reported, unscored=unscored)
 
 
 def _grid(labels: list[str]) -> tuple[str | None, list[float]]:

@@ -1,6 +1,12 @@
 """`write_report`: a runs folder -> ``leaderboard.md``, ``leaderboard.csv``, ``index.html`` and
 ``plots/*.png`` in the output folder (``gsbench report RUNS_DIR --out DIR``).
 
+Runs with measures that need no ground truth (held-out PSNR/SSIM, mask IoU, the surface outside the
+masks' visual hull, mesh statistics) or with skipped evaluators get the section "Captures without
+ground truth"; it is left out when no run has either. A scene that cannot feed a dataset's ranking
+metric is left off that leaderboard (`gsbench.report.aggregate.unscored_scenes`) rather than shown
+as runs without a metric.
+
 The Markdown and CSV hold no timestamps or absolute paths, so they are byte-stable for the same
 records (golden tests); the HTML adds the generation time (``generated``, injectable), the runs
 folder, the warnings and the list of every run.
@@ -18,7 +24,8 @@ from gsbench.report.html import document_html
 from gsbench.report.metrics import metric_specs, primary_metric, reported
 from gsbench.report.tables import Plot, Section, document_markdown
 from gsbench.report.views import (ablation_table, environment_table, failed_table, leaderboard_csv,
-                                  leaderboard_table, protocol_table, runs_table, speed_table)
+                                  leaderboard_table, nogt_table, protocol_table, runs_table, skipped_table,
+                                  speed_table)
 
 TITLE = "gsbench report"
 ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
@@ -69,15 +76,34 @@ def _leaderboards(runs, warnings: list[str]) -> tuple[dict, list[Board]]:
     for dataset in sorted({r.dataset for r in runs}):
         spec = primary_metric(dataset, {m for r in runs if r.dataset == dataset and r.ok for m in r.metrics}, specs)
         if spec is None:
-            warnings.append(f"dataset '{dataset}': no run has a metric, so it has no leaderboard")
+            warnings.append(f"dataset '{dataset}': no run has a metric that ranks, so it has no leaderboard")
         else:
             primary[dataset] = spec
     boards = []
     for dataset, spec in primary.items():
         methods = sorted({r.method for r in runs if r.dataset == dataset})
         refs = {m: reported(m, dataset, warnings) for m in methods}
-        boards.append(leaderboard(runs, dataset, spec, {m: r for m, r in refs.items() if r is not None}))
+        # a paper's number sits only beside the metric it reports (not beside a fallback such as PSNR)
+        board = leaderboard(runs, dataset, spec, {m: r for m, r in refs.items() if r is not None and r.metric == spec.name})
+        if board.scenes:
+            boards.append(board)
+        else:
+            warnings.append(f"dataset '{dataset}': no scene can be scored by {spec.label} (its evaluator was skipped "
+                            f"on {', '.join(board.unscored)}), so it has no leaderboard; see Captures without "
+                            "ground truth")
     return primary, boards
+
+
+def _without_gt(runs) -> Section | None:
+    """The section of the measures that need no ground truth and of the skipped evaluators; None when
+    no run has either."""
+    table, skipped = nogt_table(runs, metric_specs()), skipped_table(runs)
+    if not table.rows and not skipped.rows:
+        return None
+    about = ("What can be measured without ground-truth geometry: renders of held-out views against their "
+             "photos, the mesh against the object masks, and the mesh itself. A capture without ground truth "
+             "is judged by these alone; runs with ground truth are listed too.")
+    return Section("without-ground-truth", "Captures without ground truth", [about], [table, skipped])
 
 
 def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict[str, list[str]]]:
@@ -124,8 +150,9 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
         speed.blocks += made.add(f"speed_{board.dataset}", f"{board.dataset}: cost against {board.spec.label}",
                                  figures.speed_figure, board)
     sweeps, sweep_labels = _sweeps(manifests, runs, primary, made)
+    without_gt = _without_gt(runs)
     sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE], [leaderboard_table(b) for b in boards]),
-                speed, sweeps,
+                speed, *([without_gt] if without_gt else []), sweeps,
                 Section("failed", "Failed and unfinished runs", [], [failed_table(runs)]),
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),
                 Section("environment", "Environment", [], [environment_table(runs)])]

@@ -10,6 +10,9 @@ Rows of a leaderboard are configurations, not just methods: `label_variants` nam
 config keys whose values differ between runs of the same method on the same scene (e.g.
 ``method.knn_k=5``), so runs of different configs are never averaged together as if they were seeds.
 
+A record's ``skipped`` ({evaluator: reason}: the evaluators its scene could not feed, e.g. no ground
+truth) is kept as `Run.skipped`; records written before that field read as none skipped.
+
 Sweep manifests (``<out>/sweeps/<name>.json``, written by ``gsbench sweep``) give the row labels of
 ablations: ``{"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed",
 "dir", "status"}]}``; the status of a run comes from its record (an entry without one is missing).
@@ -20,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from gsbench.errors import GsbenchError
@@ -55,6 +58,7 @@ class Run:
     error_tail: str
     config: dict
     variant: str = ""
+    skipped: dict = field(default_factory=dict)  # evaluator -> why it could not score the scene (record ``skipped``)
 
     @property
     def ok(self) -> bool:
@@ -113,6 +117,8 @@ def _run(data: dict, rel: str) -> Run:
     metrics = {k: float(v) for k, v in (data.get("metrics") or {}).items()
                if _number(v) is not None and math.isfinite(v)}
     timings = {k: float(v) for k, v in (data.get("timings") or {}).items() if _number(v) is not None}
+    # evaluators the plan left out (records from before the field have none)
+    skipped = data.get("skipped") if isinstance(data.get("skipped"), dict) else {}
     return Run(
         run_id=str(data["run_id"]), dataset=str(data["dataset"]), scene=Path(str(data["scene"]).rstrip("/")).name,
         method=str(data["method"]), seed=_number(data.get("seed")), status=str(data.get("status") or "unknown"),
@@ -121,6 +127,7 @@ def _run(data: dict, rel: str) -> Run:
         threads=threads, iterations=iterations,
         eval_protocol=data.get("eval_protocol") if isinstance(data.get("eval_protocol"), dict) else {},
         environment=environment, error_tail=str(data.get("error_tail") or ""), config=flatten(config),
+        skipped={str(k): " ".join(str(v).split()) for k, v in skipped.items()},
     )
 
 

@@ -5,6 +5,12 @@ Directions and units come from the evaluators (`MetricInfo` of each registered e
 covers the built-in metrics when an evaluator cannot be imported. The ranking metric of a dataset is
 the one its papers rank by: DTU Chamfer (mm, lower is better), TnT F1 (higher is better).
 
+Measures that need no ground-truth geometry (`NO_GT`: held-out PSNR/SSIM of ``image``, the mask
+agreement of ``silhouette``, the ``mesh_stats`` description) have their own table, per run. Of them only
+PSNR/SSIM may rank a leaderboard (when no run of a dataset has its papers' metric); `UNRANKED` never
+do: mask IoU and the outside-hull share compare with masks, not with the object, and the mesh
+statistics describe a mesh (``area``, ``vertices``, ``faces`` are not scores at all).
+
 Reported numbers: a method plugin class may declare ``REPORTED`` (read from the class itself, not
 inherited, since a subclass is a different method)::
 
@@ -23,13 +29,22 @@ PRIMARY = {"dtu": "chamfer", "tnt": "f1"}
 PRIMARY_ORDER = ("chamfer", "f1", "psnr")
 DATASET_TITLES = {"dtu": "DTU protocol", "tnt": "Tanks and Temples protocol"}
 REAL_DATASETS = {"dtu": "real DTU", "tnt": "real TnT"}
-DISPLAY = {"chamfer": "Chamfer", "f1": "F1", "psnr": "PSNR", "ssim": "SSIM", "normal_consistency": "normal consistency"}
+DISPLAY = {"chamfer": "Chamfer", "f1": "F1", "psnr": "PSNR", "ssim": "SSIM", "normal_consistency": "normal consistency",
+           "mask_iou": "mask IoU", "mask_iou_min": "worst-view mask IoU",
+           "outside_hull_area_share": "outside-hull area share"}
 FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics
     "chamfer": (False, "mm"), "accuracy": (False, "mm"), "completeness": (False, "mm"),
     "f1": (True, ""), "precision": (True, ""), "recall": (True, ""),
     "normal_consistency": (True, ""), "normal_accuracy": (True, ""), "normal_completeness": (True, ""),
     "normal_consistency_ungated": (True, ""), "psnr": (True, "dB"), "ssim": (True, ""),
+    "mask_iou": (True, ""), "mask_iou_min": (True, ""), "outside_hull_area_share": (False, ""),
+    "components": (False, ""), "watertight": (True, ""), "area": (False, "units^2"), "vertices": (False, ""),
+    "faces": (False, ""),
 }
+# The no-ground-truth table's metrics, in column order (names as in a record's ``metrics``).
+NO_GT = ("psnr", "ssim", "mask_iou", "outside_hull_area_share", "components", "watertight", "area")
+UNRANKED = frozenset({"mask_iou", "mask_iou_min", "outside_hull_area_share", "components", "watertight", "area",
+                      "vertices", "faces"})
 
 
 @dataclass(frozen=True)
@@ -67,8 +82,9 @@ def metric_specs() -> dict[str, MetricSpec]:
 
 def primary_metric(dataset: str, metrics_seen: set[str], specs: dict[str, MetricSpec]) -> MetricSpec | None:
     """The ranking metric of ``dataset``: `PRIMARY`, else the first of `PRIMARY_ORDER` its runs have,
-    else the alphabetically first metric they have; None when no run has a metric."""
-    candidates = [PRIMARY.get(dataset), *PRIMARY_ORDER, *sorted(metrics_seen)]
+    else the alphabetically first metric they have outside `UNRANKED`; None when no run has one (for a
+    dataset of `PRIMARY`: its papers' metric, whether or not a run has it)."""
+    candidates = [PRIMARY.get(dataset), *PRIMARY_ORDER, *sorted(set(metrics_seen) - UNRANKED)]
     for name in candidates:
         if name and name in metrics_seen:
             return specs.get(name) or MetricSpec(name, False, "")

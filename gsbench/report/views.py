@@ -1,5 +1,6 @@
 """The report's tables, built from boards and runs: leaderboard, speed against error, sweep ablations,
-failed runs, protocols, environment and the list of every run; and the long-format leaderboard CSV.
+the measures of captures without ground truth and the evaluators skipped, failed runs, protocols,
+environment and the list of every run; and the long-format leaderboard CSV.
 
 Every table is sorted deterministically and formats numbers with fixed digits (`gsbench.report.tables`).
 """
@@ -9,10 +10,11 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 
-from gsbench.report.aggregate import SPEED, Board, Row, Stat, stat
+from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
 from gsbench.report.collect import Run
-from gsbench.report.metrics import REAL_DATASETS, MetricSpec
+from gsbench.report.metrics import NO_GT, REAL_DATASETS, MetricSpec
 from gsbench.report.pareto import COSTS, cost_points
 from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
 
@@ -74,6 +76,9 @@ def leaderboard_table(board: Board) -> Table:
         "Runs: ok, failed and other statuses, and missing (scene, seed) pairs among the seeds a row has.",
         protocol_note(board),
     ]
+    if board.unscored:
+        notes.append(f"Not on this board: {_join(board.unscored)} — no run there has {board.spec.label}, its "
+                     f"evaluator was skipped (see Captures without ground truth).")
     sources = sorted((m, r) for m, r in board.reported.items() if r.mean is not None)
     if sources:
         notes.append(
@@ -185,6 +190,67 @@ def _grid_table(board: Board, anchor: str, notes: list[str]) -> Table:
     rows.append([plain("Gaussians")] + [cells[1] for cells in speed])
     rows.append([plain("runs")] + [plain(status_text(row.counts)) for row in board.rows])
     return Table(anchor, board.title, header, rows, notes)
+
+
+def significant(value: float | None, digits: int = 4) -> str:
+    """``value`` to ``digits`` significant digits in fixed notation (whole numbers in full, thousands separated)."""
+    if value is None:
+        return MISSING
+    if value == 0 or not math.isfinite(value):
+        return f"{value:g}"
+    decimals = max(0, digits - 1 - math.floor(math.log10(abs(value))))
+    return f"{value:,.{decimals}f}"
+
+
+NO_GT_FORMAT = {  # metric -> (cell text of a value)
+    "psnr": lambda v: number(v, 2), "ssim": number, "mask_iou": number,
+    "outside_hull_area_share": lambda v: number(v, 4), "components": count,
+    "watertight": lambda v: "yes" if v >= 0.5 else "no", "area": significant,
+}
+
+
+def nogt_table(runs: list[Run], specs: dict[str, MetricSpec]) -> Table:
+    """One line per run with a measure that needs no ground truth (`NO_GT`): its values, training time and
+    Gaussian count; sorted by dataset, scene, row, seed."""
+    header = ["dataset", "scene", "method", "seed", "status"]
+    header += [specs[m].label if m in specs else m for m in NO_GT] + ["train (s)", "Gaussians"]
+    rows = []
+    for r in sorted((r for r in runs if any(m in r.metrics for m in NO_GT)),
+                    key=lambda r: (r.dataset, r.scene, natural_key(r.row), r.seed if r.seed is not None else -1,
+                                   r.run_id)):
+        values = [r.metrics.get(m) for m in NO_GT]
+        train = r.timings.get("train")
+        rows.append([plain(r.dataset), plain(r.scene), plain(r.row), TCell(str(r.seed), r.seed),
+                     plain(r.status, None, "" if r.ok else "bad"),
+                     *(TCell(NO_GT_FORMAT[m](v) if v is not None else MISSING, v) for m, v in zip(NO_GT, values)),
+                     TCell(number(train, 1), train), TCell(count(r.num_gaussians), r.num_gaussians)])
+    notes = [
+        "Per run, with or without ground truth. PSNR / SSIM: renders of the held-out views (`image`); mask IoU: "
+        "mean over views of |silhouette ∩ mask| / |silhouette ∪ mask| and outside-hull area share: the fraction "
+        "of the surface area outside the masks' visual hull, floaters (`silhouette`); components, watertight, "
+        "area: `mesh_stats`.",
+        "Higher is better: PSNR, SSIM, mask IoU, watertight; lower is better: outside-hull area share, components. "
+        "Area (dataset units², DTU: mm²) is descriptive, not a score. None of these ranks the leaderboards.",
+        "Train: the run's wall-clock training seconds, comparable only between runs at the same thread count on an "
+        "equally loaded machine of the same kind (see Environment).",
+    ]
+    return Table("no-ground-truth", "Measures without ground truth", header, rows, notes)
+
+
+def skipped_table(runs: list[Run]) -> Table:
+    """The evaluators a run's scene could not feed, with the reason, grouped by (dataset, scene,
+    evaluator, reason): the methods and how many runs."""
+    groups: dict[tuple, list[Run]] = {}
+    for r in runs:
+        for evaluator, reason in r.skipped.items():
+            groups.setdefault((r.dataset, r.scene, evaluator, reason), []).append(r)
+    rows = [[plain(dataset), plain(scene), plain(evaluator), plain(reason),
+             plain(_join(sorted({r.row for r in group}, key=natural_key))), TCell(str(len(group)), len(group))]
+            for (dataset, scene, evaluator, reason), group in sorted(groups.items())]
+    return Table("skipped-evaluators", "Evaluators skipped", ["dataset", "scene", "evaluator", "reason", "methods",
+                                                              "runs"], rows,
+                 ["An evaluator is skipped when the scene cannot feed it (no ground truth, no masks, no held-out "
+                  "view); the run still trains, meshes and is judged by what can be measured."])
 
 
 def _last_line(text: str) -> str:

@@ -1,0 +1,97 @@
+"""Plain statistics of a mesh, protocol v1: numbers every scene has, with or without ground truth or masks.
+
+They describe the mesh; they do not score it against anything. A mesh of one object should be one
+closed piece, so ``components`` (lower is better: stray pieces are floaters or fragments) and
+``watertight`` (higher is better) read as quality signals; ``area``, ``vertices`` and ``faces`` are
+descriptive only — they are declared ``higher_is_better=False`` (a smaller mesh for the same object is
+cheaper, and extra area is mostly floaters), but no ranking should be built on them, and the report
+never ranks a leaderboard by them (`gsbench.report.metrics`).
+
+Definitions (the mesh as read, ``process=False``):
+
+- ``vertices``, ``faces``: the counts of the file as written.
+- ``components``: connected components of the faces, two faces joined when they share an edge
+  (``trimesh.graph.connected_components`` of ``face_adjacency``), after merging vertices at the same
+  position (``Trimesh.merge_vertices``), so a mesh written with unshared vertices is not one
+  component per triangle. Faces that touch at a single vertex only are separate components.
+- ``watertight``: 1.0 when every edge of the merged mesh belongs to exactly two faces
+  (``Trimesh.is_watertight``), else 0.0.
+- ``area``: ``Σ_t A_t`` in the dataset frame (DTU: mm², TnT: the COLMAP frame's units²): the area in
+  the normalised frame × ``Normalisation.scale²`` (a similarity scales areas by s²), or the area as
+  given for ``frame="dataset"``.
+
+An empty mesh (no faces) gives zeros (``vertices``: its count) with a warning.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gsbench.data.camera import Scene
+from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
+from gsbench.evaluators.geometry import _read, check_frame, load_geometry
+
+
+@dataclass(frozen=True)
+class MeshStatsOptions:
+    frame: str = "normalised"
+
+
+def face_components(mesh) -> int:
+    """Connected components of ``mesh``'s faces over shared edges (module docstring)."""
+    import trimesh  # noqa: PLC0415
+
+    return len(trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mesh.faces))))
+
+
+class MeshStats(Evaluator):
+    """Components, watertightness, surface area and size of a mesh."""
+
+    name = "mesh_stats"
+    version = 1
+    requires = ("mesh",)
+    needs = ()
+    metrics = {
+        "components": MetricInfo(False, "", "connected components of faces (shared edges); 1 for one closed object"),
+        "watertight": MetricInfo(True, "", "1.0 when every edge has exactly two faces, else 0.0"),
+        "area": MetricInfo(False, "units^2", "surface area in the dataset frame (DTU: mm^2); descriptive, not a score"),
+        "vertices": MetricInfo(False, "", "vertex count; descriptive, not a score"),
+        "faces": MetricInfo(False, "", "face count; descriptive, not a score"),
+    }
+    Options = MeshStatsOptions
+
+    def validate(self, scene: Scene) -> None:
+        """Nothing to check: every scene can be described."""
+
+    def evaluate(self, mesh, scene: Scene, **options) -> dict:
+        import trimesh  # noqa: PLC0415
+
+        opts = self.options(**options)
+        check_frame(opts.frame)
+        diag = Diagnostics()
+        with diag.phase("load"):
+            geo = _read(mesh)  # not load_geometry: an empty mesh is described (zeros), not an error
+            if len(geo.vertices) and geo.is_mesh:
+                geo = load_geometry(geo, need_faces=True)
+        if not geo.is_mesh:
+            diag.warn(f"mesh_stats: {geo.label} has no faces; zeros reported")
+            metrics = {"components": 0.0, "watertight": 0.0, "area": 0.0, "vertices": float(len(geo.vertices)),
+                       "faces": 0.0}
+            return {"metrics": metrics, "protocol": self.protocol(opts), "diagnostics": diag.finish()}
+        with diag.phase("topology"):
+            merged = trimesh.Trimesh(geo.vertices, geo.faces, process=False)
+            merged.merge_vertices()
+            components = face_components(merged)
+            watertight = bool(merged.is_watertight)
+        tri = geo.vertices[geo.faces]
+        area = float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+        scale = float(scene.normalisation.scale) if opts.frame == "normalised" else 1.0
+        diag.data.update(area_given_frame=area, scale=scale, merged_vertices=int(len(merged.vertices)))
+        return {
+            "metrics": {"components": float(components), "watertight": 1.0 if watertight else 0.0,
+                        "area": area * scale**2, "vertices": float(len(geo.vertices)), "faces": float(len(geo.faces))},
+            "protocol": self.protocol(opts),
+            "diagnostics": diag.finish(),
+        }

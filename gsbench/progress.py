@@ -1,0 +1,129 @@
+"""Progress lines for runs whose stderr is not a terminal (a log file, a batch job, a pipe).
+
+tqdm with ``disable=None`` turns itself off when stderr is not a TTY, so a run logged to a file would
+print nothing for its whole training. `ProgressLines` fills that gap: when stderr is *not* a terminal
+it prints one line every ``interval`` seconds (default `DEFAULT_INTERVAL`, 30 s), e.g.::
+
+    train 2dgs: step 1200/3000 (40%) 3.1 it/s loss 0.0712 N 23456 ETA 9m41s
+
+and a final line when closed; when stderr *is* a terminal it prints nothing (tqdm draws the bar).
+The rate is the mean over the steps done since this process started (a resumed run's earlier steps
+are not counted), the ETA is the remaining steps at that rate.
+
+`stage(message)` prints ``gsbench: <message>`` to stderr, terminal or not (one line per run stage).
+Both flush at once so a log file shows each line as it is written. Only the standard library is
+imported here.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+DEFAULT_INTERVAL = 30.0
+
+__all__ = ["DEFAULT_INTERVAL", "ProgressLines", "format_duration", "is_terminal", "stage"]
+
+
+def is_terminal(stream) -> bool:
+    """``stream.isatty()``, False for streams without it or closed ones."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+def format_duration(seconds: float) -> str:
+    """``41s``, ``9m41s``, ``2h05m`` (rounded to whole seconds; ``?`` when unknown/infinite)."""
+    if seconds is None or seconds != seconds or seconds == float("inf") or seconds < 0:
+        return "?"
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{(s % 3600) // 60:02d}m"
+
+
+def stage(message: str, stream=None) -> None:
+    """Print ``gsbench: <message>`` on its own line to stderr (or ``stream``) and flush."""
+    stream = sys.stderr if stream is None else stream
+    print(f"gsbench: {message}", file=stream, flush=True)
+
+
+class ProgressLines:
+    """Periodic one-line progress reports on a non-terminal stream (module docstring).
+
+    ``total``: the last step; ``initial``: the step training starts from (a resume); ``interval``:
+    seconds between lines (0: a line every update); ``stream``: default ``sys.stderr`` (looked up
+    when constructed); ``enabled``: default ``not is_terminal(stream)``.
+    """
+
+    def __init__(self, desc: str, total: int, initial: int = 0, interval: float = DEFAULT_INTERVAL,
+                 stream=None, enabled: bool | None = None, clock=time.perf_counter):
+        self.desc, self.total, self.initial = desc, int(total), int(initial)
+        self.interval = float(interval)
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = (not is_terminal(self.stream)) if enabled is None else bool(enabled)
+        self.clock = clock
+        self.start = self.last = clock()
+        self.step = self.initial
+        self.loss: float | None = None
+        self.num_gaussians: int | None = None
+        self.lines = 0
+        self.closed = False
+
+    def rate(self, now: float | None = None) -> float:
+        """Steps per second since construction (0 before the first step)."""
+        elapsed = (self.clock() if now is None else now) - self.start
+        done = self.step - self.initial
+        return done / elapsed if done > 0 and elapsed > 0 else 0.0
+
+    def line(self, now: float | None = None, final: bool = False) -> str:
+        now = self.clock() if now is None else now
+        rate = self.rate(now)
+        pct = 100.0 * self.step / self.total if self.total > 0 else 100.0
+        parts = [f"{self.desc}: step {self.step}/{self.total} ({pct:.0f}%)", f"{rate:.3g} it/s"]
+        if self.loss is not None:
+            parts.append(f"loss {self.loss:.4g}")
+        if self.num_gaussians is not None:
+            parts.append(f"N {self.num_gaussians}")
+        if final:
+            parts.append(f"done in {format_duration(now - self.start)}")
+        else:
+            remaining = max(self.total - self.step, 0)
+            parts.append(f"ETA {format_duration(remaining / rate) if rate > 0 else '?'}")
+        return " ".join(parts)
+
+    def _emit(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
+        self.lines += 1
+
+    def update(self, step: int, loss: float | None = None, num_gaussians: int | None = None) -> None:
+        """Record the state after ``step``; print a line if ``interval`` seconds passed since the last."""
+        self.step = int(step)
+        if loss is not None:
+            self.loss = float(loss)
+        if num_gaussians is not None:
+            self.num_gaussians = int(num_gaussians)
+        if not self.enabled:
+            return
+        now = self.clock()
+        if now - self.last >= self.interval:
+            self.last = now
+            self._emit(self.line(now))
+
+    def close(self) -> None:
+        """Print the final line (once; only when enabled)."""
+        if self.closed:
+            return
+        self.closed = True
+        if self.enabled:
+            self._emit(self.line(final=True))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is None:
+            self.close()
