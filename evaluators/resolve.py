@@ -7,7 +7,8 @@ images (cameras, headers, ground-truth lookup):
 
 - ``eval.evaluators`` empty → the dataset's `DEFAULT_EVALUATORS`; one whose needs the scene does not
   meet is skipped, and the reason goes into the run record (``skipped``), so a capture without ground
-  truth still trains, meshes and is judged by what can be measured;
+  truth still trains, meshes and is judged by what can be measured (``image`` is left out, not
+  skipped, when the config holds no view out: that is a choice, not something the scene lacks);
 - ``eval.evaluators`` named by the user → every one must apply; otherwise one `EvaluationError`
   listing each unmet need and its fix, raised before the images are loaded.
 
@@ -69,7 +70,8 @@ def unmet_need(name: str, scene: Scene, held_out: int) -> str:
 
 def plan_evaluation(scene: Scene, dataset: str, named, held_out: int) -> EvaluationPlan:
     """The evaluators to run on ``scene`` (module docstring); ``named`` is ``eval.evaluators``."""
-    names = tuple(named) or DEFAULT_EVALUATORS.get(dataset, ("mesh_stats",))
+    names = tuple(named) or tuple(n for n in DEFAULT_EVALUATORS.get(dataset, ("mesh_stats",))
+                                  if n != IMAGE or held_out > 0)
     evaluators = {n: get_evaluator(n) for n in dict.fromkeys(names)}  # unknown names fail here, with a suggestion
     for name, evaluator in evaluators.items():
         if name != IMAGE and "mesh" not in evaluator.requires:

@@ -5,8 +5,9 @@ identity (method, scene, dataset, seed, run_id, status, error_tail), resolved co
 terms, ``inputs`` (what was trained on: the resolution and the size on disk, the downscale factor, the
 views trained and held out, masks, the initial Gaussian count), eval protocols, metrics, ``skipped``
 evaluators with the reason each could not score the scene, timings per stage in seconds (``load``, ``train``, ``extract``,
-``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of method-specific
-phases inside training, e.g. IBGS ``train.knn``), iterations/s, Gaussian count, peak RSS per
+``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of each part of
+the training step, ``render``, ``loss``, ``backward``, ``densify``, ``optimizer``, ``checks``, and
+of method-specific phases inside them, e.g. IBGS ``train.knn``; gsbench/train.py "Phases"), iterations/s, Gaussian count, peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
 threads, OS, host, UTC start/end).
 """

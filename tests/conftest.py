@@ -7,6 +7,7 @@ gsbench/__init__.py: two OpenMP runtimes spinning against each other on few core
 import os
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("GSBENCH_IMAGE_CACHE", "0")  # tests that use the decoded-image cache turn it on in a tmp folder
 
 import pytest  # noqa: E402
 import torch  # noqa: E402

@@ -60,9 +60,9 @@ def test_plan_skips_defaults_the_scene_cannot_feed_and_rejects_named_ones(tmp_pa
     assert full.names == DEFAULT_EVALUATORS["dtu"] and full.skipped == {} and full.image
     plan = plan_evaluation(bare, "dtu", (), held_out=0)
     assert plan.mesh == ("mesh_stats",) and not plan.image and not plan.named
-    assert set(plan.skipped) == {"dtu_chamfer", "normal_similarity", "silhouette", "image"}
+    assert set(plan.skipped) == {"dtu_chamfer", "normal_similarity", "silhouette"}  # no hold-out: a choice
     assert "stl024_total.ply not found" in plan.skipped["dtu_chamfer"] and "--gt" in plan.skipped["dtu_chamfer"]
-    assert "masks" in plan.skipped["silhouette"] and "holdout_every" in plan.skipped["image"]
+    assert "masks" in plan.skipped["silhouette"]
     with pytest.raises(EvaluationError, match=r"dtu_chamfer: no ground truth.*image: no view is held out"):
         plan_evaluation(bare, "dtu", ["dtu_chamfer", "mesh_stats", "image"], held_out=0)
     only_images = plan_evaluation(bare, "dtu", ["image"], held_out=2)

@@ -42,7 +42,10 @@ def test_quick_run_trains_meshes_evaluates_and_records(method, tiny_spot, tmp_pa
     assert set(record.peak_rss_bytes) == {"load", "train", "extract", "evaluate"}
     assert record.num_gaussians > 0 and record.it_per_s > 0
     assert record.mesh["sha256"] == sha256_file(folder / "mesh.ply") and record.mesh["faces"] > 0
-    assert set(record.eval_protocol) == {"dtu_chamfer", "normal_similarity"}
+    assert set(record.eval_protocol) == {"dtu_chamfer", "normal_similarity", "silhouette", "mesh_stats"}
+    assert record.skipped == {} and record.inputs["resolution"] == [64, 48] and record.inputs["views_held_out"] == 0
+    assert {"render", "loss", "backward", "densify", "optimizer", "checks"} <= {
+        k.split(".", 1)[1] for k in record.timings if k.startswith("train.")}
     assert record.losses["schedule"]["l1"] == {"weight": 0.8, "start": 0, "end": -1}
     assert record.config["train"]["iterations"] == 60 and record.environment["threads"] == 2
     logged = [json.loads(line) for line in (folder / METRICS).read_text().splitlines()]

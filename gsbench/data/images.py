@@ -89,8 +89,10 @@ def decode_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
 
 
 def to_float(rgb: np.ndarray) -> np.ndarray:
-    """uint8 -> float32 in [0, 1] (``/ 255``)."""
-    return np.asarray(rgb, dtype=np.float32) / 255.0
+    """uint8 -> float32 in [0, 1] (``/ 255`` in float32, in place on the one new array)."""
+    out = np.array(rgb, dtype=np.float32)
+    out /= 255.0
+    return out
 
 
 def read_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
