@@ -31,7 +31,9 @@ class Geometry:
         return self.faces is not None and len(self.faces) > 0
 
 
-def _read(mesh) -> Geometry:
+def read_geometry(mesh) -> Geometry:
+    """A `Geometry` of a path, trimesh, (N,3) array or Geometry, empty or not (`load_geometry` rejects
+    empty ones)."""
     import trimesh  # noqa: PLC0415
 
     if isinstance(mesh, Geometry):
@@ -65,7 +67,7 @@ def load_geometry(mesh, need_faces: bool = False) -> Geometry:
     Errors (EvaluationError, naming the input): empty geometry, no faces when ``need_faces``,
     non-finite vertices, face indices out of range.
     """
-    geo = _read(mesh)
+    geo = read_geometry(mesh)
     if len(geo.vertices) == 0:
         raise EvaluationError(f"{geo.label} is empty (0 vertices); nothing to evaluate (fix: check mesh extraction)")
     if need_faces and not geo.is_mesh:

@@ -31,7 +31,7 @@ import numpy as np
 
 from gsbench.data.camera import Scene
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
-from gsbench.evaluators.geometry import _read, check_frame, load_geometry
+from gsbench.evaluators.geometry import check_frame, load_geometry, read_geometry
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,7 @@ class MeshStats(Evaluator):
         check_frame(opts.frame)
         diag = Diagnostics()
         with diag.phase("load"):
-            geo = _read(mesh)  # not load_geometry: an empty mesh is described (zeros), not an error
+            geo = read_geometry(mesh)  # not load_geometry: an empty mesh is described (zeros), not an error
             if len(geo.vertices) and geo.is_mesh:
                 geo = load_geometry(geo, need_faces=True)
         if not geo.is_mesh:

@@ -46,7 +46,7 @@ from gsbench.data.camera import Camera, Scene
 from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import EvaluationError, import_open3d
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
-from gsbench.evaluators.geometry import _read, check_frame, load_geometry, to_normalised_frame
+from gsbench.evaluators.geometry import check_frame, load_geometry, read_geometry, to_normalised_frame
 
 HULL_DILATE_PX = 1  # masks grown by one pixel before carving (module docstring)
 HULL_MIN_VIEWS = 1
@@ -156,7 +156,7 @@ class Silhouette(Evaluator):
                 raise EvaluationError(f"silhouette: views {bad or '[]'} are not view indices of scene "
                                       f"'{scene.name}' (0..{n - 1}); fix: pass views=None or valid indices")
             cameras = [camera_at(cam, m.shape[1], m.shape[0]) for cam, m in zip(scene.cameras, masks)]
-            geo = _read(mesh)  # not load_geometry: an empty mesh is a score here, not an error
+            geo = read_geometry(mesh)  # not load_geometry: an empty mesh is a score here, not an error
             empty = len(geo.vertices) == 0 or not geo.is_mesh
             if not empty:
                 geo = load_geometry(geo, need_faces=True)
