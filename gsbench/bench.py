@@ -1,4 +1,5 @@
-"""`gsbench bench`: fixed-workload benchmarks of the rasterizer, the evaluators and IBGS's overhead.
+"""`gsbench bench`: fixed-workload benchmarks of the training step (by phase), the rasterizer, the
+evaluators and IBGS's overhead.
 
 Performance claims in this project come from this command, written down with the workload, the
 thread count and the machine (the result JSON carries `records.capture_environment`).
@@ -21,6 +22,11 @@ def run_benchmark(args) -> int:
         from gsbench.raster.bench import format_table, run_raster_benchmark  # noqa: PLC0415
 
         result = run_raster_benchmark(kernels=args.kernels, workloads=args.workloads, repeats=args.repeats, threads=threads)
+        print(format_table(result))
+    elif args.target == "train":
+        from gsbench.train_bench import format_table, run_train_benchmark  # noqa: PLC0415
+
+        result = run_train_benchmark(args.workloads, steps=args.steps, warmup=args.warmup, threads=threads)
         print(format_table(result))
     elif args.target == "ibgs":
         from gsbench.local_geometry_bench import DEFAULT_SIZES, format_table, run_ibgs_benchmark  # noqa: PLC0415

@@ -257,9 +257,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(func=cmd_eval)
 
     bench = sub.add_parser("bench", help="fixed-workload benchmarks")
-    bench.add_argument("target", choices=("raster", "eval", "ibgs"))
+    bench.add_argument("target", choices=("train", "raster", "eval", "ibgs"))
     bench.add_argument("--kernels", nargs="+", default=None)
-    bench.add_argument("--workloads", nargs="+", default=None, help="e.g. 50k-400x300 200k-800x600 (raster)")
+    bench.add_argument("--workloads", nargs="+", default=None,
+                       help="e.g. 50k-400x300 200k-800x600 (raster); 3dgs 2dgs gof radegs ibgs sugar 3dgs-random-100k (train)")
+    bench.add_argument("--steps", type=int, default=30, help="timed training steps per workload (train)")
+    bench.add_argument("--warmup", type=int, default=10, help="untimed training steps before them (train)")
     bench.add_argument("--repeats", type=int, default=5)
     bench.add_argument("--sizes", type=int, nargs="+", default=None, help="Gaussian counts (ibgs; default 10000 100000)")
     bench.add_argument("--vertices", type=int, default=1_000_000, help="mesh size (eval)")

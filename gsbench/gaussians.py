@@ -141,8 +141,13 @@ class Gaussians(torch.nn.Module):
         return torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
 
     def check_finite(self) -> None:
-        """Raise `NumericalError` naming the first parameter group that holds NaN or Inf."""
+        """Raise `NumericalError` naming the first parameter group that holds NaN or Inf.
+
+        One reduction per group on the common path: a sum of finite values is finite unless it
+        overflows, and only then (or when it is not finite) is every element tested."""
         for name, tensor in self.params.items():
+            if bool(torch.isfinite(tensor.detach().sum())):
+                continue
             bad = ~torch.isfinite(tensor.detach())
             if bad.any():
                 rows = bad.reshape(len(tensor), -1).any(-1).nonzero().flatten()

@@ -8,8 +8,14 @@ Per step ``t = 1 … train.iterations`` (3DGS ``train.py`` order, methods-3dgs-2
    parameters; the render computes only their `required_outputs` (weight 0 removes a term's outputs);
 4. L = Σ weight·term; non-finite L is a `NumericalError` naming the terms and the step;
 5. backward; ``strategy.step_post_backward`` (densify / prune / opacity reset);
-6. Adam step (skipped on the last step, as 3DGS); non-finite parameters → `NumericalError` naming
-   the parameter and the step.
+6. Adam step (skipped on the last step, as 3DGS).
+
+Checks: a non-finite loss is a `NumericalError` at once (one scalar test a step); the parameters are
+tested every `PARAMETER_CHECK_EVERY` steps, before every checkpoint and at the last step, with one
+reduction per parameter group (`Gaussians.check_finite`), and the error names the parameter and the
+step it was found at. A parameter gone non-finite between two checks is caught earlier anyway: the
+rasterizer tests its inputs on every render (`gsbench.raster.validate_gaussians`), so the next step
+fails naming the rendered quantity.
 
 Schedule scaling — the one place presets change the schedule: every step-valued setting of the
 paper's 30 000-step run (loss ``start``/``end``, the densification window/interval/opacity reset via
@@ -80,6 +86,7 @@ CHECKPOINT = "checkpoint.pt"
 FINAL_CHECKPOINT = "checkpoint-final.pt"
 METRICS = "metrics.jsonl"
 STEP_PHASES = ("render", "loss", "backward", "densify", "optimizer", "checks")
+PARAMETER_CHECK_EVERY = 50  # steps between finiteness checks of the parameters (module docstring, "Checks")
 STEP_PHASE_PREFIX = "step."
 
 
@@ -331,14 +338,21 @@ class Trainer:
         m.optimizer.zero_grad(set_to_none=True)
         t1 = clock()
         phases["optimizer"] += t1 - t
-        try:
-            m.gaussians.check_finite()
-        except NumericalError as exc:
-            raise NumericalError(f"step {step}: {exc}") from exc
-        finally:
-            phases["checks"] += clock() - t1
+        if step % PARAMETER_CHECK_EVERY == 0 or step == self.iterations:
+            try:
+                self.check_parameters(step)
+            finally:
+                phases["checks"] += clock() - t1
         values["total"] = float(loss.detach())
         return values
+
+    def check_parameters(self, step: int) -> None:
+        """`Gaussians.check_finite`, its error naming the step (module docstring, "Checks")."""
+        try:
+            self.method.gaussians.check_finite()
+        except NumericalError as exc:
+            raise NumericalError(f"step {step}: {exc} (parameters are checked every {PARAMETER_CHECK_EVERY} steps "
+                                 "and before every checkpoint; the loss every step)") from exc
 
     def fit(self) -> TrainResult:
         """Train (resuming from ``checkpoint.pt`` when present) and write ``checkpoint-final.pt``."""
@@ -374,6 +388,7 @@ class Trainer:
                 self.seconds += time.perf_counter() - t0
                 every = t_cfg.checkpoint_every
                 if self.step < self.iterations and every > 0 and self.step % every == 0:
+                    self.check_parameters(self.step)
                     save_atomic(self.state_dict(), resume)
         bar.close()
         lines.close()

@@ -141,8 +141,29 @@ def test_non_finite_parameter_is_a_numerical_error_naming_it_and_the_step(tiny_s
         trainer.method.gaussians.params["sh_dc"].data[3, 0, 1] = math.nan
 
     trainer.method.optimizer.register_step_post_hook(poison)
-    with pytest.raises(NumericalError, match=r"step 1: parameter 'sh_dc'"):
+    # parameters are checked every PARAMETER_CHECK_EVERY steps; the next render tests its inputs at once
+    with pytest.raises(NumericalError, match=r"step 2: .*gaussians.sh has 1 non-finite value"):
         trainer.fit()
+    with pytest.raises(NumericalError, match=r"step 7: parameter 'sh_dc' has 1 non-finite rows \(first at index 3\)"):
+        trainer.check_parameters(7)
+
+
+def test_foreach_adam_is_the_single_tensor_update_bit_for_bit(tiny_spot, tmp_path):
+    trainer = make_trainer("2dgs", tiny_spot, tmp_path, "train.iterations=10")
+    fast = trainer.method.optimizer
+    assert all(group["foreach"] for group in fast.param_groups)
+    params = [p for group in fast.param_groups for p in group["params"]]
+    copies = [p.detach().clone().requires_grad_(True) for p in params]
+    slow = torch.optim.Adam([{**{k: v for k, v in g.items() if k not in ("params", "foreach")}, "params": [c]}
+                             for g, c in zip(fast.param_groups, copies)], foreach=False)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(5):
+        for p, c in zip(params, copies):
+            p.grad = torch.randn(p.shape, generator=gen)
+            c.grad = p.grad.clone()
+        fast.step()
+        slow.step()
+    assert all(torch.equal(p, c) for p, c in zip(params, copies))
 
 
 def test_masked_targets_show_the_background_outside_the_mask(tiny_spot):

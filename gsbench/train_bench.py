@@ -1,0 +1,218 @@
+"""`gsbench bench train`: the training step of every method on fixed workloads, timed by phase.
+
+Workloads (`WORKLOADS`): each method at the cpu preset on ``synthetic/spot`` (200x150, 49 views,
+initial points in the masks' visual hull), stepped from a quarter of the cpu schedule (step 750 of
+3000, in the densification window) or, when a loss term starts later, from the step after the last
+term starts (GOF / RaDe-GS / IBGS 1501, SuGaR 1801, past the window), so every term is timed; and ``3dgs-random-100k``: 3DGS from 100 000 random points in the scene sphere, stepped from
+step 1 (what a capture without points and masks costs at the start). Each workload runs ``warmup``
+steps, then ``steps`` timed steps of `gsbench.train.Trainer.train_step` (the real step: schedules,
+render, loss, backward, densification, Adam, checks), seeded, in a temporary run folder.
+
+Phases, milliseconds per step (mean over the timed steps):
+
+- ``projection``, ``sort_bin``, ``raster_fwd``, ``raster_bwd``: the rasterizer's own timers
+  (`gsbench.raster.profile`);
+- ``render_rest``: the rest of the method's render call (building the raster input, 3D filter, IBGS's
+  kNN covariance, …) = Trainer ``render`` − projection − sort_bin − raster_fwd;
+- ``fwd.<term>``: each loss term's forward (the Trainer's ``loss`` phase split by term), ``loss_rest``
+  the rest of that phase (the weighted sum, reading the values);
+- ``bwd.<term>``: each term's own backward, from its value to the render outputs (made leaves) and
+  the parameters it reads, measured in a separate pass of ``probe_steps`` steps (``torch.autograd.grad`` with the graph
+  kept) so the timed steps are untouched;
+- ``backward_rest`` = Trainer ``backward`` − raster_bwd − Σ bwd.<term>: the autograd glue and the
+  projection's backward (not timed on its own: the fused projections run inside autograd);
+- ``optimizer``, ``densify``, ``checks``: the Trainer's phases; ``other``: the step's wall time minus
+  every Trainer phase (schedules, camera sampling).
+
+``non_raster_share`` = 1 − (projection + sort_bin + raster_fwd + raster_bwd + backward_rest) / step:
+what is neither rasterizer nor projection, counting all of ``backward_rest`` as projection (so the
+share is a lower bound).
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass
+
+import torch
+
+WARMUP, STEPS, PROBE_STEPS = 10, 30, 5
+SCENE = "synthetic/spot"
+
+
+@dataclass(frozen=True)
+class Workload:
+    method: str
+    overrides: tuple[str, ...] = ()
+    start: float = 0.25  # fraction of train.iterations to start at, or later when a term starts later (0: step 1)
+
+
+WORKLOADS = {
+    "3dgs": Workload("3dgs"),
+    "2dgs": Workload("2dgs"),
+    "gof": Workload("gof"),
+    "radegs": Workload("radegs"),
+    "ibgs": Workload("ibgs"),
+    "sugar": Workload("sugar"),
+    "3dgs-random-100k": Workload("3dgs", ("method.random_init_region=sphere",), start=0.0),
+}
+RASTER_PHASES = ("projection", "sort_bin", "raster_fwd", "raster_bwd")
+
+
+class _TermClock:
+    """Replaces `gsbench.train.total_loss` during the timed steps: the same sum, each term's forward timed."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    def __call__(self, active, render, batch, state):
+        total, values = torch.zeros(()), {}
+        for term in active:
+            t0 = time.perf_counter()
+            value = term.spec(render, batch, state)
+            self.seconds[term.name] = self.seconds.get(term.name, 0.0) + time.perf_counter() - t0
+            values[term.name] = float(value.detach())
+            total = total + term.weight * value
+        return total, values
+
+
+def _term_backward_seconds(trainer, step: int) -> dict[str, float]:
+    """Each active term's own backward at ``step`` (module docstring, ``bwd.<term>``); no parameter changes."""
+    from gsbench.losses import Batch, active_terms, required_outputs  # noqa: PLC0415
+
+    m = trainer.method
+    active = active_terms(trainer.losses, step, m.term_params(), m.loss_terms())
+    idx = trainer.views[step % len(trainer.views)]
+    with torch.no_grad():
+        render = m.render(trainer.scene.cameras[idx], required_outputs(active))
+    leaves = []  # the render outputs as leaves: a term's backward stops there, not in the rasterizer
+    for key, value in vars(render).items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point():
+            setattr(render, key, value.detach().requires_grad_(True))
+            leaves.append(getattr(render, key))
+    inputs = leaves + [p for p in m.gaussians.params.values() if p.requires_grad]
+    batch = Batch(trainer.images[idx], trainer.masks[idx], trainer.scene.cameras[idx], step)
+    seconds = {}
+    for term in active:
+        value = term.spec(render, batch, m.loss_state())
+        t0 = time.perf_counter()
+        if value.requires_grad:
+            torch.autograd.grad(value, inputs, retain_graph=True, allow_unused=True)
+        seconds[term.name] = time.perf_counter() - t0
+    m.optimizer.zero_grad(set_to_none=True)
+    return seconds
+
+
+def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup: int = WARMUP,
+                   probe_steps: int = PROBE_STEPS, threads: int = 2, scenes: dict | None = None,
+                   scene_name: str = SCENE) -> dict:
+    """Time one workload (module docstring); ``scenes`` caches loaded scenes between workloads."""
+    import gsbench.raster as raster  # noqa: PLC0415
+    import gsbench.train as train  # noqa: PLC0415
+    from gsbench.registry import METHODS  # noqa: PLC0415
+    from gsbench.runner import load_run_scene, resolve_run  # noqa: PLC0415
+
+    cfg = resolve_run(workload.method, scene_name, preset="cpu", overrides=(*workload.overrides, "train.checkpoint_every=0"))
+    cfg.threads = threads
+    scenes = {} if scenes is None else scenes
+    key = (cfg.scene, tuple(cfg.data.max_size), cfg.data.downscale)
+    if key not in scenes:
+        scenes[key] = load_run_scene(cfg)
+    scene = scenes[key]
+    method = METHODS.get(workload.method)()
+    train.set_threads(threads)
+    train.seed_everything(cfg.seed)
+    method.setup(scene, cfg)
+    initial = len(method.gaussians)
+    with tempfile.TemporaryDirectory() as folder:
+        trainer = train.Trainer(method, scene, cfg, folder)
+        first = 1 if workload.start == 0 else max(round(workload.start * cfg.train.iterations),
+                                                  max(t["start"] for t in trainer.losses.values() if t["weight"] > 0) + 1)
+        for step in range(first, first + warmup):
+            trainer.train_step(step)
+        trainer.phases = dict.fromkeys(trainer.phases, 0.0)
+        clock, original = _TermClock(), train.total_loss
+        raster.profile, train.total_loss = {}, clock
+        n_start = len(method.gaussians)
+        per_step = []
+        try:
+            for step in range(first + warmup, first + warmup + steps):
+                t0 = time.perf_counter()
+                trainer.train_step(step)
+                per_step.append(time.perf_counter() - t0)
+            prof = dict(raster.profile)
+        finally:
+            raster.profile, train.total_loss = None, original
+        n_end = len(method.gaussians)
+        probe = [_term_backward_seconds(trainer, first + warmup + steps + k) for k in range(probe_steps)]
+    result = _phases_ms(name, workload, per_step, trainer.phases, prof, clock.seconds, probe,
+                        {"initial": initial, "timed_start": n_start, "timed_end": n_end}, first + warmup)
+    result["resolution"] = [scene.cameras[0].width, scene.cameras[0].height]
+    result["scene"] = scene_name
+    return result
+
+
+def _phases_ms(name, workload, per_step, phases, prof, term_fwd, probe, gaussians, first_timed) -> dict:
+    n = len(per_step)
+    ms = {k: 1e3 * v / n for k, v in prof.items() if k in RASTER_PHASES}
+    ms.update({k: ms.get(k, 0.0) for k in RASTER_PHASES})
+    step_ms = 1e3 * sum(per_step) / n
+    trainer_ms = {k: 1e3 * v / n for k, v in phases.items()}
+    ms["render_rest"] = trainer_ms["render"] - ms["projection"] - ms["sort_bin"] - ms["raster_fwd"]
+    ms.update({f"fwd.{t}": 1e3 * s / n for t, s in term_fwd.items()})
+    ms["loss_rest"] = trainer_ms["loss"] - sum(1e3 * s / n for s in term_fwd.values())
+    bwd = {t: 1e3 * statistics.mean(p.get(t, 0.0) for p in probe) for t in term_fwd} if probe else {}
+    ms.update({f"bwd.{t}": v for t, v in bwd.items()})
+    ms["backward_rest"] = trainer_ms["backward"] - ms["raster_bwd"] - sum(bwd.values())
+    for k in ("optimizer", "densify", "checks"):
+        ms[k] = trainer_ms[k]
+    ms["other"] = step_ms - sum(trainer_ms.values())
+    raster_ms = sum(ms[k] for k in RASTER_PHASES) + ms["backward_rest"]
+    return {"workload": name, "method": workload.method, "overrides": list(workload.overrides),
+            "scene": SCENE, "preset": "cpu", "first_timed_step": first_timed, "steps": n,
+            "step_ms": step_ms, "step_ms_median": 1e3 * statistics.median(per_step), "it_per_s": 1e3 / step_ms,
+            "phases_ms": ms, "non_raster_share": 1.0 - raster_ms / step_ms, "gaussians": gaussians}
+
+
+def run_train_benchmark(workloads=None, *, steps: int = STEPS, warmup: int = WARMUP, probe_steps: int = PROBE_STEPS,
+                        threads: int = 2, echo=print) -> dict:
+    """Every workload named (default: all of `WORKLOADS`); returns {"threads", "results": [...]}."""
+    names = list(workloads or WORKLOADS)
+    unknown = [n for n in names if n not in WORKLOADS]
+    if unknown:
+        from gsbench.errors import ConfigError  # noqa: PLC0415
+
+        raise ConfigError(f"unknown train workload(s) {unknown}; available: {', '.join(WORKLOADS)}")
+    scenes: dict = {}
+    results = []
+    for name in names:
+        echo(f"bench train: {name} ({warmup} warm-up + {steps} timed steps, {threads} threads)")
+        results.append(bench_workload(name, WORKLOADS[name], steps=steps, warmup=warmup, probe_steps=probe_steps,
+                                      threads=threads, scenes=scenes))
+    return {"threads": threads, "steps": steps, "warmup": warmup, "probe_steps": probe_steps, "results": results}
+
+
+def format_table(result: dict) -> str:
+    """Rows: workloads; columns: ms/step, it/s, the rasterizer phases, loss terms (fwd+bwd), the rest."""
+    header = ["workload", "N", "ms/step", "it/s", "proj", "sort", "r.fwd", "r.bwd", "bwd.rest", "render.rest",
+              "terms", "optim", "densify", "checks", "other", "non-raster"]
+    rows = [header]
+    for r in result["results"]:
+        p = r["phases_ms"]
+        terms = sum(v for k, v in p.items() if k.startswith(("fwd.", "bwd."))) + p["loss_rest"]
+        rows.append([r["workload"], str(r["gaussians"]["timed_start"]), f"{r['step_ms']:.1f}", f"{r['it_per_s']:.2f}",
+                     *(f"{p[k]:.1f}" for k in ("projection", "sort_bin", "raster_fwd", "raster_bwd",
+                                                 "backward_rest", "render_rest")),
+                     f"{terms:.1f}", *(f"{p[k]:.1f}" for k in ("optimizer", "densify", "checks", "other")),
+                     f"{100 * r['non_raster_share']:.0f}%"])
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    terms = []
+    for r in result["results"]:
+        p = r["phases_ms"]
+        parts = [f"{k[4:]} {p[k]:.1f}+{p.get('bwd.' + k[4:], 0.0):.1f}" for k in p if k.startswith("fwd.")]
+        terms.append(f"  {r['workload']}: " + ", ".join(parts))
+    return "\n".join(lines + ["loss terms, ms forward+backward:"] + terms)

@@ -1,0 +1,34 @@
+"""`gsbench bench train` (gsbench/train_bench.py): the phases of a real training step add up and every
+loss term is timed forward and backward. Times are not asserted here (bench numbers come from the
+command, written down with the machine)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from gsbench.errors import ConfigError
+from gsbench.train_bench import RASTER_PHASES, WORKLOADS, bench_workload, format_table, run_train_benchmark
+
+
+@pytest.mark.parametrize("name, terms", [("2dgs", {"l1", "dssim", "normal_consistency", "depth_distortion"}),
+                                         ("gof", {"l1", "dssim", "normal_consistency", "depth_distortion"})])
+def test_phases_add_up_to_the_step_and_every_term_is_timed(tiny_spot, name, terms):
+    result = bench_workload(name, WORKLOADS[name], steps=3, warmup=1, probe_steps=1, threads=1,
+                            scene_name=str(tiny_spot))
+    ms = result["phases_ms"]
+    assert result["resolution"] == [64, 48] and result["steps"] == 3 and result["first_timed_step"] > 750
+    assert {f"fwd.{t}" for t in terms} | {f"bwd.{t}" for t in terms} <= set(ms)
+    assert set(RASTER_PHASES) <= set(ms) and ms["raster_fwd"] > 0 and ms["raster_bwd"] > 0
+    assert all(math.isfinite(v) for v in ms.values())
+    parts = sum(v for k, v in ms.items() if not k.startswith("fwd.")) + sum(
+        v for k, v in ms.items() if k.startswith("fwd."))
+    assert parts == pytest.approx(result["step_ms"], rel=1e-6)  # the phases partition the step
+    assert 0 < result["it_per_s"] and -1 < result["non_raster_share"] < 1
+    assert name in format_table({"results": [result]})
+
+
+def test_unknown_workload_is_an_error_listing_the_workloads():
+    with pytest.raises(ConfigError, match="3dgs-random-100k"):
+        run_train_benchmark(["3dgs-random-1m"])
