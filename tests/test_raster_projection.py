@@ -150,7 +150,7 @@ def test_selection_switch(monkeypatch):
     monkeypatch.setattr(projection, "IMPL", None)
     monkeypatch.delenv("GSBENCH_PROJECTION", raising=False)
     assert projection.projection_impl("ewa") == "fused" and projection.projection_impl("rade") == "fused"
-    assert projection.projection_impl("raymax") == "torch" and projection.projection_impl("surfel") == "torch"
+    assert projection.projection_impl("raymax") == "fused" and projection.projection_impl("surfel") == "fused"
     monkeypatch.setenv("GSBENCH_PROJECTION", "torch")
     assert projection.projection_impl("ewa") == "torch"
     monkeypatch.setattr(projection, "IMPL", "fused")

@@ -1,8 +1,8 @@
 """The shared differentiable CPU rasterizer (see `gsbench.raster.types` for the contract).
 
 ``rasterize(gaussians, camera, kernel=..., outputs=...)`` projects the Gaussians
-(`gsbench.raster.projection`: fused C++ for ewa/rade, PyTorch for raymax/surfel or with
-``GSBENCH_PROJECTION=torch``), sorts the visible ones by depth and bins them into tiles in C++, and
+(`gsbench.raster.projection`: fused C++ with a hand-written backward for every kernel, or PyTorch with
+``GSBENCH_PROJECTION=torch``, the reference), sorts the visible ones by depth and bins them into tiles in C++, and
 composites them with the C++/OpenMP tile kernel (``csrc/raster.cpp``, compiled on first use by
 `gsbench.raster.build`); a `torch.autograd.Function` connects projection and compositing. ``integrate(...)`` evaluates GOF's opacity field at 3D points (no gradient).
 

@@ -1,13 +1,14 @@
-"""Per-Gaussian quantities of one view: vectorised PyTorch (autograd) and, for ewa/rade, a fused C++ pass.
+"""Per-Gaussian quantities of one view: a fused C++ pass and its vectorised PyTorch (autograd) oracle.
 
-`project(gaussians, camera, kernel, settings)` returns a `Projection`. For ``ewa`` and ``rade`` it runs
-`project_fused` (csrc/project.cpp: one OpenMP pass over the Gaussians forward, a hand-written backward,
-double precision inside) unless ``GSBENCH_PROJECTION=torch`` or ``projection.IMPL = "torch"``;
-`project_torch` (below) is the PyTorch version, used for raymax and surfel and as the fused path's oracle
-(tests/test_raster_projection.py). A `Projection` holds the per-Gaussian *payload*
-(one (N, P) tensor the C++ compositor reads, column layout below), the screen radius, visibility,
-centre depth (the per-tile sort key), the tile rectangle and a conservative pixel box outside which
-the Gaussian's alpha is certainly < 1/255 (used to skip rows and tiles; it never changes a result).
+`project(gaussians, camera, kernel, settings)` returns a `Projection`. For every kernel (ewa, rade, raymax,
+surfel) it runs `project_fused` (csrc/project.cpp: one OpenMP pass over the Gaussians forward, a
+hand-written backward, double precision inside) unless ``GSBENCH_PROJECTION=torch`` or
+``projection.IMPL = "torch"``; `project_torch` (below) is the PyTorch version, the fused path's oracle
+(tests/test_raster_projection.py, tests/test_projection_fused_raymax_surfel.py). A `Projection` holds
+the per-Gaussian *payload* (one (N, P) tensor the C++ compositor reads, column layout below), the
+screen radius, visibility, centre depth (the per-tile sort key), the tile rectangle and a conservative
+pixel box outside which the Gaussian's alpha is certainly < 1/255 (used to skip rows and tiles; it never
+changes a result).
 
 Column layout of the payload (must match ``csrc/raster.cpp``):
 
@@ -35,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from gsbench.data.camera import Camera
+from gsbench.raster.build import ProjArgs
 from gsbench.raster.sh import sh_to_rgb
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
@@ -138,11 +140,11 @@ def _tile_rect(lo_x, hi_x, lo_y, hi_y, tile: int, gx: int, gy: int) -> torch.Ten
     return torch.stack([x0, x1, y0, y1], -1)
 
 
-FUSED_KERNELS = ("ewa", "rade")
+FUSED_KERNELS = ("ewa", "rade", "raymax", "surfel")  # index = the kernel id of csrc/project.cpp
 
-# Which projection `project` uses for the EWA family: "fused" (C++, csrc/project.cpp) or "torch" (this
-# module's vectorised PyTorch, also the oracle of the fused one). None = the GSBENCH_PROJECTION
-# environment variable, default "fused". raymax and surfel always use the PyTorch projection.
+# Which projection `project` uses: "fused" (C++, csrc/project.cpp) or "torch" (this module's vectorised
+# PyTorch, also the oracle of the fused one). None = the GSBENCH_PROJECTION environment variable,
+# default "fused".
 IMPL: str | None = None
 
 
@@ -156,14 +158,22 @@ def projection_impl(kernel: str) -> str:
 
 
 def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: RasterSettings) -> Projection:
-    """Per-Gaussian projection of one view (fused C++ for ewa/rade unless disabled, else PyTorch)."""
+    """Per-Gaussian projection of one view (fused C++ unless disabled, else PyTorch)."""
     if projection_impl(kernel) == "fused":
         return project_fused(gaussians, camera, kernel, settings)
     return project_torch(gaussians, camera, kernel, settings)
 
 
+class _ProjArgsX(ProjArgs):
+    """build.py's ``ProjArgs`` plus the fields csrc/project.cpp appends after it (``surfel_k``)."""
+
+    _fields_ = [("surfel_k", ctypes.c_double)]
+
+
 class _FusedProjectFn(torch.autograd.Function):
-    """Fused EWA-family projection (csrc/project.cpp): (means, quats, scales[:, :3], opacities, sh) -> payload."""
+    """Fused projection (csrc/project.cpp): (means, quats, scales (N,3), opacities, sh) -> payload.
+
+    For surfel the third scale column is padding (never read; its gradient is 0)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, sh, cfg):  # noqa: D401
@@ -220,8 +230,8 @@ class _FusedProjectFn(torch.autograd.Function):
 
 
 def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: RasterSettings) -> Projection:
-    """`project_torch` for ``ewa``/``rade`` in one C++/OpenMP pass with a hand-written backward."""
-    from gsbench.raster.build import ProjArgs, load_library  # noqa: PLC0415
+    """`project_torch` in one C++/OpenMP pass with a hand-written backward (every kernel)."""
+    from gsbench.raster.build import load_library  # noqa: PLC0415
 
     if kernel not in FUSED_KERNELS:
         raise ValueError(f"the fused projection supports {FUSED_KERNELS}, not '{kernel}'")
@@ -236,7 +246,7 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
         raise ValueError(f"sh has {sh.shape[1]} coefficients per colour, degree {settings.sh_degree} needs {k_need}")
     W, H = int(camera.width), int(camera.height)
     ts = int(settings.tile_size)
-    a = ProjArgs()
+    a = _ProjArgsX()
     a.n, a.dtype, a.kernel = n, 0 if dtype == torch.float32 else 1, FUSED_KERNELS.index(kernel)
     a.sh_degree, a.sh_k = int(settings.sh_degree), int(sh.shape[1])
     a.width, a.height, a.tile = W, H, ts
@@ -246,6 +256,7 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
     a.near_z = float(settings.near)
     a.eps2d = float(settings.eps2d_for(kernel))
     a.aa = float(settings.antialias2d)
+    a.surfel_k = float(settings.surfel_filter)
     a.limx = 1.3 * (0.5 * W) / camera.fx
     a.limy = 1.3 * (0.5 * H) / camera.fy
     a.R[:] = [float(x) for x in np.asarray(camera.R, dtype=np.float64).reshape(9)]
@@ -257,8 +268,12 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
         f3 = gaussians.filter3d.detach().reshape(-1).to(dtype).contiguous()
         a.has_filter = 1
     npar = NUM_PARAMS[kernel]
+    if kernel == "surfel":  # two scale columns used; a constant third keeps the (N, 3) layout
+        scales = F.pad(gaussians.scales[:, :2].to(dtype), (0, 1), value=1.0)
+    else:
+        scales = gaussians.scales[:, :3].to(dtype)
     params, means2d, radii, visible, depth, bounds, rect, rect_radius = _FusedProjectFn.apply(
-        gaussians.means, gaussians.quats.to(dtype), gaussians.scales[:, :3].to(dtype),
+        gaussians.means, gaussians.quats.to(dtype), scales,
         gaussians.opacities.reshape(-1).to(dtype), sh, (lib, a, n, npar, f3),
     )
     return Projection(params=params, means2d=means2d, radii=radii, visible=visible, depth=depth, bounds=bounds,

@@ -1,13 +1,15 @@
-// gsbench fused per-Gaussian projection for the EWA family (kernels ewa and rade): forward and a
+// gsbench fused per-Gaussian projection (kernels ewa, rade, raymax and surfel): forward and a
 // hand-written backward, one OpenMP loop over Gaussians each.
 //
-// Mirrors gsbench/raster/projection.py `_project_torch` operation for operation (that PyTorch code is the
-// oracle; tests/test_raster_projection.py compares the two in float64 and gradchecks this one). Storage
+// Mirrors gsbench/raster/projection.py `project_torch` operation for operation (that PyTorch code is the
+// oracle; tests/test_raster_projection.py (ewa, rade) and tests/test_projection_fused_raymax_surfel.py
+// (raymax, surfel) compare the two in float64 and gradcheck this one). Storage
 // type T is float or double; every per-Gaussian quantity is computed in double (a few hundred flops per
 // Gaussian, so this costs nothing measurable and removes the float32 overflow cases of 1/det for tiny
 // covariances). The backward recomputes the forward intermediates instead of saving them.
 //
-// Payload columns: see projection.py (common 0-8, ewa 9-12, rade 9-14).
+// Payload columns: see projection.py (common 0-8, ewa 9-12, rade 9-14, raymax 9-23, surfel 9-20).
+// surfel reads only scales[:, :2] (the caller pads a third column, whose gradient is written as 0).
 
 #include <algorithm>
 #include <cmath>
@@ -16,7 +18,8 @@
 
 extern "C" {
 
-// Keep in sync with build.py (ProjArgs): 8-byte scalars and fixed double arrays only.
+// Keep in sync with build.py (ProjArgs) + projection.py (_ProjArgsX, the fields after g_sh): 8-byte scalars and
+// fixed double arrays only.
 struct ProjArgs {
     int64_t n, dtype, kernel, sh_degree, sh_k, has_filter, width, height, tile, gx, gy, nthreads;
     double fx, fy, cx, cy, near_z, eps2d, aa, limx, limy;
@@ -44,6 +47,8 @@ struct ProjArgs {
     void* g_scales;        // (N, 3)
     void* g_opac;          // (N,)
     void* g_sh;            // (N, K, 3) (zero-initialised by the caller; first (deg+1)² rows written)
+    // appended after build.py's ProjArgs (projection.py `_ProjArgsX` adds it): read only for surfel
+    double surfel_k;       // settings.surfel_filter (low-pass k; 0 = off)
 };
 
 }  // extern "C"
@@ -51,7 +56,7 @@ struct ProjArgs {
 namespace {
 
 using D = double;
-constexpr int K_EWA = 0, K_RADE = 1;
+constexpr int K_EWA = 0, K_RADE = 1, K_RAYMAX = 2, K_SURFEL = 3;
 constexpr D BIGV = 1.0e6;
 constexpr D SH0 = 0.28209479177387814;
 constexpr D SH1 = 0.4886025119029199;
@@ -60,7 +65,8 @@ constexpr D SH2[5] = {1.0925484305920792, -1.0925484305920792, 0.315391565252520
 constexpr D SH3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
                       -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
 
-inline int nparams(int kernel) { return kernel == K_EWA ? 13 : 15; }
+template <int KER>
+constexpr int nparams() { return KER == K_EWA ? 13 : KER == K_RADE ? 15 : KER == K_RAYMAX ? 24 : 21; }
 
 // Real SH basis (3DGS convention, sh.py) and optionally its derivative w.r.t. (x, y, z).
 inline void sh_basis(int deg, D x, D y, D z, D* b, D (*db)[3]) {
@@ -128,6 +134,11 @@ struct Fw {
     D sgn;
     // rade
     D dc[3], dt[3], dm, h[3], mvec[3], nn2, sq, lc, dms, p0, p1, mut[3], w[3], bvec[3], l, bnorm, bden, nrm[3];
+    // raymax (mut shared with rade): E = Rc S⁻¹ (rows ẽ_i), S6 = E Eᵀ (00,01,02,11,12,22), braw = E μ̃,
+    // cs = μ̃·μ̃ (1 if culled), sq = √cs, muh = μ̃/sq, vx = muh × ẽ_0, vy = muh × ẽ_1, dM = (vx·vx, vx·vy, vy·vy)
+    D E[9], S6[6], braw[3], cs, sqc, muh[3], vx[3], vy[3], dM[3];
+    // surfel: X rows (se_u t_u, se_v t_v, μ) per camera axis, cos = −μ·t_w, sign, dd, dds, centre (cnx, cny)
+    D X[9], cosv, sgs, snrm[3], dd, dds, cnx, cny, dpl, au[3], av[3], mau, mav;
 };
 
 template <typename T, int KER>
@@ -140,12 +151,14 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
     f.qn = std::sqrt(f.qr[0] * f.qr[0] + f.qr[1] * f.qr[1] + f.qr[2] * f.qr[2] + f.qr[3] * f.qr[3]);
     f.qden = std::max(f.qn, 1e-12);
     for (int k = 0; k < 4; ++k) f.q[k] = f.qr[k] / f.qden;
+    constexpr int NC = KER == K_SURFEL ? 2 : 3;  // scale columns in use
     for (int k = 0; k < 3; ++k) f.s[k] = (D)scales[k];
     f.o = (D)((const T*)A.opac)[i];
     if (A.has_filter) {
         const D f3 = (D)((const T*)A.filter3d)[i];
         D ratio = 1.0;
-        for (int k = 0; k < 3; ++k) {
+        f.se[2] = f.s[2];
+        for (int k = 0; k < NC; ++k) {
             f.s2[k] = f.s[k] * f.s[k];
             f.s2f[k] = f.s2[k] + f3;
             ratio *= f.s2[k] / f.s2f[k];
@@ -198,6 +211,33 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
 
     f.u = f.mu[0] / f.zs;
     f.v = f.mu[1] / f.zs;
+    if constexpr (KER == K_SURFEL) {
+        for (int r = 0; r < 3; ++r) {
+            f.X[3 * r] = f.se[0] * f.Rc[3 * r];
+            f.X[3 * r + 1] = f.se[1] * f.Rc[3 * r + 1];
+            f.X[3 * r + 2] = f.mu[r];
+        }
+        f.cosv = -(f.mu[0] * f.Rc[2] + f.mu[1] * f.Rc[5] + f.mu[2] * f.Rc[8]);
+        f.sgs = f.cosv >= 0 ? 1.0 : -1.0;
+        for (int r = 0; r < 3; ++r) f.snrm[r] = f.Rc[3 * r + 2] * f.sgs;
+        const D* X2 = f.X + 6;
+        f.dd = 9.0 * (X2[0] * X2[0] + X2[1] * X2[1]) - X2[2] * X2[2];
+        f.ok = f.dd != 0 && f.cosv != 0 && !f.culled;
+        f.dds = f.ok ? f.dd : -1.0;
+        const D f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
+        f.cnx = f0 * (f.X[0] * X2[0]) + f0 * (f.X[1] * X2[1]) + f2 * (f.X[2] * X2[2]);
+        f.cny = f0 * (f.X[3] * X2[0]) + f0 * (f.X[4] * X2[1]) + f2 * (f.X[5] * X2[2]);
+        f.dpl = f.snrm[0] * f.mu[0] + f.snrm[1] * f.mu[1] + f.snrm[2] * f.mu[2];
+        f.mau = f.mav = 0;
+        for (int r = 0; r < 3; ++r) {
+            f.au[r] = f.Rc[3 * r] / f.se[0];
+            f.av[r] = f.Rc[3 * r + 1] / f.se[1];
+            f.mau += f.mu[r] * f.au[r];
+            f.mav += f.mu[r] * f.av[r];
+        }
+        f.o2 = f.o1;
+        return;
+    }
     f.inx = f.u >= -A.limx && f.u <= A.limx;
     f.iny = f.v >= -A.limy && f.v <= A.limy;
     f.uc = std::min(std::max(f.u, -A.limx), A.limx);
@@ -247,6 +287,31 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         f.idx = idx;
         const D nd = f.Rc[idx] * f.mu[0] + f.Rc[3 + idx] * f.mu[1] + f.Rc[6 + idx] * f.mu[2];
         f.sgn = nd > 0 ? -1.0 : 1.0;
+    } else if constexpr (KER == K_RAYMAX) {
+        for (int j = 0; j < 3; ++j)
+            f.mut[j] = (f.mu[0] * f.Rc[j] + f.mu[1] * f.Rc[3 + j] + f.mu[2] * f.Rc[6 + j]) / f.se[j];
+        for (int r = 0; r < 3; ++r)
+            for (int j = 0; j < 3; ++j) f.E[3 * r + j] = f.Rc[3 * r + j] / f.se[j];
+        const D c_ = f.mut[0] * f.mut[0] + f.mut[1] * f.mut[1] + f.mut[2] * f.mut[2];
+        f.cs = f.culled ? 1.0 : c_;
+        const D* E = f.E;
+        int t = 0;
+        for (int a = 0; a < 3; ++a)
+            for (int b = a; b < 3; ++b, ++t) f.S6[t] = E[3 * a] * E[3 * b] + E[3 * a + 1] * E[3 * b + 1] + E[3 * a + 2] * E[3 * b + 2];
+        for (int a = 0; a < 3; ++a) f.braw[a] = E[3 * a] * f.mut[0] + E[3 * a + 1] * f.mut[1] + E[3 * a + 2] * f.mut[2];
+        f.sqc = std::sqrt(f.cs);
+        for (int k = 0; k < 3; ++k) f.muh[k] = f.mut[k] / f.sqc;
+        const D* e0 = E;
+        const D* e1 = E + 3;
+        f.vx[0] = f.muh[1] * e0[2] - f.muh[2] * e0[1];
+        f.vx[1] = f.muh[2] * e0[0] - f.muh[0] * e0[2];
+        f.vx[2] = f.muh[0] * e0[1] - f.muh[1] * e0[0];
+        f.vy[0] = f.muh[1] * e1[2] - f.muh[2] * e1[1];
+        f.vy[1] = f.muh[2] * e1[0] - f.muh[0] * e1[2];
+        f.vy[2] = f.muh[0] * e1[1] - f.muh[1] * e1[0];
+        f.dM[0] = f.vx[0] * f.vx[0] + f.vx[1] * f.vx[1] + f.vx[2] * f.vx[2];
+        f.dM[1] = f.vx[0] * f.vy[0] + f.vx[1] * f.vy[1] + f.vx[2] * f.vy[2];
+        f.dM[2] = f.vy[0] * f.vy[0] + f.vy[1] * f.vy[1] + f.vy[2] * f.vy[2];
     } else {
         f.dc[0] = f.uc, f.dc[1] = f.vc, f.dc[2] = 1.0;
         f.dm = 0;
@@ -276,21 +341,82 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
 
 inline D clampd(D x, D lo, D hi) { return std::min(std::max(x, lo), hi); }
 
+// _raymax_bounds (projection.py): pixel box of the rays within Mahalanobis² k = 2τ of μ (τ > 0 checked by the caller).
+inline void raymax_bounds(const ProjArgs& A, const Fw& f, D tau, D* bnd) {
+    const D k = std::max(2.0 * tau, 0.0);
+    D S[9];
+    for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+            S[3 * r + c] = f.M[3 * r] * f.M[3 * c] + f.M[3 * r + 1] * f.M[3 * c + 1] + f.M[3 * r + 2] * f.M[3 * c + 2];
+    const D mz = f.mu[2];
+    for (int axis = 0; axis < 2; ++axis) {
+        const D fl = axis == 0 ? A.fx : A.fy, c0 = axis == 0 ? A.cx : A.cy;
+        const D ma = f.mu[axis];
+        const D Saa = S[4 * axis], Sa2 = S[3 * axis + 2], S22 = S[8];
+        const D a2 = mz * mz - k * S22;
+        const D bq = ma * mz - k * Sa2;
+        const D disc = k * (mz * mz * Saa - 2 * ma * mz * Sa2 + ma * ma * S22) - k * k * (Saa * S22 - Sa2 * Sa2);
+        const D sq = std::sqrt(std::max(disc, 0.0));
+        const bool ok = a2 > 1e-12 * mz * mz;
+        const D a2s = ok ? a2 : 1.0;
+        const D lo_p = fl * ((bq - sq) / a2s) + c0, hi_p = fl * ((bq + sq) / a2s) + c0;
+        const D pad = 1e-3 * std::abs(hi_p - lo_p) + 0.01;
+        bnd[2 * axis] = ok ? lo_p - pad : -BIGV;
+        bnd[2 * axis + 1] = ok ? hi_p + pad : BIGV;
+    }
+}
+
+// _surfel_bounds (projection.py): the exact box of u²+v² <= 2τ ∪ the low-pass disc k|Δ|² <= 2τ.
+inline void surfel_bounds(const ProjArgs& A, const Fw& f, D tau, D mx, D my, D* bnd) {
+    const D k = std::max(2.0 * tau, 0.0);
+    const D* X2 = f.X + 6;
+    const D dd = k * (X2[0] * X2[0] + X2[1] * X2[1]) - X2[2] * X2[2];
+    const bool ok = dd < -1e-12 * (X2[2] * X2[2]);
+    const D dds = ok ? dd : -1.0;
+    const D f0 = k / dds, f2 = -1.0 / dds;
+    for (int axis = 0; axis < 2; ++axis) {
+        const D* Xa = f.X + 3 * axis;
+        const D fl = axis == 0 ? A.fx : A.fy, c0 = axis == 0 ? A.cx : A.cy;
+        const D cn = f0 * (Xa[0] * X2[0]) + f0 * (Xa[1] * X2[1]) + f2 * (Xa[2] * X2[2]);
+        const D h = cn * cn - (f0 * (Xa[0] * Xa[0]) + f0 * (Xa[1] * Xa[1]) + f2 * (Xa[2] * Xa[2]));
+        const D ext = std::sqrt(std::max(h, 0.0));
+        const D lo = fl * (cn - ext) + c0, hi = fl * (cn + ext) + c0;
+        const D pad = 1e-3 * std::abs(hi - lo) + 0.01;
+        bnd[2 * axis] = ok ? lo - pad : -BIGV;
+        bnd[2 * axis + 1] = ok ? hi + pad : BIGV;
+    }
+    const D fk = A.surfel_k;
+    if (fk <= 0) return;
+    const D r = std::sqrt(std::max(2.0 * tau / fk, 0.0)) * 1.001 + 0.01;
+    bnd[0] = std::min(bnd[0], mx - r);
+    bnd[1] = std::max(bnd[1], mx + r);
+    bnd[2] = std::min(bnd[2], my - r);
+    bnd[3] = std::max(bnd[3], my + r);
+}
+
 template <typename T, int KER>
 void project_forward(const ProjArgs& A) {
-    constexpr int P = KER == K_EWA ? 13 : 15;
+    constexpr int P = nparams<KER>();
     const D ts = (D)A.tile, gx = (D)A.gx, gy = (D)A.gy;
 #pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 1024)
     for (int64_t i = 0; i < A.n; ++i) {
         Fw f;
         forward_one<T, KER>(A, i, f);
         T* p = (T*)A.params + i * P;
-        const D mx = A.fx * f.u + A.cx, my = A.fy * f.v + A.cy;
+        D mx, my;
+        if constexpr (KER == K_SURFEL) {
+            mx = A.fx * f.cnx + A.cx;
+            my = A.fy * f.cny + A.cy;
+            p[2] = p[3] = p[4] = T(0);
+        } else {
+            mx = A.fx * f.u + A.cx;
+            my = A.fy * f.v + A.cy;
+            p[2] = (T)f.conic[0];
+            p[3] = (T)f.conic[1];
+            p[4] = (T)f.conic[2];
+        }
         p[0] = (T)mx;
         p[1] = (T)my;
-        p[2] = (T)f.conic[0];
-        p[3] = (T)f.conic[1];
-        p[4] = (T)f.conic[2];
         p[5] = (T)(f.ok ? f.o2 : 0.0);
         p[6] = (T)f.rgb[0];
         p[7] = (T)f.rgb[1];
@@ -300,26 +426,55 @@ void project_forward(const ProjArgs& A) {
             p[10] = (T)(f.sgn * f.Rc[f.idx]);
             p[11] = (T)(f.sgn * f.Rc[3 + f.idx]);
             p[12] = (T)(f.sgn * f.Rc[6 + f.idx]);
-        } else {
+        } else if constexpr (KER == K_RADE) {
             p[9] = (T)f.l;
             p[10] = (T)(f.p0 / A.fx);
             p[11] = (T)(f.p1 / A.fy);
             p[12] = (T)f.nrm[0];
             p[13] = (T)f.nrm[1];
             p[14] = (T)f.nrm[2];
+        } else if constexpr (KER == K_RAYMAX) {
+            for (int t = 0; t < 6; ++t) p[9 + t] = (T)(f.S6[t] / f.cs);
+            for (int a = 0; a < 3; ++a) p[15 + a] = (T)(f.braw[a] / f.cs);
+            for (int a = 0; a < 3; ++a) p[18 + a] = (T)(f.dM[a] / f.cs);
+            p[21] = (T)f.cs;
+            p[22] = (T)f.u;
+            p[23] = (T)f.v;
+        } else {
+            for (int r = 0; r < 3; ++r) p[9 + r] = (T)f.snrm[r];
+            p[12] = (T)f.dpl;
+            for (int r = 0; r < 3; ++r) p[13 + r] = (T)f.au[r];
+            p[16] = (T)f.mau;
+            for (int r = 0; r < 3; ++r) p[17 + r] = (T)f.av[r];
+            p[20] = (T)f.mav;
         }
         // radius, alpha-support box, tile rectangles (no gradient)
-        const D mid = 0.5 * (f.a + f.c);
-        const D lam = mid + std::sqrt(std::max(mid * mid - f.det, 0.1));
-        const D radius = f.ok ? std::ceil(3.0 * std::sqrt(std::max(lam, 0.0))) : 0.0;
         const D tau = std::log(std::max(255.0 * f.o1, 1e-30));
-        D bnd[4];
-        if (tau > 0) {
-            const D t2 = 2.0 * tau;
-            const D hx = std::sqrt(t2 * f.a) * 1.001 + 0.01, hy = std::sqrt(t2 * f.c) * 1.001 + 0.01;
-            bnd[0] = mx - hx, bnd[1] = mx + hx, bnd[2] = my - hy, bnd[3] = my + hy;
+        D radius, bnd[4];
+        if constexpr (KER == K_SURFEL) {
+            const D f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
+            const D hnx = f.cnx * f.cnx - (f0 * (f.X[0] * f.X[0]) + f0 * (f.X[1] * f.X[1]) + f2 * (f.X[2] * f.X[2]));
+            const D hny = f.cny * f.cny - (f0 * (f.X[3] * f.X[3]) + f0 * (f.X[4] * f.X[4]) + f2 * (f.X[5] * f.X[5]));
+            const D ext_x = std::sqrt(std::max(A.fx * A.fx * hnx, 1e-4));
+            const D ext_y = std::sqrt(std::max(A.fy * A.fy * hny, 1e-4));
+            const D fl = A.surfel_k > 0 ? 3.0 / std::sqrt(A.surfel_k) : 0.0;
+            radius = f.ok ? std::ceil(std::max(std::max(ext_x, ext_y), fl)) : 0.0;
+            surfel_bounds(A, f, tau, mx, my, bnd);
         } else {
-            bnd[0] = BIGV, bnd[1] = -BIGV, bnd[2] = BIGV, bnd[3] = -BIGV;
+            const D mid = 0.5 * (f.a + f.c);
+            const D lam = mid + std::sqrt(std::max(mid * mid - f.det, 0.1));
+            radius = f.ok ? std::ceil(3.0 * std::sqrt(std::max(lam, 0.0))) : 0.0;
+            if (tau > 0) {
+                if constexpr (KER == K_RAYMAX) {
+                    raymax_bounds(A, f, tau, bnd);
+                } else {
+                    const D t2 = 2.0 * tau;
+                    const D hx = std::sqrt(t2 * f.a) * 1.001 + 0.01, hy = std::sqrt(t2 * f.c) * 1.001 + 0.01;
+                    bnd[0] = mx - hx, bnd[1] = mx + hx, bnd[2] = my - hy, bnd[3] = my + hy;
+                }
+            } else {
+                bnd[0] = BIGV, bnd[1] = -BIGV, bnd[2] = BIGV, bnd[3] = -BIGV;
+            }
         }
         for (int k = 0; k < 4; ++k) bnd[k] = clampd(bnd[k], -BIGV, BIGV);
         const D rr[4] = {
@@ -349,9 +504,20 @@ void project_forward(const ProjArgs& A) {
     }
 }
 
+// c = a × b: accumulate dL/da += b × g, dL/db += g × a.
+inline void cross_bwd(const D* a, const D* b, const D* g, D* ga, D* gb) {
+    ga[0] += b[1] * g[2] - b[2] * g[1];
+    ga[1] += b[2] * g[0] - b[0] * g[2];
+    ga[2] += b[0] * g[1] - b[1] * g[0];
+    gb[0] += g[1] * a[2] - g[2] * a[1];
+    gb[1] += g[2] * a[0] - g[0] * a[2];
+    gb[2] += g[0] * a[1] - g[1] * a[0];
+}
+
 template <typename T, int KER>
 void project_backward(const ProjArgs& A) {
-    constexpr int P = KER == K_EWA ? 13 : 15;
+    constexpr int P = nparams<KER>();
+    constexpr int NC = KER == K_SURFEL ? 2 : 3;
     const D fx = A.fx, fy = A.fy;
 #pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 1024)
     for (int64_t i = 0; i < A.n; ++i) {
@@ -361,7 +527,7 @@ void project_backward(const ProjArgs& A) {
         D g[P];
         for (int k = 0; k < P; ++k) g[k] = (D)gp[k];
         D gmu[3] = {0, 0, 0}, gRc[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gse[3] = {0, 0, 0}, gm[3] = {0, 0, 0};
-        D guc = 0, gvc = 0, gu = 0, gv = 0, gzs = 0;
+        D guc = 0, gvc = 0, gu = 0, gv = 0, gzs = 0, go1 = 0;
 
         // SH colour
         const int deg = (int)A.sh_degree;
@@ -394,164 +560,262 @@ void project_backward(const ProjArgs& A) {
             }
         }
 
-        // means2d = (fx u + cx, fy v + cy)
-        gu += fx * g[0];
-        gv += fy * g[1];
-
-        // kernel extras
-        if constexpr (KER == K_EWA) {
-            gmu[2] += g[9];
-            gRc[f.idx] += f.sgn * g[10];
-            gRc[3 + f.idx] += f.sgn * g[11];
-            gRc[6 + f.idx] += f.sgn * g[12];
+        if constexpr (KER == K_SURFEL) {
+            go1 += f.ok ? g[5] : 0.0;
+            // extras: n = t_w·sign (sign constant), d = n·μ, a_u = t_u/se_u, μ·a_u, a_v = t_v/se_v, μ·a_v
+            for (int r = 0; r < 3; ++r) {
+                gRc[3 * r + 2] += f.sgs * (g[9 + r] + g[12] * f.mu[r]);
+                gmu[r] += g[12] * f.snrm[r] + g[16] * f.au[r] + g[20] * f.av[r];
+                const D gau = g[13 + r] + g[16] * f.mu[r], gav = g[17 + r] + g[20] * f.mu[r];
+                gRc[3 * r] += gau / f.se[0];
+                gRc[3 * r + 1] += gav / f.se[1];
+                gse[0] -= gau * f.au[r] / f.se[0];
+                gse[1] -= gav * f.av[r] / f.se[1];
+            }
+            // centre: cn_a = (9 Xa0 X20 + 9 Xa1 X21 − Xa2 X22)/dds, dds = dd (ok) = 9(X20² + X21²) − X22²
+            D gX[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
+            const D gcn[2] = {fx * g[0], fy * g[1]};
+            const D cn[2] = {f.cnx, f.cny};
+            D gdds = 0;
+            const D* X = f.X;
+            for (int a = 0; a < 2; ++a) {
+                const D gN = gcn[a] / f.dds;
+                gdds -= gcn[a] * cn[a] / f.dds;
+                gX[3 * a] += 9.0 * X[6] * gN;
+                gX[6] += 9.0 * X[3 * a] * gN;
+                gX[3 * a + 1] += 9.0 * X[7] * gN;
+                gX[7] += 9.0 * X[3 * a + 1] * gN;
+                gX[3 * a + 2] -= X[8] * gN;
+                gX[8] -= X[3 * a + 2] * gN;
+            }
+            if (f.ok) {
+                gX[6] += 18.0 * X[6] * gdds;
+                gX[7] += 18.0 * X[7] * gdds;
+                gX[8] -= 2.0 * X[8] * gdds;
+            }
+            // X rows: (se_u Rc_r0, se_v Rc_r1, μ_r)
+            for (int r = 0; r < 3; ++r) {
+                gRc[3 * r] += f.se[0] * gX[3 * r];
+                gse[0] += f.Rc[3 * r] * gX[3 * r];
+                gRc[3 * r + 1] += f.se[1] * gX[3 * r + 1];
+                gse[1] += f.Rc[3 * r + 1] * gX[3 * r + 1];
+                gmu[r] += gX[3 * r + 2];
+            }
         } else {
-            // l = |mu|
-            if (f.l > 0)
-                for (int k = 0; k < 3; ++k) gmu[k] += g[9] * f.mu[k] / f.l;
-            // nrm = -normalize(bvec)
-            D gbv[3];
+            // means2d = (fx u + cx, fy v + cy)
+            gu += fx * g[0];
+            gv += fy * g[1];
+
+            // kernel extras
+            if constexpr (KER == K_EWA) {
+                gmu[2] += g[9];
+                gRc[f.idx] += f.sgn * g[10];
+                gRc[3 + f.idx] += f.sgn * g[11];
+                gRc[6 + f.idx] += f.sgn * g[12];
+            } else if constexpr (KER == K_RAYMAX) {
+                const D inv = 1.0 / f.cs;
+                const D* E = f.E;
+                D gE[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gmut[3] = {0, 0, 0};
+                D ginv = 0, gcs = g[21];
+                // A' = E Eᵀ / cs
+                int t = 0;
+                for (int a = 0; a < 3; ++a)
+                    for (int b = a; b < 3; ++b, ++t) {
+                        const D ga = g[9 + t];
+                        ginv += ga * f.S6[t];
+                        for (int j = 0; j < 3; ++j) {
+                            gE[3 * a + j] += ga * inv * E[3 * b + j];
+                            gE[3 * b + j] += ga * inv * E[3 * a + j];
+                        }
+                    }
+                // b' = E μ̃ / cs
+                for (int a = 0; a < 3; ++a) {
+                    const D gb = g[15 + a];
+                    ginv += gb * f.braw[a];
+                    for (int j = 0; j < 3; ++j) {
+                        gE[3 * a + j] += gb * inv * f.mut[j];
+                        gmut[j] += gb * inv * E[3 * a + j];
+                    }
+                }
+                // M' = (vx·vx, vx·vy, vy·vy) / cs, vx = muh × ẽ_0, vy = muh × ẽ_1, muh = μ̃/√cs
+                ginv += g[18] * f.dM[0] + g[19] * f.dM[1] + g[20] * f.dM[2];
+                D gvx[3], gvy[3], gmuh[3] = {0, 0, 0};
+                for (int k = 0; k < 3; ++k) {
+                    gvx[k] = inv * (2.0 * g[18] * f.vx[k] + g[19] * f.vy[k]);
+                    gvy[k] = inv * (g[19] * f.vx[k] + 2.0 * g[20] * f.vy[k]);
+                }
+                cross_bwd(f.muh, E, gvx, gmuh, gE);
+                cross_bwd(f.muh, E + 3, gvy, gmuh, gE + 3);
+                D gsq = 0;
+                for (int k = 0; k < 3; ++k) {
+                    gmut[k] += gmuh[k] / f.sqc;
+                    gsq -= gmuh[k] * f.muh[k] / f.sqc;
+                }
+                gcs += gsq / (2.0 * f.sqc) - ginv * inv * inv;
+                if (!f.culled)
+                    for (int k = 0; k < 3; ++k) gmut[k] += 2.0 * f.mut[k] * gcs;
+                // μ̃_j = (Σ_r μ_r Rc_rj)/se_j, E_rj = Rc_rj/se_j
+                for (int j = 0; j < 3; ++j) {
+                    const D gy = gmut[j] / f.se[j];
+                    gse[j] -= gmut[j] * f.mut[j] / f.se[j];
+                    for (int r = 0; r < 3; ++r) {
+                        gmu[r] += f.Rc[3 * r + j] * gy;
+                        gRc[3 * r + j] += f.mu[r] * gy + gE[3 * r + j] / f.se[j];
+                        gse[j] -= gE[3 * r + j] * E[3 * r + j] / f.se[j];
+                    }
+                }
+                // (μx/μz, μy/μz) unclamped
+                gu += g[22];
+                gv += g[23];
+            } else {
+                // l = |mu|
+                if (f.l > 0)
+                    for (int k = 0; k < 3; ++k) gmu[k] += g[9] * f.mu[k] / f.l;
+                // nrm = -normalize(bvec)
+                D gbv[3];
+                {
+                    const D gbh[3] = {-g[12], -g[13], -g[14]};
+                    if (f.bnorm >= 1e-12) {
+                        const D bh[3] = {f.bvec[0] / f.bden, f.bvec[1] / f.bden, f.bvec[2] / f.bden};
+                        const D pr = bh[0] * gbh[0] + bh[1] * gbh[1] + bh[2] * gbh[2];
+                        for (int k = 0; k < 3; ++k) gbv[k] = (gbh[k] - bh[k] * pr) / f.bden;
+                    } else {
+                        for (int k = 0; k < 3; ++k) gbv[k] = gbh[k] / f.bden;
+                    }
+                }
+                // bvec_r = Σ_j Rc_rj w_j, w_j = mut_j / se_j, mut_j = (Σ_r mu_r Rc_rj) / se_j
+                for (int j = 0; j < 3; ++j) {
+                    D gw = 0;
+                    for (int r = 0; r < 3; ++r) {
+                        gRc[3 * r + j] += gbv[r] * f.w[j];
+                        gw += f.Rc[3 * r + j] * gbv[r];
+                    }
+                    const D gmut = gw / f.se[j];
+                    gse[j] -= gw * f.w[j] / f.se[j];
+                    const D gy = gmut / f.se[j];
+                    gse[j] -= gmut * f.mut[j] / f.se[j];
+                    for (int r = 0; r < 3; ++r) {
+                        gmu[r] += f.Rc[3 * r + j] * gy;
+                        gRc[3 * r + j] += f.mu[r] * gy;
+                    }
+                }
+                // p0 = -lc (mvec0/dms - uc/nn2), p1 likewise; payload p/f
+                const D gp0 = g[10] / fx, gp1 = g[11] / fy;
+                const D e0 = f.mvec[0] / f.dms - f.uc / f.nn2, e1 = f.mvec[1] / f.dms - f.vc / f.nn2;
+                const D glc = -e0 * gp0 - e1 * gp1;
+                const D gmv[3] = {-f.lc / f.dms * gp0, -f.lc / f.dms * gp1, 0.0};
+                const D gdms = f.lc * (f.mvec[0] * gp0 + f.mvec[1] * gp1) / (f.dms * f.dms);
+                guc += f.lc / f.nn2 * gp0;
+                gvc += f.lc / f.nn2 * gp1;
+                D gnn2 = -f.lc * (f.uc * gp0 + f.vc * gp1) / (f.nn2 * f.nn2);
+                // lc = zs sqrt(nn2)
+                gzs += glc * f.sq;
+                gnn2 += glc * f.zs / (2.0 * f.sq);
+                guc += 2.0 * f.uc * gnn2;
+                gvc += 2.0 * f.vc * gnn2;
+                const D gdm = f.culled ? 0.0 : gdms;
+                // mvec_r = Σ_j Rc_rj h_j, h_j = dt_j/se_j; dm = Σ dt_j², dt_j = (Σ_r dc_r Rc_rj)/se_j
+                D gdc[3] = {0, 0, 0};
+                for (int j = 0; j < 3; ++j) {
+                    D gh = 0;
+                    for (int r = 0; r < 3; ++r) {
+                        gRc[3 * r + j] += gmv[r] * f.h[j];
+                        gh += f.Rc[3 * r + j] * gmv[r];
+                    }
+                    D gdt = gh / f.se[j] + 2.0 * f.dt[j] * gdm;
+                    gse[j] -= gh * f.h[j] / f.se[j];
+                    const D ge = gdt / f.se[j];
+                    gse[j] -= gdt * f.dt[j] / f.se[j];
+                    for (int r = 0; r < 3; ++r) {
+                        gRc[3 * r + j] += f.dc[r] * ge;
+                        gdc[r] += f.Rc[3 * r + j] * ge;
+                    }
+                }
+                guc += gdc[0];
+                gvc += gdc[1];
+            }
+
+            // conic and opacity
+            const D eps = A.eps2d, kk = A.aa, e1 = eps + kk;
+            D ga = 0, gb = 0, gc = 0, gdet = 0, gdet0 = 0;
+            const D go2 = f.ok ? g[5] : 0.0;
+            if (kk > 0) {
+                go1 += go2 * f.fac;
+                if (f.okk) {
+                    const D gfac = go2 * f.o1;
+                    gdet0 += gfac * f.fac / (2.0 * f.det0);
+                    gdet -= gfac * f.fac / (2.0 * f.det);
+                }
+            } else {
+                go1 += go2;
+            }
+            if (f.ok) {
+                // X = S⁻¹ = [[A, B], [B, C]]; dL/dS = -X G X with G = [[gA, gB/2], [gB/2, gC]]
+                const D XA = f.conic[0], XB = f.conic[1], XC = f.conic[2];
+                const D GA = g[2], GB = 0.5 * g[3], GC = g[4];
+                // XG
+                const D t00 = XA * GA + XB * GB, t01 = XA * GB + XB * GC;
+                const D t10 = XB * GA + XC * GB, t11 = XB * GB + XC * GC;
+                const D y00 = t00 * XA + t01 * XB, y01 = t00 * XB + t01 * XC, y11 = t10 * XB + t11 * XC;
+                ga -= y00;
+                gc -= y11;
+                gb -= 2.0 * y01;
+            } else {
+                ga += g[4];
+                gb -= g[3];
+                gc += g[2];
+            }
+            // a = a0 + e1, c = c0 + e1, det = gdet + e1 (a0 + c0) + e1², det0 = gdet + eps (a0 + c0) + eps²
+            const D ga0 = ga + gdet * e1 + gdet0 * eps;
+            const D gc0 = gc + gdet * e1 + gdet0 * eps;
+            const D ggd = gdet + gdet0;
+            D gr0[3], gr1[3];
             {
-                const D gbh[3] = {-g[12], -g[13], -g[14]};
-                if (f.bnorm >= 1e-12) {
-                    const D bh[3] = {f.bvec[0] / f.bden, f.bvec[1] / f.bden, f.bvec[2] / f.bden};
-                    const D pr = bh[0] * gbh[0] + bh[1] * gbh[1] + bh[2] * gbh[2];
-                    for (int k = 0; k < 3; ++k) gbv[k] = (gbh[k] - bh[k] * pr) / f.bden;
-                } else {
-                    for (int k = 0; k < 3; ++k) gbv[k] = gbh[k] / f.bden;
+                const D gcr[3] = {2.0 * ggd * f.cr[0], 2.0 * ggd * f.cr[1], 2.0 * ggd * f.cr[2]};
+                // cr = r0 × r1: g_r0 = r1 × gcr, g_r1 = gcr × r0
+                gr0[0] = f.r1[1] * gcr[2] - f.r1[2] * gcr[1];
+                gr0[1] = f.r1[2] * gcr[0] - f.r1[0] * gcr[2];
+                gr0[2] = f.r1[0] * gcr[1] - f.r1[1] * gcr[0];
+                gr1[0] = gcr[1] * f.r0[2] - gcr[2] * f.r0[1];
+                gr1[1] = gcr[2] * f.r0[0] - gcr[0] * f.r0[2];
+                gr1[2] = gcr[0] * f.r0[1] - gcr[1] * f.r0[0];
+                for (int j = 0; j < 3; ++j) {
+                    gr0[j] += 2.0 * ga0 * f.r0[j] + gb * f.r1[j];
+                    gr1[j] += 2.0 * gc0 * f.r1[j] + gb * f.r0[j];
                 }
             }
-            // bvec_r = Σ_j Rc_rj w_j, w_j = mut_j / se_j, mut_j = (Σ_r mu_r Rc_rj) / se_j
-            for (int j = 0; j < 3; ++j) {
-                D gw = 0;
-                for (int r = 0; r < 3; ++r) {
-                    gRc[3 * r + j] += gbv[r] * f.w[j];
-                    gw += f.Rc[3 * r + j] * gbv[r];
+            // r0_j = (fx/zs)(M0j - uc M2j), r1_j = (fy/zs)(M1j - vc M2j)
+            D gM[9];
+            {
+                const D ax = fx / f.zs, ay = fy / f.zs;
+                D s0 = 0, s1 = 0, sr0 = 0, sr1 = 0;
+                for (int j = 0; j < 3; ++j) {
+                    gM[j] = ax * gr0[j];
+                    gM[3 + j] = ay * gr1[j];
+                    gM[6 + j] = -ax * f.uc * gr0[j] - ay * f.vc * gr1[j];
+                    s0 += f.M[6 + j] * gr0[j];
+                    s1 += f.M[6 + j] * gr1[j];
+                    sr0 += f.r0[j] * gr0[j];
+                    sr1 += f.r1[j] * gr1[j];
                 }
-                const D gmut = gw / f.se[j];
-                gse[j] -= gw * f.w[j] / f.se[j];
-                const D gy = gmut / f.se[j];
-                gse[j] -= gmut * f.mut[j] / f.se[j];
-                for (int r = 0; r < 3; ++r) {
-                    gmu[r] += f.Rc[3 * r + j] * gy;
-                    gRc[3 * r + j] += f.mu[r] * gy;
+                guc -= ax * s0;
+                gvc -= ay * s1;
+                gzs -= (sr0 + sr1) / f.zs;
+            }
+            // clamp, u = mu0/zs, v = mu1/zs
+            if (f.inx) gu += guc;
+            if (f.iny) gv += gvc;
+            gmu[0] += gu / f.zs;
+            gmu[1] += gv / f.zs;
+            gzs -= (f.u * gu + f.v * gv) / f.zs;
+            if (!f.culled) gmu[2] += gzs;
+            // M = Rc diag(se)
+            for (int r = 0; r < 3; ++r)
+                for (int j = 0; j < 3; ++j) {
+                    gRc[3 * r + j] += gM[3 * r + j] * f.se[j];
+                    gse[j] += gM[3 * r + j] * f.Rc[3 * r + j];
                 }
-            }
-            // p0 = -lc (mvec0/dms - uc/nn2), p1 likewise; payload p/f
-            const D gp0 = g[10] / fx, gp1 = g[11] / fy;
-            const D e0 = f.mvec[0] / f.dms - f.uc / f.nn2, e1 = f.mvec[1] / f.dms - f.vc / f.nn2;
-            const D glc = -e0 * gp0 - e1 * gp1;
-            const D gmv[3] = {-f.lc / f.dms * gp0, -f.lc / f.dms * gp1, 0.0};
-            const D gdms = f.lc * (f.mvec[0] * gp0 + f.mvec[1] * gp1) / (f.dms * f.dms);
-            guc += f.lc / f.nn2 * gp0;
-            gvc += f.lc / f.nn2 * gp1;
-            D gnn2 = -f.lc * (f.uc * gp0 + f.vc * gp1) / (f.nn2 * f.nn2);
-            // lc = zs sqrt(nn2)
-            gzs += glc * f.sq;
-            gnn2 += glc * f.zs / (2.0 * f.sq);
-            guc += 2.0 * f.uc * gnn2;
-            gvc += 2.0 * f.vc * gnn2;
-            const D gdm = f.culled ? 0.0 : gdms;
-            // mvec_r = Σ_j Rc_rj h_j, h_j = dt_j/se_j; dm = Σ dt_j², dt_j = (Σ_r dc_r Rc_rj)/se_j
-            D gdc[3] = {0, 0, 0};
-            for (int j = 0; j < 3; ++j) {
-                D gh = 0;
-                for (int r = 0; r < 3; ++r) {
-                    gRc[3 * r + j] += gmv[r] * f.h[j];
-                    gh += f.Rc[3 * r + j] * gmv[r];
-                }
-                D gdt = gh / f.se[j] + 2.0 * f.dt[j] * gdm;
-                gse[j] -= gh * f.h[j] / f.se[j];
-                const D ge = gdt / f.se[j];
-                gse[j] -= gdt * f.dt[j] / f.se[j];
-                for (int r = 0; r < 3; ++r) {
-                    gRc[3 * r + j] += f.dc[r] * ge;
-                    gdc[r] += f.Rc[3 * r + j] * ge;
-                }
-            }
-            guc += gdc[0];
-            gvc += gdc[1];
         }
-
-        // conic and opacity
-        const D eps = A.eps2d, kk = A.aa, e1 = eps + kk;
-        D ga = 0, gb = 0, gc = 0, gdet = 0, gdet0 = 0, go1 = 0;
-        const D go2 = f.ok ? g[5] : 0.0;
-        if (kk > 0) {
-            go1 += go2 * f.fac;
-            if (f.okk) {
-                const D gfac = go2 * f.o1;
-                gdet0 += gfac * f.fac / (2.0 * f.det0);
-                gdet -= gfac * f.fac / (2.0 * f.det);
-            }
-        } else {
-            go1 += go2;
-        }
-        if (f.ok) {
-            // X = S⁻¹ = [[A, B], [B, C]]; dL/dS = -X G X with G = [[gA, gB/2], [gB/2, gC]]
-            const D XA = f.conic[0], XB = f.conic[1], XC = f.conic[2];
-            const D GA = g[2], GB = 0.5 * g[3], GC = g[4];
-            // XG
-            const D t00 = XA * GA + XB * GB, t01 = XA * GB + XB * GC;
-            const D t10 = XB * GA + XC * GB, t11 = XB * GB + XC * GC;
-            const D y00 = t00 * XA + t01 * XB, y01 = t00 * XB + t01 * XC, y11 = t10 * XB + t11 * XC;
-            ga -= y00;
-            gc -= y11;
-            gb -= 2.0 * y01;
-        } else {
-            ga += g[4];
-            gb -= g[3];
-            gc += g[2];
-        }
-        // a = a0 + e1, c = c0 + e1, det = gdet + e1 (a0 + c0) + e1², det0 = gdet + eps (a0 + c0) + eps²
-        const D ga0 = ga + gdet * e1 + gdet0 * eps;
-        const D gc0 = gc + gdet * e1 + gdet0 * eps;
-        const D ggd = gdet + gdet0;
-        D gr0[3], gr1[3];
-        {
-            const D gcr[3] = {2.0 * ggd * f.cr[0], 2.0 * ggd * f.cr[1], 2.0 * ggd * f.cr[2]};
-            // cr = r0 × r1: g_r0 = r1 × gcr, g_r1 = gcr × r0
-            gr0[0] = f.r1[1] * gcr[2] - f.r1[2] * gcr[1];
-            gr0[1] = f.r1[2] * gcr[0] - f.r1[0] * gcr[2];
-            gr0[2] = f.r1[0] * gcr[1] - f.r1[1] * gcr[0];
-            gr1[0] = gcr[1] * f.r0[2] - gcr[2] * f.r0[1];
-            gr1[1] = gcr[2] * f.r0[0] - gcr[0] * f.r0[2];
-            gr1[2] = gcr[0] * f.r0[1] - gcr[1] * f.r0[0];
-            for (int j = 0; j < 3; ++j) {
-                gr0[j] += 2.0 * ga0 * f.r0[j] + gb * f.r1[j];
-                gr1[j] += 2.0 * gc0 * f.r1[j] + gb * f.r0[j];
-            }
-        }
-        // r0_j = (fx/zs)(M0j - uc M2j), r1_j = (fy/zs)(M1j - vc M2j)
-        D gM[9];
-        {
-            const D ax = fx / f.zs, ay = fy / f.zs;
-            D s0 = 0, s1 = 0, sr0 = 0, sr1 = 0;
-            for (int j = 0; j < 3; ++j) {
-                gM[j] = ax * gr0[j];
-                gM[3 + j] = ay * gr1[j];
-                gM[6 + j] = -ax * f.uc * gr0[j] - ay * f.vc * gr1[j];
-                s0 += f.M[6 + j] * gr0[j];
-                s1 += f.M[6 + j] * gr1[j];
-                sr0 += f.r0[j] * gr0[j];
-                sr1 += f.r1[j] * gr1[j];
-            }
-            guc -= ax * s0;
-            gvc -= ay * s1;
-            gzs -= (sr0 + sr1) / f.zs;
-        }
-        // clamp, u = mu0/zs, v = mu1/zs
-        if (f.inx) gu += guc;
-        if (f.iny) gv += gvc;
-        gmu[0] += gu / f.zs;
-        gmu[1] += gv / f.zs;
-        gzs -= (f.u * gu + f.v * gv) / f.zs;
-        if (!f.culled) gmu[2] += gzs;
-        // M = Rc diag(se)
-        for (int r = 0; r < 3; ++r)
-            for (int j = 0; j < 3; ++j) {
-                gRc[3 * r + j] += gM[3 * r + j] * f.se[j];
-                gse[j] += gM[3 * r + j] * f.Rc[3 * r + j];
-            }
         // Rc = rotmat(qc)
         D gqc[4];
         {
@@ -576,17 +840,18 @@ void project_backward(const ProjArgs& A) {
         for (int k = 0; k < 3; ++k) gm[k] += A.R[k] * gmu[0] + A.R[3 + k] * gmu[1] + A.R[6 + k] * gmu[2];
         T* gM_out = (T*)A.g_means + 3 * i;
         for (int k = 0; k < 3; ++k) gM_out[k] = (T)gm[k];
-        // 3D filter: se = sqrt(s² + f3), o1 = o sqrt(Π s²/(s² + f3))
+        // 3D filter: se = sqrt(s² + f3), o1 = o sqrt(Π s²/(s² + f3)) over the NC scale columns in use
         T* gS = (T*)A.g_scales + 3 * i;
         if (A.has_filter) {
             const D gfo = go1 * f.o;
-            for (int k = 0; k < 3; ++k) {
+            for (int k = 0; k < NC; ++k) {
                 const D gs2f = gse[k] / (2.0 * f.se[k]) - gfo * f.fo / (2.0 * f.s2f[k]);
                 gS[k] = (T)(2.0 * f.s[k] * gs2f + gfo * f.fo / f.s[k]);
             }
+            if (NC == 2) gS[2] = T(0);
             ((T*)A.g_opac)[i] = (T)(go1 * f.fo);
         } else {
-            for (int k = 0; k < 3; ++k) gS[k] = (T)gse[k];
+            for (int k = 0; k < 3; ++k) gS[k] = (T)(k < NC ? gse[k] : 0.0);
             ((T*)A.g_opac)[i] = (T)go1;
         }
     }
@@ -594,14 +859,12 @@ void project_backward(const ProjArgs& A) {
 
 template <typename T>
 int run(const ProjArgs& A, bool fwd) {
-    if (A.kernel == K_EWA) {
-        if (fwd) project_forward<T, K_EWA>(A);
-        else project_backward<T, K_EWA>(A);
-    } else if (A.kernel == K_RADE) {
-        if (fwd) project_forward<T, K_RADE>(A);
-        else project_backward<T, K_RADE>(A);
-    } else {
-        return -1;
+    switch (A.kernel) {
+        case K_EWA: fwd ? project_forward<T, K_EWA>(A) : project_backward<T, K_EWA>(A); break;
+        case K_RADE: fwd ? project_forward<T, K_RADE>(A) : project_backward<T, K_RADE>(A); break;
+        case K_RAYMAX: fwd ? project_forward<T, K_RAYMAX>(A) : project_backward<T, K_RAYMAX>(A); break;
+        case K_SURFEL: fwd ? project_forward<T, K_SURFEL>(A) : project_backward<T, K_SURFEL>(A); break;
+        default: return -1;
     }
     return 0;
 }
