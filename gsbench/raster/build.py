@@ -1,8 +1,8 @@
 """Compile (on first use) and load the C++/OpenMP rasterizer.
 
 The extension has a plain C ABI (raster.cpp: binning and compositing; integrate.cpp; project.cpp: the
-fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.eigen3`),
-compiled with
+fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.eigen3`;
+ssim.cpp: the fused SSIM map and its backward of `gsbench.ssim`), compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)
 and called through ctypes. The library name carries a hash of the sources, the flags and the CPU, so
 an edit or another machine triggers a rebuild. The first build prints one line.
@@ -22,7 +22,7 @@ from pathlib import Path
 from gsbench.errors import BuildError
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp"]
+SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp", "ssim.cpp"]
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -77,7 +77,7 @@ class ProjArgs(ctypes.Structure):
             "params", "means2d", "radii", "visible", "depth", "bounds", "rect", "rect_radius",
             "g_params", "g_means", "g_quats", "g_scales", "g_opac", "g_sh",
         )
-    ]
+    ] + [("surfel_k", ctypes.c_double)]
 
 
 def cache_dir() -> Path:
@@ -192,5 +192,11 @@ def load_library() -> ctypes.CDLL:
             ctypes.c_void_p, ctypes.c_int64,
         ]
         lib.gs_sym3_eigh_backward.restype = ctypes.c_int
+        lib.gs_ssim_forward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 3 + [ctypes.c_double] * 2 + [
+            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64,
+        ]
+        lib.gs_ssim_forward.restype = ctypes.c_int
+        lib.gs_ssim_backward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 6 + [ctypes.c_int64]
+        lib.gs_ssim_backward.restype = ctypes.c_int
         _lib = lib
         return lib

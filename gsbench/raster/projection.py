@@ -164,12 +164,6 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
     return project_torch(gaussians, camera, kernel, settings)
 
 
-class _ProjArgsX(ProjArgs):
-    """build.py's ``ProjArgs`` plus the fields csrc/project.cpp appends after it (``surfel_k``)."""
-
-    _fields_ = [("surfel_k", ctypes.c_double)]
-
-
 class _FusedProjectFn(torch.autograd.Function):
     """Fused projection (csrc/project.cpp): (means, quats, scales (N,3), opacities, sh) -> payload.
 
@@ -246,7 +240,7 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
         raise ValueError(f"sh has {sh.shape[1]} coefficients per colour, degree {settings.sh_degree} needs {k_need}")
     W, H = int(camera.width), int(camera.height)
     ts = int(settings.tile_size)
-    a = _ProjArgsX()
+    a = ProjArgs()
     a.n, a.dtype, a.kernel = n, 0 if dtype == torch.float32 else 1, FUSED_KERNELS.index(kernel)
     a.sh_degree, a.sh_k = int(settings.sh_degree), int(sh.shape[1])
     a.width, a.height, a.tile = W, H, ts
