@@ -231,6 +231,32 @@ def _background(background, settings: RasterSettings, dtype) -> torch.Tensor:
     return bgt
 
 
+# Binning of ewa/rade: True = exact ellipse/tile overlap, False = every tile of the bounding rectangle (the
+# images and gradients are identical; only the tile pairs differ). None = the GSBENCH_EXACT_OVERLAP
+# environment variable ("0"/"false"/"off" = rectangle), default on.
+EXACT_OVERLAP: bool | None = None
+
+
+def exact_overlap_enabled() -> bool:
+    if EXACT_OVERLAP is not None:
+        return bool(EXACT_OVERLAP)
+    return os.environ.get("GSBENCH_EXACT_OVERLAP", "1").strip().lower() not in ("0", "false", "off", "no")
+
+
+def _bind_exact_bin(lib) -> None:
+    """ctypes signatures of gs_bin_exact_count / gs_bin_exact_fill (csrc/raster.cpp)."""
+    if getattr(lib, "_gs_exact_bound", False):
+        return
+    i64, ptr = ctypes.c_int64, ctypes.c_void_p
+    lib.gs_bin_exact_count.argtypes = [i64, ptr, ptr, i64, ptr, ptr, ptr, i64, i64, i64, i64, i64, i64, ptr, ptr, ptr,
+                                       ptr, i64]
+    lib.gs_bin_exact_count.restype = i64
+    lib.gs_bin_exact_fill.argtypes = [i64, ptr, ptr, ptr, ptr, i64, i64, i64, i64, i64, i64, ptr, ptr, ptr, ptr, i64,
+                                      i64]
+    lib.gs_bin_exact_fill.restype = i64
+    lib._gs_exact_bound = True
+
+
 def _use_reference() -> bool:
     return os.environ.get("GSBENCH_RASTER", "").strip().lower() == "reference"
 
@@ -293,11 +319,34 @@ def rasterize(
     )
     capacity = int(cap.value)
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int32)
-    tile_list = torch.empty(max(capacity, 1), dtype=torch.int32)
-    got = lib.gs_bin_sorted(
-        m_vis, _ptr(order), _ptr(rect_sorted), tiles_x, tiles_y, _ptr(offsets), _ptr(tile_list), capacity,
-        max(1, torch.get_num_threads()),
-    )
+    nthr = max(1, torch.get_num_threads())
+    if kernel in ("ewa", "rade") and exact_overlap_enabled():
+        # exact ellipse/tile overlap (csrc/raster.cpp): a Gaussian is listed only in the tiles of its rectangle
+        # that its alpha >= 1/255 ellipse meets; the count pass sizes tile_list exactly
+        _bind_exact_bin(lib)
+        params_c = proj.params.detach().contiguous()
+        keep_first = int("distortion" in outs)  # the distortion shift reads each tile's first rectangle Gaussian
+        first = torch.empty(tiles_x * tiles_y if keep_first else 1, dtype=torch.int32)
+        rec = torch.empty(max(n, 1) * 8, dtype=torch.int32)
+        cursors = torch.empty(nthr * tiles_x * tiles_y, dtype=torch.int32)
+        dt_id = 0 if dtype == torch.float32 else 1
+        npar = int(params_c.shape[1])
+        capacity = int(lib.gs_bin_exact_count(
+            m_vis, _ptr(order), _ptr(rect_sorted), n, _ptr(visible_u8), _ptr(rect), _ptr(params_c), npar, dt_id, H,
+            tiles_x, tiles_y, keep_first, _ptr(first), _ptr(rec), _ptr(offsets), _ptr(cursors), nthr,
+        ))
+        if capacity < 0:
+            raise RuntimeError("gsbench rasterizer: tile list overflow")
+        tile_list = torch.empty(max(capacity, 1), dtype=torch.int32)
+        got = lib.gs_bin_exact_fill(
+            m_vis, _ptr(order), _ptr(rect_sorted), _ptr(rec), _ptr(params_c), npar, dt_id, H, tiles_x, tiles_y,
+            keep_first, _ptr(first), _ptr(offsets), _ptr(cursors), _ptr(tile_list), capacity, nthr,
+        )
+    else:
+        tile_list = torch.empty(max(capacity, 1), dtype=torch.int32)
+        got = lib.gs_bin_sorted(
+            m_vis, _ptr(order), _ptr(rect_sorted), tiles_x, tiles_y, _ptr(offsets), _ptr(tile_list), capacity, nthr,
+        )
     if got < 0:
         raise RuntimeError("gsbench rasterizer: tile list overflow")
     _prof("sort_bin", time.perf_counter() - t0)
