@@ -82,6 +82,7 @@ class TrainConfig:
     log_every: int = 100
     max_gaussians: int = 0
     scale_refine_interval: bool = False  # gsbench.train.scaled_strategy
+    optimizer: str = "adam"  # gsbench.optim: adam (the papers') or visible_adam (opt-in, not the papers' update)
 
 
 @dataclass

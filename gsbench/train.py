@@ -8,7 +8,8 @@ Per step ``t = 1 … train.iterations`` (3DGS ``train.py`` order, methods-3dgs-2
    parameters; the render computes only their `required_outputs` (weight 0 removes a term's outputs);
 4. L = Σ weight·term; non-finite L is a `NumericalError` naming the terms and the step;
 5. backward; ``strategy.step_post_backward`` (densify / prune / opacity reset);
-6. Adam step (skipped on the last step, as 3DGS).
+6. Adam step (skipped on the last step, as 3DGS); with ``train.optimizer: visible_adam`` only the
+   rows of the Gaussians this view sees (`gsbench.optim`).
 
 Checks: a non-finite loss is a `NumericalError` at once (one scalar test a step); the parameters are
 tested every `PARAMETER_CHECK_EVERY` steps, before every checkpoint and at the last step, with one
@@ -79,6 +80,7 @@ from gsbench.config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.losses import Batch, active_terms, required_outputs, total_loss
+from gsbench.optim import VisibleAdam
 from gsbench.progress import DEFAULT_INTERVAL, ProgressLines
 from gsbench.strategy import REFERENCE_ITERATIONS
 
@@ -334,6 +336,8 @@ class Trainer:
             raise NumericalError(f"step {step}: densification pruned every Gaussian (prune opacity "
                                  f"{getattr(self.strategy, 'prune_opacity', '?')}); check the schedule and the data")
         if step < self.iterations:
+            if isinstance(m.optimizer, VisibleAdam):  # rows the view saw; after a refinement round, every row
+                m.optimizer.visible = render.visible if len(render.visible) == len(m.gaussians) else None
             m.optimizer.step()
         m.optimizer.zero_grad(set_to_none=True)
         t1 = clock()

@@ -19,9 +19,10 @@
     drawn (at most 50) until the floor is reached; never more than n. An empty hull is a `DataError`.
   - ``sphere``, and any scene without masks: ``random_init_points`` uniform in the scene sphere
     (`Gaussians.random_in_sphere`), the initialisation before the hull rule, bit for bit.
-  Adam with eps 1e-15 and one group per parameter, ``group["name"]`` = `Gaussians.params` key (§1.8):
-  means ``position_lr_init·extent``, sh_dc ``feature_lr``, sh_rest ``feature_lr/20``, opacity
-  ``opacity_lr``, log-scales ``scaling_lr``, quaternions ``rotation_lr``.
+  Adam (``train.optimizer``, `gsbench.optim`) with eps 1e-15 and one group per parameter,
+  ``group["name"]`` = `Gaussians.params` key (§1.8): means ``position_lr_init·extent``, sh_dc
+  ``feature_lr``, sh_rest ``feature_lr/20``, opacity ``opacity_lr``, log-scales ``scaling_lr``,
+  quaternions ``rotation_lr``.
 - ``extent`` is 3DGS ``cameras_extent``: 1.1 × the largest distance of a training camera centre from
   their mean (§0); it scales the position lr and the densification size tests.
 - Schedules (`update_schedules`, called by the Trainer every step with the preset's schedule
@@ -61,6 +62,7 @@ from gsbench.gaussians import Gaussians
 from gsbench.losses import TermSpec
 from gsbench.mesh.cleanup import canonical_order
 from gsbench.mesh.tsdf import tsdf_fusion
+from gsbench.optim import make_adam
 from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, rasterize
 from gsbench.strategy import DefaultStrategy, Strategy
 from gsbench.train import scale_step, split_views
@@ -247,8 +249,7 @@ class Method:
         lrs = self.learning_rates()
         groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()
                   if param.requires_grad]
-        # foreach: the multi-tensor Adam, the same update bit for bit as the single-tensor loop (tested)
-        return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS, foreach=True)
+        return make_adam(groups, self.cfg.train.optimizer, ADAM_EPS)  # train.optimizer, gsbench/optim.py
 
     # ---- what the Trainer asks for ------------------------------------------------------------
     def strategy(self) -> Strategy:

@@ -1,0 +1,65 @@
+"""`train.optimizer` (gsbench/optim.py): the papers' Adam by default, and the opt-in visible-only Adam,
+which leaves the rows of unseen Gaussians untouched and is Adam when every row is visible."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from gsbench.errors import ConfigError
+from gsbench.optim import VisibleAdam, make_adam
+from gsbench.train import Trainer
+from tests.method_setup import setup_method, straight_and_resumed
+
+
+def _params(seed=0, n=50):
+    gen = torch.Generator().manual_seed(seed)
+    return [torch.randn(n, 3, generator=gen).requires_grad_(True), torch.randn(n, 1, 3, generator=gen).requires_grad_(True)]
+
+
+def _run(optimizer, params, visible=None, steps=6):
+    gen = torch.Generator().manual_seed(1)
+    for _ in range(steps):
+        for p in params:
+            p.grad = torch.randn(p.shape, generator=gen)
+        if visible is not None:
+            optimizer.visible = visible
+        optimizer.step()
+    return [p.detach().clone() for p in params]
+
+
+def test_every_row_visible_is_adam_and_none_is_adam_bit_for_bit():
+    groups = lambda ps: [{"params": [p], "lr": 1e-2 * (i + 1)} for i, p in enumerate(ps)]  # noqa: E731
+    reference = _run(torch.optim.Adam(groups(a := _params()), lr=0.0, eps=1e-15, foreach=False), a)
+    all_rows = _run(VisibleAdam(groups(b := _params()), lr=0.0, eps=1e-15), b, torch.ones(50, dtype=torch.bool))
+    unset = _run(VisibleAdam(groups(c := _params()), lr=0.0, eps=1e-15), c)
+    assert all(torch.allclose(x, y, rtol=1e-6, atol=1e-7) for x, y in zip(reference, all_rows))
+    assert all(torch.equal(x, y) for x, y in zip(reference, unset))
+
+
+def test_unseen_rows_keep_their_parameters_and_moments():
+    params = _params()
+    before = [p.detach().clone() for p in params]
+    optimizer = VisibleAdam([{"params": [p], "lr": 0.1} for p in params], lr=0.0, eps=1e-15)
+    visible = torch.zeros(50, dtype=torch.bool)
+    visible[::3] = True
+    after = _run(optimizer, params, visible)
+    for p, old, new in zip(params, before, after):
+        assert torch.equal(new[~visible], old[~visible]) and not torch.equal(new[visible], old[visible])
+        state = optimizer.state[p]
+        assert torch.all(state["exp_avg"][~visible] == 0) and torch.all(state["exp_avg_sq"][visible] > 0)
+
+
+def test_unknown_optimizer_is_a_config_error():
+    with pytest.raises(ConfigError, match="adam, visible_adam"):
+        make_adam([{"params": _params()}], "sgd", 1e-15)
+
+
+def test_training_with_visible_adam_densifies_and_resumes_bit_for_bit(tiny_spot, tmp_path, monkeypatch):
+    m, _, _ = setup_method("3dgs", tiny_spot, "train.optimizer=visible_adam")
+    assert isinstance(m.optimizer, VisibleAdam)
+    straight, resumed = straight_and_resumed("3dgs", tiny_spot, tmp_path, monkeypatch, "train.optimizer=visible_adam",
+                                             "train.iterations=40", "train.checkpoint_every=20", crash_after=25)
+    assert isinstance(straight, Trainer) and straight.step == resumed.step == 40
+    for name, value in straight.method.gaussians.params.items():
+        assert torch.equal(value, resumed.method.gaussians.params[name]), name
