@@ -4,7 +4,8 @@ Workloads (`WORKLOADS`): each method at the cpu preset on ``synthetic/spot`` (20
 initial points in the masks' visual hull), stepped from a quarter of the cpu schedule (step 750 of
 3000, in the densification window) or, when a loss term starts later, from the step after the last
 term starts (GOF / RaDe-GS / IBGS 1501, SuGaR 1801, past the window), so every term is timed; and ``3dgs-random-100k``: 3DGS from 100 000 random points in the scene sphere, stepped from
-step 1 (what a capture without points and masks costs at the start). Each workload runs ``warmup``
+step 1 (what a capture without points and masks costs at the start); ``3dgs-visible-adam``: 3DGS
+with the opt-in visible-only Adam (`gsbench.optim`). Each workload runs ``warmup``
 steps, then ``steps`` timed steps of `gsbench.train.Trainer.train_step` (the real step: schedules,
 render, loss, backward, densification, Adam, checks), seeded, in a temporary run folder.
 
@@ -57,6 +58,7 @@ WORKLOADS = {
     "ibgs": Workload("ibgs"),
     "sugar": Workload("sugar"),
     "3dgs-random-100k": Workload("3dgs", ("method.random_init_region=sphere",), start=0.0),
+    "3dgs-visible-adam": Workload("3dgs", ("train.optimizer=visible_adam",)),
 }
 RASTER_PHASES = ("projection", "sort_bin", "raster_fwd", "raster_bwd")
 
