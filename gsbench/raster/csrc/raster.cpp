@@ -980,22 +980,15 @@ inline void make_ellipse(const T* p, double* e) {
     e[9] = 1e-6 * (hx + std::fabs(B) * inv_a * hy + std::fabs(mx)) + 1e-3;  // outward x padding (rounding)
 }
 
-// Tile columns [c0, c1) (within [r0, r1)) whose pixel-centre rectangle meets the ellipse e in tile row ty.
-inline void ellipse_row_span(const double* e, int ty, int H, int r0, int r1, int& c0, int& c1) {
-    if (e[0] == ELL_RECT) {
-        c0 = r0;
-        c1 = r1;
-        return;
-    }
-    c0 = c1 = r0;
-    if (e[0] != ELL_CONIC) return;
+// Tile columns [c0, c1) (within [r0, r1)) whose pixel-centre rectangle meets the conic ellipse e in tile row ty;
+// branch-free, so `ellipse_records` runs it as SIMD lanes.
+inline void conic_row_span(const double* e, int ty, int H, double r0, double r1, int& c0, int& c1) {
     const double mx = e[1], my = e[2], b = e[3], aK = e[4], det = e[5], inv_a = e[6], hy = e[7], ys = e[8],
                  pad = e[9];
     const int yy0 = ty * TS;
     const int nrows = std::min(TS, H - yy0);
     const double lo = std::max((double)yy0 + 0.5 - my, -hy);
     const double hi = std::min((double)(yy0 + nrows) - 0.5 - my, hy);
-    if (lo > hi) return;
     // right edge R(dy) = (−b dy + √(aK − det dy²))/a is concave, maximal at dy = ys; the left edge mirrors it
     const double dyr = std::min(std::max(ys, lo), hi);
     const double dyl = std::min(std::max(-ys, lo), hi);
@@ -1004,9 +997,23 @@ inline void ellipse_row_span(const double* e, int ty, int H, int r0, int r1, int
     // tile tx's pixel centres span x in [16 tx + 0.5, 16 tx + 15.5]
     const double flo = std::ceil(((xl - pad) - (TS - 0.5)) * (1.0 / TS));
     const double fhi = std::floor(((xr + pad) - 0.5) * (1.0 / TS)) + 1.0;
-    c0 = (int)std::min(std::max(flo, (double)r0), (double)r1);
-    c1 = (int)std::min(std::max(fhi, (double)r0), (double)r1);
-    if (c1 < c0) c1 = c0;
+    const double d0 = std::min(std::max(flo, r0), r1);
+    const double d1 = std::max(std::min(std::max(fhi, r0), r1), d0);
+    const bool empty = lo > hi;
+    c0 = empty ? (int)r0 : (int)d0;
+    c1 = empty ? (int)r0 : (int)d1;
+}
+
+// Tile columns [c0, c1) of tile row ty for any ellipse record: the whole rectangle row, none, or the conic's span.
+inline void ellipse_row_span(const double* e, int ty, int H, int r0, int r1, int& c0, int& c1) {
+    if (e[0] == ELL_RECT) {
+        c0 = r0;
+        c1 = r1;
+    } else if (e[0] != ELL_CONIC) {
+        c0 = c1 = r0;
+    } else {
+        conic_row_span(e, ty, H, r0, r1, c0, c1);
+    }
 }
 
 // first[t] = the first entry (depth order) whose rectangle covers tile t, -1 if none.
@@ -1053,30 +1060,14 @@ void ellipse_records(int64_t N, const uint8_t* visible, const int32_t* rect, con
         } else if (r[3] - r[2] > REC_ROWS) {
             q[0] = REC_RECOMPUTE;
         } else {
-            // ellipse_row_span of the (at most REC_ROWS) rows as SIMD lanes, branch-free
+            // conic_row_span of the (at most REC_ROWS) rows as SIMD lanes
             q[0] = REC_SPANS;
-            const double mx = e[1], my = e[2], b = e[3], aK = e[4], det = e[5], inv_a = e[6], hy = e[7],
-                         ys = e[8], pad = e[9];
-            const double r0 = r[0], r1 = r[1];
             const int ty0 = r[2], nr = r[3] - r[2];
             int32_t out[8];
 #pragma omp simd
             for (int k = 0; k < 8; ++k) {
-                const int yy0 = (ty0 + k) * TS;
-                const int nrows = std::min(TS, (int)H - yy0);
-                const double lo = std::max((double)yy0 + 0.5 - my, -hy);
-                const double hi = std::min((double)(yy0 + nrows) - 0.5 - my, hy);
-                const double dyr = std::min(std::max(ys, lo), hi);
-                const double dyl = std::min(std::max(-ys, lo), hi);
-                const double xr = mx + (-b * dyr + std::sqrt(std::max(0.0, aK - det * dyr * dyr))) * inv_a;
-                const double xl = mx + (-b * dyl - std::sqrt(std::max(0.0, aK - det * dyl * dyl))) * inv_a;
-                const double flo = std::ceil(((xl - pad) - (TS - 0.5)) * (1.0 / TS));
-                const double fhi = std::floor(((xr + pad) - 0.5) * (1.0 / TS)) + 1.0;
-                const double d0 = std::min(std::max(flo, r0), r1);
-                const double d1 = std::max(std::min(std::max(fhi, r0), r1), d0);
-                const bool empty = lo > hi;
-                const int c0 = empty ? (int)r0 : (int)d0;
-                const int c1 = empty ? (int)r0 : (int)d1;
+                int c0, c1;
+                conic_row_span(e, ty0 + k, (int)H, r[0], r[1], c0, c1);
                 out[k] = c0 | (c1 << 16);
             }
             for (int k = 0; k < nr; ++k) q[1 + k] = out[k];
