@@ -30,6 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsbench.data.camera import Scene
+from gsbench.data.dtu import dtu_gt_paths
 from gsbench.errors import EvaluationError
 from gsbench.evaluators import culling, gt_io, pointsets
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo, check_files, require_gt
@@ -60,12 +61,7 @@ def dtu_gt_files(scene: Scene) -> dict[str, Path]:
     gt = require_gt(scene, "dtu", DTUChamfer.name)
     if gt.scan is None:
         raise EvaluationError(f"dtu_chamfer: scene '{scene.name}' GroundTruth has no scan number")
-    root = Path(gt.root)
-    return {
-        "STL points": root / "Points" / "stl" / f"stl{gt.scan:03d}_total.ply",
-        "ObsMask": root / "ObsMask" / f"ObsMask{gt.scan}_10.mat",
-        "Plane": root / "ObsMask" / f"Plane{gt.scan}.mat",
-    }
+    return dtu_gt_paths(gt.root, gt.scan)
 
 
 def _in_box(points: np.ndarray, bb: np.ndarray, patch: float) -> np.ndarray:

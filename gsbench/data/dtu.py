@@ -124,6 +124,16 @@ def scan_number(root: Path, meta: dict) -> int | None:
     return int(match.group(1)) if match else None
 
 
+def dtu_gt_paths(root: Path, scan: int) -> dict[str, Path]:
+    """The three files of the DTU protocol for ``scan`` under a GT ``root`` (they may not exist)."""
+    root = Path(root)
+    return {
+        "STL points": root / "Points" / "stl" / f"stl{scan:03d}_total.ply",
+        "ObsMask": root / "ObsMask" / f"ObsMask{scan}_10.mat",
+        "Plane": root / "ObsMask" / f"Plane{scan}.mat",
+    }
+
+
 def dtu_ground_truth(root: Path, scan: int | None, gt_root: Path | None = None) -> tuple[GroundTruth | None, str]:
     """The DTU GT handle if ``Points/stl/stl{scan:03d}_total.ply`` exists in a candidate folder
     (``gt_root``, else the scene folder and its parent), and otherwise None with the reason: the
@@ -132,13 +142,13 @@ def dtu_ground_truth(root: Path, scan: int | None, gt_root: Path | None = None) 
     if scan is None:
         return None, (f"no scan number for {root} (the folder is not named scan<N> and has no gsbench_scene.json "
                       "'scan'), so Points/stl/stl<scan>_total.ply cannot be looked up")
-    rel = Path("Points") / "stl" / f"stl{scan:03d}_total.ply"
-    for cand in candidates:
-        if (cand / rel).is_file():
+    stl = [dtu_gt_paths(cand, scan)["STL points"] for cand in candidates]
+    for cand, path in zip(candidates, stl):
+        if path.is_file():
             return GroundTruth(kind="dtu", root=cand, name=f"scan{scan}", scan=scan,
                                normal_maps=optional_dir(root / "gt_normal"),
                                depth_maps=optional_dir(root / "gt_depth")), ""
-    return None, f"{' or '.join(str(c / rel) for c in candidates)} not found"
+    return None, f"{' or '.join(map(str, stl))} not found"
 
 
 def _mask_paths(root: Path, n_images: int) -> list[Path]:

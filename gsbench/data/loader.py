@@ -161,14 +161,13 @@ def _ground_truth_files(scene: Scene | None, root: Path, fmt: str, gt_root) -> d
 
         folder = Path(gt_root) if gt_root else root
         return {str(p): p.is_file() for p in gt_files(folder, scene_gt_name(root, read_meta(root))).values()}
-    from gsbench.data.dtu import scan_number  # noqa: PLC0415
+    from gsbench.data.dtu import dtu_gt_paths, scan_number  # noqa: PLC0415
 
     scan = scan_number(root, read_meta(root))
     if scan is None:
         return {}
     folder = scene.gt.root if scene is not None and scene.gt is not None else Path(gt_root) if gt_root else root
-    return {str(folder / rel): (folder / rel).is_file() for rel in (
-        f"Points/stl/stl{scan:03d}_total.ply", f"ObsMask/ObsMask{scan}_10.mat", f"ObsMask/Plane{scan}.mat")}
+    return {str(p): p.is_file() for p in dtu_gt_paths(folder, scan).values()}
 
 
 def check_scene(path, gt_root=None) -> dict:
