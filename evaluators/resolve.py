@@ -48,9 +48,8 @@ class EvaluationPlan:
         return (*self.mesh, IMAGE) if self.image else self.mesh
 
 
-def unmet_need(name: str, scene: Scene, held_out: int) -> str:
-    """Why evaluator ``name`` cannot score ``scene`` (empty when it can); ``held_out`` views are held out."""
-    evaluator = get_evaluator(name)
+def unmet_need(evaluator, scene: Scene, held_out: int) -> str:
+    """Why ``evaluator`` cannot score ``scene`` (empty when it can); ``held_out`` views are held out."""
     for need in evaluator.needs:
         if need == "masks" and not scene.has_masks:
             return (f"scene '{scene.name}' has no object masks (a mask/ folder, one mask per image); "
@@ -77,7 +76,7 @@ def plan_evaluation(scene: Scene, dataset: str, named, held_out: int) -> Evaluat
         if name != IMAGE and "mesh" not in evaluator.requires:
             raise EvaluationError(f"evaluator '{name}' needs {evaluator.requires}, not a mesh; fix: leave it out "
                                   "of eval.evaluators")
-    unmet = {n: reason for n in evaluators if (reason := unmet_need(n, scene, held_out))}
+    unmet = {n: reason for n, ev in evaluators.items() if (reason := unmet_need(ev, scene, held_out))}
     if named and unmet:
         lines = "; ".join(f"{n}: {reason}" for n, reason in unmet.items())
         raise EvaluationError(f"eval.evaluators names evaluator(s) that cannot score scene '{scene.name}': {lines}")

@@ -1,4 +1,4 @@
-"""`gsbench bench train` (gsbench/train_bench.py): the phases of a real training step add up and every
+"""`gsbench bench train` (gsbench/train_bench.py): the timers nest inside the training step and every
 loss term is timed forward and backward. Times are not asserted here (bench numbers come from the
 command, written down with the machine)."""
 
@@ -22,9 +22,9 @@ def test_phases_add_up_to_the_step_and_every_term_is_timed(tiny_spot, name, term
     assert {f"fwd.{t}" for t in terms} | {f"bwd.{t}" for t in terms} <= set(ms)
     assert set(RASTER_PHASES) <= set(ms) and ms["raster_fwd"] > 0 and ms["raster_bwd"] > 0
     assert all(math.isfinite(v) for v in ms.values())
-    parts = sum(v for k, v in ms.items() if not k.startswith("fwd.")) + sum(
-        v for k, v in ms.items() if k.startswith("fwd."))
-    assert parts == pytest.approx(result["step_ms"], rel=1e-6)  # the phases partition the step
+    # the rasterizer's timers and the per-term forwards are measured inside the Trainer's phases, and
+    # those inside the step: each remainder is non-negative (fails on a double count or a missed reset)
+    assert ms["render_rest"] >= 0 and ms["loss_rest"] >= 0 and ms["other"] >= 0
     assert 0 < result["it_per_s"] and -1 < result["non_raster_share"] < 1
     assert name in format_table({"results": [result]})
 
