@@ -1,10 +1,19 @@
-"""A fixed evaluator workload: dtu_chamfer (mesh mode, with culling) on a large synthetic sphere.
+"""Fixed evaluator workloads (``gsbench bench eval``).
 
-The GT is ``n_gt`` points on a sphere at ~0.2 mm spacing (the radius follows from the count), written
-in the DTU layout to a temporary folder; the mesh is a latitude-longitude sphere with ``n_vertices``
-vertices and seeded radial noise (sigma 0.1 mm); the scene has ``n_views`` 1600x1200 cameras on a
-ring with disc masks around the sphere's silhouette. Reported: seconds per evaluator phase, peak RSS
-and the number of threads the KD-tree queries may use.
+DTU (`run_eval_benchmark`): dtu_chamfer (mesh mode, with culling) on a large synthetic sphere. The GT
+is ``n_gt`` points on a sphere at ~0.2 mm spacing (the radius follows from the count), written in the
+DTU layout to a temporary folder; the mesh is a latitude-longitude sphere with ``n_vertices`` vertices
+and seeded radial noise (sigma 0.1 mm); the scene has ``n_views`` 1600x1200 cameras on a ring with
+disc masks around the sphere's silhouette. Reported: seconds per evaluator phase, peak RSS and the
+number of threads the KD-tree queries may use.
+
+TnT (`run_tnt_benchmark`): tnt_f1 on a unit-radius sphere of ``n_gt`` GT points (tau = 0.5 x their
+spacing, the real scenes' ratio of tau to the laser scan's density being of that order), in the TnT
+layout (identity ``_trans.txt``, a ring trajectory), for two meshes of ``n_vertices`` vertices: a
+**partial** one (the upper half of the sphere: half the GT has no reconstruction near it) and a
+**noisy** one (radial noise of sigma tau). Reported per mesh: the whole evaluation's phase seconds, and
+the scoring of the official point set timed twice, its nearest-neighbour queries capped at tau (what
+the evaluator does) and uncapped (what it did before), with the fractions of both (equal).
 """
 
 from __future__ import annotations
@@ -119,3 +128,67 @@ def run_eval_benchmark(n_vertices: int = 1_000_000, n_gt: int = 2_000_000, seed:
         "peak_rss_bytes": diag["peak_rss_bytes_total"],
         "metrics": result["metrics"],
     }
+
+
+def _write_tnt_gt(root: Path, gt: np.ndarray, tau: float, n_views: int) -> Scene:
+    """A TnT-layout GT folder (``Bench.ply``, crop ``.json``, identity ``_trans.txt``, ring trajectory
+    ``_COLMAP_SfM.log``) and the matching scene (the GT frame is the scene frame)."""
+    import json  # noqa: PLC0415
+
+    from gsbench.evaluators import gt_io  # noqa: PLC0415
+
+    o3d = import_open3d()
+    o3d.io.write_point_cloud(str(root / "Bench.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(gt)))
+    h = 1.5
+    crop = {"class_name": "SelectionPolygonVolume", "orthogonal_axis": "Z", "axis_min": -h, "axis_max": h,
+            "bounding_polygon": [[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]], "version_major": 1, "version_minor": 0}
+    (root / "Bench.json").write_text(json.dumps(crop))
+    np.savetxt(root / "Bench_trans.txt", np.eye(4))
+    scene = _ring_scene(root, n_views, 0.8, 1.0)
+    scene.fmt, scene.name, scene.masks = "tnt", "Bench", None
+    scene.gt = GroundTruth(kind="tnt", root=root, name="Bench", tau=tau)
+    gt_io.write_log(root / "Bench_COLMAP_SfM.log", np.array([cam.camera_to_world for cam in scene.cameras]))
+    return scene
+
+
+def _time_scoring(mesh, scene, tau: float) -> dict:
+    """The official point set's scoring (crop, voxel tau/2, both NN directions) capped and uncapped."""
+    from gsbench.evaluators import tnt_f1  # noqa: PLC0415
+
+    o3d = import_open3d()
+    volume = o3d.visualization.read_selection_polygon_volume(str(Path(scene.gt.root) / "Bench.json"))
+    gt = o3d.io.read_point_cloud(str(Path(scene.gt.root) / "Bench.ply"))
+    t = np.asarray(volume.crop_point_cloud(gt).voxel_down_sample(tau / 2).points)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(mesh.vertices)))
+    s = np.asarray(volume.crop_point_cloud(cloud).voxel_down_sample(tau / 2).points)
+    out = {}
+    for name, capped in (("capped", True), ("uncapped", False)):
+        t0 = time.perf_counter()
+        out[f"{name}_fractions"] = tnt_f1.precision_recall(s, t, tau, capped=capped)
+        out[f"{name}_seconds"] = round(time.perf_counter() - t0, 3)
+    out["source_points"], out["target_points"] = len(s), len(t)
+    return out
+
+
+def run_tnt_benchmark(n_vertices: int = 1_000_000, n_gt: int = 2_000_000, seed: int = 0, n_views: int = 20) -> dict:
+    """Time tnt_f1 on a partial and a noisy sphere mesh against ``n_gt`` GT points; see the module doc."""
+    import trimesh  # noqa: PLC0415
+
+    from gsbench.evaluators.tnt_f1 import TnTF1  # noqa: PLC0415
+
+    spacing = float(np.sqrt(4 * np.pi / n_gt))
+    tau = 0.5 * spacing
+    verts, faces = latlong_sphere(n_vertices, 1.0, noise=0.0, seed=seed)
+    upper = faces[verts[faces].mean(axis=1)[:, 2] > 0]
+    noisy = verts * (1 + np.random.default_rng(seed).normal(0, tau, len(verts)))[:, None]
+    meshes = {"partial": trimesh.Trimesh(verts, upper, process=False), "noisy": trimesh.Trimesh(noisy, faces, process=False)}
+    result = {"workload": {"n_vertices": len(verts), "n_gt": n_gt, "tau": tau, "n_views": n_views}, "meshes": {}}
+    with tempfile.TemporaryDirectory(prefix="gsbench_tntbench_") as tmp:
+        scene = _write_tnt_gt(Path(tmp), _fibonacci_sphere(n_gt, 1.0), tau, n_views)
+        for name, mesh in meshes.items():
+            t0 = time.perf_counter()
+            evaluated = TnTF1().evaluate(mesh, scene, frame="dataset")
+            result["meshes"][name] = {"evaluate_seconds": round(time.perf_counter() - t0, 3),
+                                      "seconds": evaluated["diagnostics"]["seconds"], "metrics": evaluated["metrics"],
+                                      "scoring": _time_scoring(mesh, scene, tau)}
+    return result

@@ -4,9 +4,11 @@ Reference steps (evaluation.md §1.3) and how gsbench maps them:
 
 1. Cameras: the reference decomposes ``cameras.npz`` into normalised-frame K and pose; gsbench uses
    the scene's cameras, which are in the same normalised frame.
-2. Masks are dilated with ``skimage.morphology.disk(24)``. The reference works on 1600-px-wide
-   images; gsbench scales the radius with the mask width: ``round(dilation * width / reference_width)``
-   (defaults 24 and 1600, both protocol parameters). The dilation is computed exactly as
+2. Masks are dilated by a disk, by one of two conventions (`CULL_CONVENTIONS`, the evaluator option
+   ``cull``): ``2dgs`` (the default) — 2DGS dilates the 1600x1200 masks by ``skimage.morphology.disk(24)``;
+   gsbench scales the radius with the mask width, ``round(24 * width / 1600)``; ``gof`` — GOF's and
+   RaDe-GS's ``evaluate_dtu_mesh.py`` dilate the masks at the training resolution by ``disk(6)``, so the
+   radius is 6 px of the masks as loaded for training, whatever their size. The dilation is computed exactly as
    "Euclidean distance to the nearest mask pixel <= radius" (``distance_transform_edt`` inside the mask's bounding
    box grown by the radius), which equals a binary dilation by ``disk(radius)`` (the set of integer
    offsets with norm <= radius) and is O(pixels).
@@ -27,12 +29,38 @@ Reference steps (evaluation.md §1.3) and how gsbench maps them:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 from tqdm.auto import tqdm
 
 from gsbench.data.camera import Camera, Scene
 from gsbench.errors import EvaluationError
+
+
+@dataclass(frozen=True)
+class CullConvention:
+    """A disk of ``radius`` px at ``reference_width`` (None: at the masks' own width), and its source."""
+
+    radius: float
+    reference_width: int | None
+    source: str
+
+
+CULL_CONVENTIONS = {
+    "2dgs": CullConvention(24, 1600, "2DGS scripts/eval_dtu/evaluate_single_scene.py: disk(24) on the 1600x1200 masks"),
+    "gof": CullConvention(6, None, "GOF / RaDe-GS evaluate_dtu_mesh.py: disk(6) on the training-resolution masks"),
+}
+NO_CULLING = "none"
+
+
+def check_cull(cull: str) -> str:
+    """``cull`` if it names a convention or ``none``, else an EvaluationError listing them."""
+    if cull != NO_CULLING and cull not in CULL_CONVENTIONS:
+        raise EvaluationError(f"dtu culling must be one of {[*CULL_CONVENTIONS, NO_CULLING]} (eval.dtu_culling), "
+                              f"got {cull!r}")
+    return cull
 
 
 def dilate_mask(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -48,9 +76,10 @@ def dilate_mask(mask: np.ndarray, radius: int) -> np.ndarray:
     return out
 
 
-def dilation_radius(width: int, dilation: float, reference_width: int) -> int:
-    """The disk radius for an image ``width`` px wide: ``round(dilation * width / reference_width)``."""
-    return int(round(dilation * width / reference_width))
+def dilation_radius(width: int, dilation: float, reference_width: int | None) -> int:
+    """The disk radius for an image ``width`` px wide: ``round(dilation * width / reference_width)``, or
+    ``round(dilation)`` when ``reference_width`` is None (a radius in the masks' own pixels)."""
+    return int(round(dilation if reference_width is None else dilation * width / reference_width))
 
 
 def keep_in_view(vertices: np.ndarray, camera: Camera, dilated: np.ndarray) -> np.ndarray:
@@ -68,13 +97,14 @@ def keep_in_view(vertices: np.ndarray, camera: Camera, dilated: np.ndarray) -> n
     return keep
 
 
-def cull_vertices(vertices: np.ndarray, scene: Scene, dilation: float = 24, reference_width: int = 1600,
+def cull_vertices(vertices: np.ndarray, scene: Scene, dilation: float = 24, reference_width: int | None = 1600,
                   ) -> np.ndarray:
-    """Keep flag per vertex (normalised frame) over all of the scene's views (steps 1-5)."""
+    """Keep flag per vertex (normalised frame) over all of the scene's views (steps 1-5); the disk is
+    ``dilation`` px at ``reference_width`` (`dilation_radius`)."""
     if scene.masks is None:
         raise EvaluationError(
             f"culling needs object masks but scene '{scene.name}' has none "
-            f"(fix: provide mask/*.png in the scene folder, or evaluate with cull=False)"
+            f"(fix: provide mask/*.png in the scene folder, or evaluate without culling: --set eval.dtu_culling=none)"
         )
     if len(scene.masks) != len(scene.cameras):
         raise EvaluationError(
@@ -91,6 +121,21 @@ def cull_vertices(vertices: np.ndarray, scene: Scene, dilation: float = 24, refe
         alive = np.flatnonzero(keep)  # vertices culled by an earlier view need no more tests
         keep[alive] = keep_in_view(vertices[alive], cam, dilated)
     return keep
+
+
+def cull_mesh(vertices: np.ndarray, faces: np.ndarray | None, scene: Scene, cull: str, label: str, frame_hint: str):
+    """(keep flag per vertex, kept faces re-indexed or None) of a mesh whose ``vertices`` are in the
+    normalised frame, by convention ``cull`` (`CULL_CONVENTIONS`; ``none`` keeps everything);
+    EvaluationError naming ``label`` when culling removes every vertex (``frame_hint``: the frame the
+    mesh was read in, for the message)."""
+    if check_cull(cull) == NO_CULLING:
+        return np.ones(len(vertices), bool), faces
+    convention = CULL_CONVENTIONS[cull]
+    keep = cull_vertices(vertices, scene, convention.radius, convention.reference_width)
+    if not keep.any():
+        raise EvaluationError(f"culling removed every vertex of {label}: no vertex projects onto the masks (fix: "
+                              f"check frame= — '{frame_hint}' — and the scene cameras)")
+    return keep, None if faces is None else kept_faces(faces, keep)
 
 
 def kept_faces(faces: np.ndarray, keep: np.ndarray) -> np.ndarray:

@@ -1,16 +1,17 @@
-"""DTU Chamfer distance, reproducing DTUeval-python ``eval.py`` (evaluation.md §1.2), protocol v1.
+"""DTU Chamfer distance, reproducing DTUeval-python ``eval.py``, protocol v1; beside it the same
+distances on area samples of the mesh (the tessellation-independent protocol).
 
-Optionally preceded by the 2DGS mask culling (evaluation.md §1.3, `gsbench.evaluators.culling`).
+Preceded by mask culling (`gsbench.evaluators.culling`): ``cull="2dgs"`` (default, 2DGS's script),
+``"gof"`` (GOF / RaDe-GS's) or ``"none"``; the record's protocol block names the one used.
 
-Steps (numbers as in evaluation.md §1.2):
+Steps of the official protocol (``accuracy``, ``completeness``, ``chamfer``):
 
 1. mesh -> points: the vertices plus the per-triangle barycentric grid at ``downsample_density``
    (`pointsets.barycentric_grid_samples`); ``mode="pcd"`` uses the points as given.
 2-3. seeded shuffle and greedy 0.2 mm downsampling (`pointsets.greedy_downsample`); the reference
    shuffle is unseeded, so ``seed`` is a protocol parameter here.
-4. box ``BB[0] - patch_size <= p < BB[1] + 2 * patch_size`` (asymmetric, as coded in the reference);
-   grid cell ``g = round((p - BB[0]) / Res)`` (half to even, like ``np.around``), cells outside the
-   ObsMask array are dropped, ``ObsMask[g]`` selects the accuracy points.
+4. box and ObsMask filters (`gsbench.evaluators.dtu_gt`): the points in the box count for
+   completeness, those also observed (``ObsMask``) for accuracy.
 5. accuracy: mean NN distance from ObsMask points to the STL points over distances ``< max_dist``
    (larger ones are dropped, not clipped).
 6. completeness: STL points with ``[x y z 1] . P > 0`` (Plane.mat), NN distance to the **box-filtered**
@@ -18,6 +19,13 @@ Steps (numbers as in evaluation.md §1.2):
 7. overall = (accuracy + completeness) / 2, all in mm.
 8. optional visualisations ``vis_{scan:03d}_d2s.ply`` / ``_s2d.ply``: blue = outside box/mask (or below
    the plane), green = ``>= max_dist``, white -> red over ``[0, visualize_threshold]``.
+
+The official step 1 scores the mesh's vertices plus a per-triangle grid, so how a surface is
+triangulated changes the number (a fan of thin triangles leaves the grid sparse between them, a denser
+mesh adds vertices). The sampled protocol (``accuracy_sampled``, ``completeness_sampled``,
+``chamfer_sampled``; mesh mode only) replaces step 1 by ``sample_oversample`` area-uniform samples per
+``downsample_density``² of surface (`pointsets.area_samples`, seeded) and keeps steps 2-7, so only the
+surface decides the number.
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ from gsbench.data.dtu import dtu_gt_paths
 from gsbench.errors import EvaluationError
 from gsbench.evaluators import culling, gt_io, pointsets
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo, check_files, require_gt
+from gsbench.evaluators.dtu_gt import DTUGroundTruth
 from gsbench.evaluators.geometry import load_geometry, to_dataset_frame, to_normalised_frame
 
 
@@ -42,18 +51,17 @@ class DTUOptions:
     """Protocol parameters (defaults = DTUeval-python CLI defaults + 2DGS culling)."""
 
     mode: str = "mesh"  # "mesh" | "pcd"
-    cull: bool = True  # 2DGS mask culling before evaluation
-    dilation: float = 24  # disk radius in px at reference_width
-    reference_width: int = 1600
+    cull: str = "2dgs"  # culling.CULL_CONVENTIONS ("2dgs", "gof") or "none"
     downsample_density: float = 0.2  # mm
     patch_size: float = 60  # mm; the box is [BB0 - patch, BB1 + 2 patch)
     max_dist: float = 20  # mm; distances >= max_dist are dropped
-    seed: int = 0  # shuffle before greedy downsampling
+    seed: int = 0  # shuffle before greedy downsampling (and the area samples)
     frame: str = "normalised"  # or "dataset": the mesh is already in DTU world (mm)
     visualize_threshold: float = 10  # mm, colour scale of the vis plys
     vis_dir: str | None = None  # write vis_{scan}_d2s.ply / _s2d.ply here
     min_inside_fraction: float = 0.1  # warn (units/frame) when fewer vertices lie in the GT box
     max_sample_points: int = 50_000_000  # refuse meshes whose sampling would exceed this (memory guard)
+    sample_oversample: float = 4.0  # area samples per downsample_density² of surface (sampled protocol)
 
 
 def dtu_gt_files(scene: Scene) -> dict[str, Path]:
@@ -62,11 +70,6 @@ def dtu_gt_files(scene: Scene) -> dict[str, Path]:
     if gt.scan is None:
         raise EvaluationError(f"dtu_chamfer: scene '{scene.name}' GroundTruth has no scan number")
     return dtu_gt_paths(gt.root, gt.scan)
-
-
-def _in_box(points: np.ndarray, bb: np.ndarray, patch: float) -> np.ndarray:
-    """Step 4 box: ``BB[0] - patch <= p < BB[1] + 2 patch`` on every axis."""
-    return np.all(points >= bb[0] - patch, axis=1) & np.all(points < bb[1] + 2 * patch, axis=1)
 
 
 def _distance_colors(dist: np.ndarray, valid: np.ndarray, max_dist: float, vis_thr: float) -> np.ndarray:
@@ -88,8 +91,54 @@ def _mean_below(dist: np.ndarray, max_dist: float, what: str, label: str) -> tup
     return float(dist[near].mean()), float(1 - near.mean())
 
 
+@dataclass
+class _Scored:
+    """Steps 2-7 on one point set: the metrics and what the visualisation and diagnostics need."""
+
+    accuracy: float
+    completeness: float
+    data: np.ndarray
+    valid: np.ndarray
+    d2s: np.ndarray
+    s2d: np.ndarray
+    counts: dict
+
+
+def _score(data: np.ndarray, gt: DTUGroundTruth, stl_trees, opts: DTUOptions, label: str, where: str,
+           diag: Diagnostics, prefix: str = "") -> _Scored:
+    """Steps 2-7 for the points ``data`` (mm), each timed as ``{prefix}{step}``; ``stl_trees`` caches the
+    STL KD-tree between point sets."""
+    with diag.phase(f"{prefix}downsample"):
+        data = pointsets.greedy_downsample(data, opts.downsample_density, opts.seed)
+    with diag.phase(f"{prefix}mask"):
+        inbound = gt.in_box(data, opts.patch_size)
+        data_in = data[inbound]
+        in_obs = gt.observed(data_in)
+        data_in_obs = data_in[in_obs]
+    if len(data_in_obs) == 0:
+        raise EvaluationError(
+            f"dtu_chamfer: no point of {label} lies inside the observation mask {where}; "
+            f"wrong frame or units (fix: check frame= and the scene normalisation)"
+        )
+    with diag.phase(f"{prefix}accuracy"):
+        if "stl" not in stl_trees:
+            stl_trees["stl"] = cKDTree(gt.stl)
+        d2s = pointsets.nn_distances(data_in_obs, stl_trees["stl"], opts.max_dist, desc="accuracy")
+        acc, acc_drop = _mean_below(d2s, opts.max_dist, "accuracy", label)
+    with diag.phase(f"{prefix}completeness"):
+        s2d = pointsets.nn_distances(gt.completeness_points(), cKDTree(data_in), opts.max_dist, desc="completeness")
+        comp, comp_drop = _mean_below(s2d, opts.max_dist, "completeness", label)
+    valid = np.zeros(len(data), bool)
+    valid[np.flatnonzero(inbound)[in_obs]] = True
+    counts = {"downsampled_points": len(data), "in_box_points": len(data_in), "in_obs_points": len(data_in_obs),
+              "in_box_fraction": float(inbound.mean()), "accuracy_dropped_fraction": acc_drop,
+              "completeness_dropped_fraction": comp_drop}
+    return _Scored(acc, comp, data, valid, d2s, s2d, counts)
+
+
 class DTUChamfer(Evaluator):
-    """Accuracy, completeness and their mean (mm), exactly as DTUeval-python computes them."""
+    """Accuracy, completeness and their mean (mm), exactly as DTUeval-python computes them, and the same on
+    area samples of the mesh."""
 
     name = "dtu_chamfer"
     version = 1
@@ -98,6 +147,9 @@ class DTUChamfer(Evaluator):
         "accuracy": MetricInfo(False, "mm", "mean distance reconstruction -> GT (d2s), inside ObsMask"),
         "completeness": MetricInfo(False, "mm", "mean distance GT (above the plane) -> reconstruction (s2d)"),
         "chamfer": MetricInfo(False, "mm", "(accuracy + completeness) / 2"),
+        "accuracy_sampled": MetricInfo(False, "mm", "accuracy of area samples of the mesh (tessellation-independent)"),
+        "completeness_sampled": MetricInfo(False, "mm", "completeness of area samples of the mesh"),
+        "chamfer_sampled": MetricInfo(False, "mm", "(accuracy_sampled + completeness_sampled) / 2"),
     }
     Options = DTUOptions
 
@@ -110,6 +162,7 @@ class DTUChamfer(Evaluator):
         opts = self.options(**options)
         if opts.mode not in ("mesh", "pcd"):
             raise EvaluationError(f"dtu_chamfer: mode must be 'mesh' or 'pcd', got '{opts.mode}'")
+        culling.check_cull(opts.cull)
         self.validate(scene)
         files = dtu_gt_files(scene)
         diag = Diagnostics()
@@ -119,27 +172,16 @@ class DTUChamfer(Evaluator):
             geo = load_geometry(mesh, need_faces=opts.mode == "mesh")
             verts, faces = geo.vertices, geo.faces if opts.mode == "mesh" else None
             diag["input_vertices"], diag["input_faces"] = len(verts), 0 if faces is None else len(faces)
-        if opts.cull:
-            with diag.phase("cull"):
-                keep = culling.cull_vertices(to_normalised_frame(verts, scene, opts.frame), scene,
-                                             opts.dilation, opts.reference_width)
-                if not keep.any():
-                    raise EvaluationError(
-                        f"dtu_chamfer: culling removed every vertex of {geo.label}: no vertex projects onto "
-                        f"the masks (fix: check frame= — '{opts.frame}' — and the scene cameras)"
-                    )
-                faces = None if faces is None else culling.kept_faces(faces, keep)
-                verts = verts[keep]
-                diag["culled_vertices"] = int((~keep).sum())
-        verts = to_dataset_frame(verts, scene, opts.frame)
+        with diag.phase("cull"):
+            keep, faces = culling.cull_mesh(to_normalised_frame(verts, scene, opts.frame), faces, scene, opts.cull,
+                                            f"dtu_chamfer: {geo.label}", opts.frame)
+            diag["culled_vertices"] = int((~keep).sum())
+        verts = to_dataset_frame(verts[keep], scene, opts.frame)
 
         with diag.phase("load_gt"):
-            obs = gt_io.read_mat(files["ObsMask"], ("ObsMask", "BB", "Res"))
-            plane = gt_io.read_mat(files["Plane"], ("P",))["P"].reshape(4).astype(np.float64)
-            stl = gt_io.read_points(files["STL points"])
-            mask, bb, res = obs["ObsMask"].astype(bool), obs["BB"].astype(np.float64), float(np.ravel(obs["Res"])[0])
-            diag["stl_points"] = len(stl)
-            frac = float(_in_box(verts, bb, opts.patch_size).mean())
+            gt = DTUGroundTruth.read(files)
+            diag["stl_points"] = len(gt.stl)
+            frac = float(gt.in_box(verts, opts.patch_size).mean())
             diag["vertices_in_box_fraction"] = frac
             if frac < opts.min_inside_fraction:
                 diag.warn(
@@ -156,51 +198,31 @@ class DTUChamfer(Evaluator):
             else:
                 data = verts
             diag["sampled_points"] = len(data)
-        with diag.phase("downsample"):
-            data = pointsets.greedy_downsample(data, opts.downsample_density, opts.seed)
-            diag["downsampled_points"] = len(data)
-
-        with diag.phase("mask"):
-            inbound = _in_box(data, bb, opts.patch_size)
-            data_in = data[inbound]
-            grid = np.around((data_in - bb[0]) / res).astype(np.int32)
-            in_grid = np.all((grid >= 0) & (grid < np.array(mask.shape)), axis=1)
-            in_obs = np.zeros(len(data_in), bool)
-            g = grid[in_grid]
-            in_obs[in_grid] = mask[g[:, 0], g[:, 1], g[:, 2]]
-            data_in_obs = data_in[in_obs]
-            diag.data.update(in_box_points=len(data_in), in_obs_points=len(data_in_obs),
-                             in_box_fraction=float(inbound.mean()))
-            if len(data_in_obs) == 0:
-                raise EvaluationError(
-                    f"dtu_chamfer: no point of {geo.label} lies inside the observation mask {files['ObsMask']}; "
-                    f"wrong frame or units (fix: check frame= and the scene normalisation)"
-                )
-
-        with diag.phase("accuracy"):
-            d2s = pointsets.nn_distances(data_in_obs, cKDTree(stl), opts.max_dist, desc="accuracy")
-            acc, acc_drop = _mean_below(d2s, opts.max_dist, "accuracy", geo.label)
-        with diag.phase("completeness"):
-            above = stl[:, 0] * plane[0] + stl[:, 1] * plane[1] + stl[:, 2] * plane[2] + plane[3] > 0  # [x y z 1].P
-            stl_above = stl[above]
-            s2d = pointsets.nn_distances(stl_above, cKDTree(data_in), opts.max_dist, desc="completeness")
-            comp, comp_drop = _mean_below(s2d, opts.max_dist, "completeness", geo.label)
-            diag.data.update(stl_above_plane=len(stl_above), accuracy_dropped_fraction=acc_drop,
-                             completeness_dropped_fraction=comp_drop)
+        trees: dict = {}
+        official = _score(data, gt, trees, opts, geo.label, str(files["ObsMask"]), diag)
+        diag.data.update(official.counts, stl_above_plane=len(official.s2d))
+        metrics = {"accuracy": official.accuracy, "completeness": official.completeness,
+                   "chamfer": (official.accuracy + official.completeness) / 2}
+        if opts.mode == "mesh":
+            with diag.phase("sampled_draw"):
+                area = pointsets.area_samples(verts, faces, opts.downsample_density, opts.seed, opts.sample_oversample,
+                                              opts.max_sample_points)
+            if len(area) == 0:
+                raise EvaluationError(f"dtu_chamfer: {geo.label} has no surface area left after culling")
+            sampled = _score(area, gt, trees, opts, geo.label, str(files["ObsMask"]), diag, "sampled_")
+            diag["area_samples"] = {"drawn": len(area), **sampled.counts}
+            metrics |= {"accuracy_sampled": sampled.accuracy, "completeness_sampled": sampled.completeness,
+                        "chamfer_sampled": (sampled.accuracy + sampled.completeness) / 2}
 
         if opts.vis_dir is not None:
             with diag.phase("visualise"):
                 scan, out = scene.gt.scan, Path(opts.vis_dir)
-                valid = np.zeros(len(data), bool)
-                valid[np.flatnonzero(inbound)[in_obs]] = True
-                gt_io.write_colored_ply(out / f"vis_{scan:03d}_d2s.ply", data,
-                                        _distance_colors(d2s, valid, opts.max_dist, opts.visualize_threshold))
-                gt_io.write_colored_ply(out / f"vis_{scan:03d}_s2d.ply", stl,
-                                        _distance_colors(s2d, above, opts.max_dist, opts.visualize_threshold))
+                gt_io.write_colored_ply(out / f"vis_{scan:03d}_d2s.ply", official.data,
+                                        _distance_colors(official.d2s, official.valid, opts.max_dist,
+                                                         opts.visualize_threshold))
+                gt_io.write_colored_ply(out / f"vis_{scan:03d}_s2d.ply", gt.stl,
+                                        _distance_colors(official.s2d, gt.above_plane(gt.stl), opts.max_dist,
+                                                         opts.visualize_threshold))
                 diag["vis_files"] = [str(out / f"vis_{scan:03d}_{k}.ply") for k in ("d2s", "s2d")]
 
-        return {
-            "metrics": {"accuracy": acc, "completeness": comp, "chamfer": (acc + comp) / 2},
-            "protocol": self.protocol(opts),
-            "diagnostics": diag.finish(),
-        }
+        return {"metrics": metrics, "protocol": self.protocol(opts), "diagnostics": diag.finish()}

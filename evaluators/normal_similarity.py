@@ -1,6 +1,6 @@
-"""Normal consistency of a mesh against ground truth (evaluation.md §3, recommendation B), protocol v1.
+"""Normal consistency of a mesh against ground truth (evaluation.md §3, recommendation B), protocol v2.
 
-Definition (Occupancy Networks ``im2mesh/eval.py`` style, with the distance gate of variant C):
+Definition (Occupancy Networks ``im2mesh/eval.py``, the one the papers that report it use):
 
 - Sample ``n_samples`` area-uniform points with their face normals on the predicted mesh (seeded).
 - GT: ``n_samples`` points with normals — sampled the same way on a GT mesh, or a seeded subset of
@@ -8,16 +8,24 @@ Definition (Occupancy Networks ``im2mesh/eval.py`` style, with the distance gate
   ``k_pca`` nearest points of the **full** GT cloud (the open3d ``estimate_normals(KNN 20)`` formula).
 - ``acc_n = mean_p |n_p . n_gt(NN_gt(p))|`` over predicted samples, ``comp_n = mean_g |n_g .
   n_pred(NN_pred(g))|`` over GT samples; the absolute value ignores orientation.
-- Gated (the headline ``normal_consistency``): only pairs whose NN distance is ``< max_dist``, so
-  holes and floaters (already counted by Chamfer / F-score) do not count twice. ``max_dist`` defaults
-  to the scene's tau when it has one, else ``gate_factor`` x the median NN spacing of the GT samples.
-  The ungated mean is reported as ``normal_consistency_ungated``.
-- ``NC = (acc_n + comp_n) / 2``, in [0, 1].
+- ``normal_consistency = (acc_n + comp_n) / 2`` in [0, 1], over **every** pair (ungated: a hole or a
+  floater lowers it), the headline. The ``*_gated`` variants keep only pairs whose NN distance is
+  ``< max_dist`` (default: the scene's tau when it has one, else ``gate_factor`` x the median NN spacing
+  of the GT samples), so holes and floaters, already counted by Chamfer / F-score, do not count twice.
 
-GT by scene kind: ``dtu`` -> ``Points/stl/stl{scan:03d}_total.ply`` (mm world); ``tnt`` -> ``{name}.ply``
-with the prediction mapped by ``{name}_trans.txt`` (no ICP refinement: assumes the reconstruction
-frame is the reference COLMAP frame, as for 2DGS/GOF/RaDe-GS data); any other kind ->
-``{root}/{name}.ply``, a mesh when it has faces, else points. ``gt_mesh=`` / ``gt_points=`` override.
+On exactly the points the dataset's geometry protocol scores:
+
+- ``dtu`` (``Points/stl/stl{scan:03d}_total.ply``, mm world): the mesh culled by the masks as
+  ``dtu_chamfer`` culls it (option ``cull``, `gsbench.evaluators.culling`), its samples inside the box
+  and the ObsMask (the accuracy side of the Chamfer); GT points above the plane (its completeness side);
+  `gsbench.evaluators.dtu_gt`.
+- ``tnt`` (``{name}.ply``): the prediction mapped by ``{name}_trans.txt`` (no ICP refinement: assumes the
+  reconstruction frame is the reference COLMAP frame, as for 2DGS/GOF/RaDe-GS data); both sides cropped
+  by ``{name}.json``, as ``tnt_f1`` crops them.
+- any other kind: ``{root}/{name}.ply``, a mesh when it has faces, else points, unfiltered.
+
+``gt_mesh=`` / ``gt_points=`` override the GT file (then nothing is filtered). Protocol v1 (before
+2026-11-24) headlined the gated mean on the unfiltered STL points; its numbers are not comparable.
 
 Image-space normals (recommendation A) are `rendered_normal_similarity`.
 """
@@ -31,10 +39,12 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsbench.data.camera import Scene
-from gsbench.errors import EvaluationError
-from gsbench.evaluators import gt_io, pointsets
+from gsbench.data.dtu import dtu_gt_paths
+from gsbench.errors import EvaluationError, import_open3d
+from gsbench.evaluators import culling, gt_io, pointsets
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo, check_files
-from gsbench.evaluators.geometry import load_geometry, to_dataset_frame
+from gsbench.evaluators.dtu_gt import DTUGroundTruth
+from gsbench.evaluators.geometry import load_geometry, to_dataset_frame, to_normalised_frame
 
 
 @dataclass(frozen=True)
@@ -47,6 +57,8 @@ class NormalOptions:
     gt_mesh: str | None = None
     gt_points: str | None = None
     frame: str = "normalised"
+    cull: str = "2dgs"  # dtu scenes: the mask culling of dtu_chamfer (2dgs, gof or none)
+    patch_size: float = 60  # dtu scenes: the box of dtu_chamfer, BB[0] - patch <= p < BB[1] + 2 patch (mm)
 
 
 def gt_surface_file(scene: Scene) -> Path:
@@ -60,12 +72,13 @@ def gt_surface_file(scene: Scene) -> Path:
     if scene.gt.kind == "dtu":
         if scene.gt.scan is None:
             raise EvaluationError(f"normal_similarity: DTU scene '{scene.name}' has no scan number")
-        return root / "Points" / "stl" / f"stl{scene.gt.scan:03d}_total.ply"
+        return dtu_gt_paths(root, scene.gt.scan)["STL points"]
     return root / f"{scene.gt.name}.ply"
 
 
-def _gt_samples(path: Path, as_mesh: bool | None, opts: NormalOptions) -> tuple[np.ndarray, np.ndarray, str]:
-    """(points, unit normals, how) for the GT; ``as_mesh=None`` decides by whether the file has faces."""
+def _gt_samples(path: Path, as_mesh: bool | None, opts: NormalOptions, keep=None) -> tuple[np.ndarray, np.ndarray, str]:
+    """(points, unit normals, how) for the GT; ``as_mesh=None`` decides by whether the file has faces;
+    ``keep(points) -> bool mask`` restricts a point file's samples (PCA normals still use every point)."""
     if as_mesh is not False:
         geo = load_geometry(path)
         if geo.is_mesh:
@@ -74,8 +87,11 @@ def _gt_samples(path: Path, as_mesh: bool | None, opts: NormalOptions) -> tuple[
         if as_mesh:
             raise EvaluationError(f"normal_similarity: gt_mesh {path} has no faces (fix: pass it as gt_points=)")
     pts, normals = gt_io.read_points(path, with_normals=True)
+    allowed = np.flatnonzero(keep(pts)) if keep is not None else np.arange(len(pts))
+    if len(allowed) == 0:
+        raise EvaluationError(f"normal_similarity: no point of {path} is scored by the protocol (all filtered out)")
     rng = np.random.default_rng(opts.seed + 1)
-    sub = np.sort(rng.choice(len(pts), opts.n_samples, replace=False)) if len(pts) > opts.n_samples else np.arange(len(pts))
+    sub = np.sort(rng.choice(allowed, opts.n_samples, replace=False)) if len(allowed) > opts.n_samples else allowed
     if normals is not None and np.isfinite(normals[sub]).all() and (np.linalg.norm(normals[sub], axis=1) > 0).all():
         return pts[sub], normals[sub] / np.linalg.norm(normals[sub], axis=1, keepdims=True), "file normals"
     return pts[sub], pointsets.pca_normals(pts, pts[sub], opts.k_pca), f"PCA normals (k={opts.k_pca})"
@@ -105,17 +121,43 @@ def rendered_normal_similarity(pred_normals: np.ndarray, gt_normals: np.ndarray,
     return float(cos.mean())
 
 
+def _protocol_filters(scene: Scene, opts: NormalOptions):
+    """(prediction filter, GT filter) for the scene's kind (module docstring): functions of points in the
+    GT frame returning a bool mask, or None for no filter."""
+    root = Path(scene.gt.root)
+    if scene.gt.kind == "dtu":
+        gt = DTUGroundTruth.read(dtu_gt_paths(root, scene.gt.scan))
+        return (lambda p: gt.in_box(p, opts.patch_size) & gt.observed(p)), gt.above_plane
+    if scene.gt.kind == "tnt":
+        volume = import_open3d().visualization.read_selection_polygon_volume(str(root / f"{scene.gt.name}.json"))
+        return (lambda p: crop_mask(volume, p)), (lambda p: crop_mask(volume, p))
+    return None, None
+
+
+def crop_mask(volume, points: np.ndarray) -> np.ndarray:
+    """Per point: inside a TnT crop volume (open3d ``SelectionPolygonVolume``)."""
+    o3d = import_open3d()
+    if len(points) == 0:
+        return np.zeros(0, bool)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    inside = np.zeros(len(points), bool)
+    inside[np.asarray(volume.crop_in_polygon(cloud), np.int64)] = True
+    return inside
+
+
 class NormalSimilarity(Evaluator):
-    """Gated normal consistency NC in [0, 1] between mesh and GT surface normals."""
+    """Normal consistency NC in [0, 1] between mesh and GT surface normals, ungated (headline) and gated."""
 
     name = "normal_similarity"
-    version = 1
+    version = 2
     requires = ("mesh",)
     metrics = {
-        "normal_consistency": MetricInfo(True, "", "mean |cos| of NN normal pairs closer than max_dist, both ways"),
-        "normal_accuracy": MetricInfo(True, "", "gated mean |cos|, prediction -> GT"),
-        "normal_completeness": MetricInfo(True, "", "gated mean |cos|, GT -> prediction"),
-        "normal_consistency_ungated": MetricInfo(True, "", "NC over all NN pairs"),
+        "normal_consistency": MetricInfo(True, "", "mean |cos| of NN normal pairs, both ways (every pair)"),
+        "normal_accuracy": MetricInfo(True, "", "mean |cos|, prediction -> GT"),
+        "normal_completeness": MetricInfo(True, "", "mean |cos|, GT -> prediction"),
+        "normal_consistency_gated": MetricInfo(True, "", "NC over the NN pairs closer than max_dist"),
+        "normal_accuracy_gated": MetricInfo(True, "", "gated mean |cos|, prediction -> GT"),
+        "normal_completeness_gated": MetricInfo(True, "", "gated mean |cos|, GT -> prediction"),
     }
     Options = NormalOptions
 
@@ -125,27 +167,43 @@ class NormalSimilarity(Evaluator):
 
     def evaluate(self, mesh, scene: Scene, **options) -> dict:
         opts = self.options(**options)
+        culling.check_cull(opts.cull)
         diag = Diagnostics()
+        keep_pred = keep_gt = None
         with diag.phase("load"):
             geo = load_geometry(mesh, need_faces=True)
-            verts = to_dataset_frame(geo.vertices, scene, opts.frame)
+            verts, faces = geo.vertices, geo.faces
             if opts.gt_mesh or opts.gt_points:
                 path, as_mesh = Path(opts.gt_mesh or opts.gt_points), bool(opts.gt_mesh)
                 if not path.is_file():
                     raise EvaluationError(f"normal_similarity: GT file not found: {path}")
+                verts = to_dataset_frame(verts, scene, opts.frame)
             else:
                 self.validate(scene)
                 path, as_mesh = gt_surface_file(scene), (False if scene.gt.kind in ("dtu", "tnt") else None)
+                if scene.gt.kind == "dtu":
+                    keep, faces = culling.cull_mesh(to_normalised_frame(verts, scene, opts.frame), faces, scene,
+                                                    opts.cull, f"normal_similarity: {geo.label}", opts.frame)
+                    verts = verts[keep]
+                verts = to_dataset_frame(verts, scene, opts.frame)
                 if scene.gt.kind == "tnt":
                     trans = gt_io.read_matrix4(Path(scene.gt.root) / f"{scene.gt.name}_trans.txt")
                     verts = verts @ trans[:3, :3].T + trans[:3, 3]
+                keep_pred, keep_gt = _protocol_filters(scene, opts)
         with diag.phase("sample"):
             try:
-                p_pts, p_nrm = pointsets.sample_surface(verts, geo.faces, opts.n_samples, opts.seed)
+                p_pts, p_nrm = pointsets.sample_surface(verts, faces, opts.n_samples, opts.seed)
             except ValueError as exc:
                 raise EvaluationError(f"normal_similarity: {geo.label}: {exc}") from exc
-            g_pts, g_nrm, how = _gt_samples(path, as_mesh, opts)
-            diag.data.update(gt_file=str(path), gt_normals=how, pred_samples=len(p_pts), gt_samples=len(g_pts))
+            if keep_pred is not None:
+                kept = keep_pred(p_pts)
+                if not kept.any():
+                    raise EvaluationError(f"normal_similarity: no sample of {geo.label} lies where the protocol scores "
+                                          f"(ObsMask / crop); wrong frame or units (fix: check frame=)")
+                p_pts, p_nrm = p_pts[kept], p_nrm[kept]
+            g_pts, g_nrm, how = _gt_samples(path, as_mesh, opts, keep_gt)
+            diag.data.update(gt_file=str(path), gt_normals=how, pred_samples=len(p_pts), gt_samples=len(g_pts),
+                             filtered=keep_pred is not None)
         with diag.phase("match"):
             g_tree = cKDTree(g_pts)
             d_p, i_p = pointsets.nn_indices(p_pts, g_tree)
@@ -164,7 +222,8 @@ class NormalSimilarity(Evaluator):
                     f"normal_similarity: no NN pair of {geo.label} and {path} is closer than {gate:.4g}; "
                     f"wrong frame or units (fix: check frame= and the scene normalisation)"
                 )
-        acc, comp = float(cos_p[near_p].mean()), float(cos_g[near_g].mean())
+        acc, comp = float(cos_p.mean()), float(cos_g.mean())
+        acc_gated, comp_gated = float(cos_p[near_p].mean()), float(cos_g[near_g].mean())
         diag.data.update(max_dist=gate, max_dist_rule=gate_rule, accuracy_pairs_fraction=float(near_p.mean()),
                          completeness_pairs_fraction=float(near_g.mean()))
         return {
@@ -172,7 +231,9 @@ class NormalSimilarity(Evaluator):
                 "normal_consistency": (acc + comp) / 2,
                 "normal_accuracy": acc,
                 "normal_completeness": comp,
-                "normal_consistency_ungated": float((cos_p.mean() + cos_g.mean()) / 2),
+                "normal_consistency_gated": (acc_gated + comp_gated) / 2,
+                "normal_accuracy_gated": acc_gated,
+                "normal_completeness_gated": comp_gated,
             },
             "protocol": self.protocol(opts) | {"max_dist": gate},
             "diagnostics": diag.finish(),

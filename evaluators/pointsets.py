@@ -198,6 +198,31 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int):
     return pts, normals[face]
 
 
+def area_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: int, oversample: float = 4.0,
+                 max_points: int | None = None) -> np.ndarray:
+    """Points drawn uniformly by area on a mesh at a fixed density (the tessellation-independent protocol).
+
+    ``n = ceil(oversample · A / spacing²)`` for total area A, drawn by `sample_surface` (faces by area,
+    uniform inside each), so their distribution depends on the surface alone, not on how it is
+    triangulated (the official DTU and TnT protocols score mesh vertices, which do depend on it). The
+    caller thins them to ``spacing`` (DTU: greedy downsampling; TnT: the scoring's voxel grid), so
+    ``oversample`` only has to leave no gap wider than ``spacing``. Zero area gives no points;
+    EvaluationError before allocating when ``n`` exceeds ``max_points`` (a mesh in the wrong units).
+    """
+    if faces is None or len(faces) == 0:
+        return np.zeros((0, 3))
+    area = float(face_normals(vertices, faces)[1].sum())
+    if area <= 0:
+        return np.zeros((0, 3))
+    n = int(np.ceil(oversample * area / spacing**2))
+    if max_points is not None and n > max_points:
+        raise EvaluationError(
+            f"the mesh would give {n:,} area samples at spacing {spacing:.4g} (limit {max_points:,}): its surface "
+            f"area is {area:.4g} squared units, implausible for the GT; wrong units or frame?"
+        )
+    return sample_surface(vertices, faces, n, seed)[0]
+
+
 def pca_normals(reference: np.ndarray, queries: np.ndarray, k: int = 20, workers: int = -1) -> np.ndarray:
     """Unoriented PCA normals at ``queries`` from their ``k`` nearest ``reference`` points.
 

@@ -83,3 +83,12 @@ def plan_evaluation(scene: Scene, dataset: str, named, held_out: int) -> Evaluat
     run = [n for n in evaluators if n not in unmet]
     return EvaluationPlan(mesh=tuple(n for n in run if n != IMAGE), image=IMAGE in run, skipped=unmet,
                           named=bool(named))
+
+
+CULLING_EVALUATORS = ("dtu_chamfer", "normal_similarity")  # they take the DTU mask culling option ``cull``
+
+
+def run_options(dtu_culling: str, names) -> dict:
+    """The options a run passes to its mesh evaluators ``names``: ``cull = eval.dtu_culling`` to each of
+    `CULLING_EVALUATORS` (normal_similarity culls only DTU scenes, like the Chamfer it sits beside)."""
+    return {name: {"cull": dtu_culling} for name in names if name in CULLING_EVALUATORS}

@@ -34,9 +34,10 @@ def run_benchmark(args) -> int:
         result = run_ibgs_benchmark(sizes=args.sizes or DEFAULT_SIZES, repeats=args.repeats)
         print(format_table(result))
     else:
-        from gsbench.evaluators.bench import run_eval_benchmark  # noqa: PLC0415
+        from gsbench.evaluators.bench import run_eval_benchmark, run_tnt_benchmark  # noqa: PLC0415
 
-        result = run_eval_benchmark(n_vertices=args.vertices, n_gt=args.gt_points)
+        result = {"dtu": run_eval_benchmark(n_vertices=args.vertices, n_gt=args.gt_points),
+                  "tnt": run_tnt_benchmark(n_vertices=args.vertices, n_gt=args.gt_points)}
         print(json.dumps(result, indent=2, default=str))
     result = {"benchmark": args.target, "result": result, "environment": capture_environment(threads)}
     if args.json:

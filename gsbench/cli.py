@@ -130,7 +130,7 @@ def cmd_eval(args) -> int:
     from gsbench.config import dataset_of
     from gsbench.data.loader import load_scene
     from gsbench.evaluators.api import evaluate_mesh_file, format_table
-    from gsbench.evaluators.resolve import plan_evaluation
+    from gsbench.evaluators.resolve import plan_evaluation, run_options
     from gsbench.records import write_json_atomic
 
     if not Path(args.mesh).is_file():
@@ -139,7 +139,8 @@ def cmd_eval(args) -> int:
     header = load_scene(args.scene, load_images=False, **size)
     plan = plan_evaluation(header, dataset_of(args.scene), args.evaluator or (), held_out=0)
     scene = load_scene(args.scene, **size)
-    options = {name: {"frame": args.frame} for name in plan.mesh}
+    culling = run_options(args.dtu_culling, plan.mesh)
+    options = {name: {"frame": args.frame, **culling.get(name, {})} for name in plan.mesh}
     results = evaluate_mesh_file(Path(args.mesh), scene, plan.mesh, options) if plan.mesh else \
         {"mesh": args.mesh, "scene": scene.name, "results": {}}
     results["skipped"] = {n: r for n, r in plan.skipped.items() if n != "image"}
@@ -253,6 +254,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="fit the images in this many pixels (the run's data.max_size; the cpu preset's is "
                                "240 150): the resolution silhouette compares masks at")
     evaluate.add_argument("--gt", default=None, help=GT_HELP)
+    evaluate.add_argument("--dtu-culling", choices=("2dgs", "gof", "none"), default="2dgs",
+                          help="mask culling before the DTU protocol (dtu_chamfer, normal_similarity): 2DGS's "
+                               "disk(24) at 1600 px (default), GOF's disk(6) at the masks' resolution, or none")
     evaluate.add_argument("--out", default=None, help="write the results JSON here")
     evaluate.set_defaults(func=cmd_eval)
 

@@ -133,7 +133,7 @@ class EvalConfig:
     its reason when the scene lacks what it needs; named: every one must apply, checked before loading."""
 
     evaluators: list = field(default_factory=list)
-    dtu_culling: bool = True
+    dtu_culling: str = "2dgs"  # mask culling before the DTU protocol: 2dgs, gof or none (`gsbench.evaluators.culling`)
 
 
 @dataclass
@@ -368,6 +368,11 @@ def resolve(
     if cfg.data.holdout_every < -1:
         raise ConfigError(f"data.holdout_every must be >= 0 (every k-th view held out; 0 = none) or -1 (auto), "
                           f"got {cfg.data.holdout_every}")
+    from gsbench.evaluators.culling import CULL_CONVENTIONS, NO_CULLING  # noqa: PLC0415
+
+    if cfg.eval.dtu_culling not in (*CULL_CONVENTIONS, NO_CULLING):
+        raise ConfigError(f"eval.dtu_culling must be one of {', '.join((*CULL_CONVENTIONS, NO_CULLING))}, "
+                          f"got {cfg.eval.dtu_culling!r}")
     if cfg.data.holdout_every == -1:
         from gsbench.data.loader import has_ground_truth  # noqa: PLC0415  (file checks only)
 

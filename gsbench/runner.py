@@ -18,7 +18,8 @@ Evaluation is planned before anything is loaded (`gsbench.evaluators.resolve.pla
 scene read without its images): ``eval.evaluators`` when named (each must apply, else an error before
 loading), else the dataset's defaults, each skipped with its reason in the record (``skipped``) when
 the scene lacks what it needs, so a capture without ground truth runs to ``ok``. ``dtu_chamfer`` gets
-``cull = eval.dtu_culling``. The held-out views (``data.holdout_every``; by default every 8th view of
+``cull = eval.dtu_culling`` (2dgs, gof or none; `gsbench.evaluators.culling`), as does ``normal_similarity``
+on DTU scenes. The held-out views (``data.holdout_every``; by default every 8th view of
 a scene without ground truth) are rendered and scored by the ``image`` evaluator (inside the masks
 when ``data.use_masks``). ``eval.json`` is recomputed when the plan differs from the one it holds
 (e.g. ``--gt`` given after a first run). A failure anywhere after the plan writes the record with
@@ -116,8 +117,9 @@ def _flatten_metrics(report: dict) -> dict:
 
 def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
     from gsbench.evaluators.api import evaluate_mesh_file, get_evaluator  # noqa: PLC0415
+    from gsbench.evaluators.resolve import run_options  # noqa: PLC0415
 
-    options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in plan.mesh else {}
+    options = run_options(cfg.eval.dtu_culling, plan.mesh)
     report = evaluate_mesh_file(mesh_path, scene, plan.mesh, options) if plan.mesh else \
         {"mesh": str(mesh_path), "scene": scene.name, "results": {}}
     report["plan"], report["skipped"] = list(plan.names), plan.skipped

@@ -44,7 +44,7 @@ class GS2D(Method):
                 "scenes": {"scan24": 0.48, "scan37": 0.91, "scan40": 0.39, "scan55": 0.39, "scan63": 1.01,
                            "scan65": 0.83, "scan69": 0.81, "scan83": 1.36, "scan97": 1.27, "scan105": 0.76,
                            "scan106": 0.70, "scan110": 1.40, "scan114": 0.40, "scan118": 0.76, "scan122": 0.52}},
-        "tnt": {"metric": "f1", "mean": 0.30, "source": "2DGS paper, TnT table"},
+        "tnt": {"metric": "f1_centroids", "mean": 0.30, "source": "2DGS paper, TnT table"},
     }
 
     def term_params(self) -> dict[str, dict]:

@@ -97,7 +97,7 @@ class SuGaR(Method):
     # methods-3dgs-2dgs-sugar.md §4: the 2DGS paper's tables [UNVERIFIED].
     REPORTED = {
         "dtu": {"metric": "chamfer", "mean": 1.33, "source": "2DGS paper, DTU table (SuGaR row)"},
-        "tnt": {"metric": "f1", "mean": 0.19, "source": "2DGS paper, TnT table (SuGaR row)"},
+        "tnt": {"metric": "f1_centroids", "mean": 0.19, "source": "2DGS paper, TnT table (SuGaR row)"},
     }
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:

@@ -8,13 +8,20 @@ from gsbench.errors import EvaluationError, RegistryError
 from gsbench.evaluators import api
 from gsbench.registry import EVALUATORS
 from gsbench.evaluators.base import MetricInfo
-from gsbench.evaluators.bench import latlong_sphere, run_eval_benchmark
+from gsbench.evaluators.bench import latlong_sphere, run_eval_benchmark, run_tnt_benchmark
+
+
+def test_versions_of_changed_headlines():
+    """tnt_f1's headline became the official vertices (v2); normal_similarity's the ungated mean on the
+    protocol's points (v2); dtu_chamfer's headline is unchanged (v1)."""
+    assert {n: api.get_evaluator(n).version for n in ("tnt_f1", "normal_similarity", "dtu_chamfer")} == \
+        {"tnt_f1": 2, "normal_similarity": 2, "dtu_chamfer": 1}
 
 
 def test_lookup_and_metric_declarations():
     for name in EVALUATORS.names():
         ev = api.get_evaluator(name)
-        assert ev.name == name and ev.version == 1 and ev.protocol_id == f"{name}@1"
+        assert ev.name == name and ev.version >= 1 and ev.protocol_id == f"{name}@{ev.version}"
         assert ev.requires and all(isinstance(m, MetricInfo) for m in ev.metrics.values())
     with pytest.raises(RegistryError, match="did you mean 'dtu_chamfer'"):
         api.get_evaluator("dtu_chamfr")
@@ -47,6 +54,14 @@ def test_benchmark_workload_small():
     out = run_eval_benchmark(n_vertices=5_000, n_gt=20_000, n_views=2)
     assert out["workload"]["n_gt"] == 20_000 and out["threads"] >= 1
     assert out["metrics"]["accuracy"] < 0.3 and {"cull", "sample", "downsample", "accuracy"} <= set(out["seconds"])
+
+
+def test_tnt_benchmark_workload_small():
+    out = run_tnt_benchmark(n_vertices=5_000, n_gt=20_000)
+    partial, noisy = out["meshes"]["partial"], out["meshes"]["noisy"]
+    for mesh in (partial, noisy):
+        assert mesh["scoring"]["capped_fractions"] == mesh["scoring"]["uncapped_fractions"]
+    assert partial["metrics"]["recall_sampled"] < 0.6 < noisy["metrics"]["recall_sampled"]  # half the sphere is missing
 
 
 def test_plan_skips_defaults_the_scene_cannot_feed_and_rejects_named_ones(tmp_path):

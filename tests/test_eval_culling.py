@@ -61,5 +61,5 @@ def test_cull_vertices_all_views_and_faces():
 
 def test_cull_without_masks_is_a_clear_error():
     scene = Scene(name="nomask", fmt="dtu", root=".", cameras=[_down_camera()], images=[], masks=None)
-    with pytest.raises(EvaluationError, match="cull=False"):
+    with pytest.raises(EvaluationError, match="eval.dtu_culling=none"):
         culling.cull_vertices(np.zeros((3, 3)), scene)

@@ -42,7 +42,7 @@ def test_identical_surface_is_at_the_sampling_floor(exact):
     d = exact["diagnostics"]
     assert d["culled_vertices"] == 0 and d["in_box_fraction"] == 1.0 and d["warnings"] == []
     expected = {"name": "dtu_chamfer", "version": 1, "downsample_density": 0.2, "patch_size": 60, "max_dist": 20,
-                "seed": 0, "cull": True, "dilation": 24, "reference_width": 1600}
+                "seed": 0, "cull": "2dgs"}
     assert expected.items() <= exact["protocol"].items()
 
 
@@ -86,7 +86,7 @@ def test_deterministic_and_seeded(scene, exact):
 
 def test_pcd_mode_gt_frame_and_vis(scene, dtu_root, tmp_path):
     pts = F.fibonacci_sphere(120_000, F.DTU_RADIUS, F.DTU_CENTER)
-    res = DTUChamfer().evaluate(pts, scene, mode="pcd", frame="dataset", cull=False, vis_dir=str(tmp_path))
+    res = DTUChamfer().evaluate(pts, scene, mode="pcd", frame="dataset", cull="none", vis_dir=str(tmp_path))
     assert res["metrics"]["accuracy"] < FLOOR and res["metrics"]["completeness"] < FLOOR
     assert all((tmp_path / f"vis_{F.DTU_SCAN:03d}_{k}.ply").is_file() for k in ("d2s", "s2d"))
 
@@ -102,13 +102,13 @@ def test_wrong_units_warns_then_fails_before_allocating(scene):
     big.apply_scale(1000.0)  # metres read as millimetres
     with pytest.warns(UserWarning, match="wrong units or frame"):
         with pytest.raises(EvaluationError, match="samples at density 0.2.*wrong units"):
-            DTUChamfer().evaluate(big, scene, cull=False)
+            DTUChamfer().evaluate(big, scene, cull="none")
 
 
 def test_wrong_frame_warns_then_names_the_obsmask(scene):
     with pytest.warns(UserWarning, match="0.0% of the vertices"):
         with pytest.raises(EvaluationError, match=r"ObsMask7_10\.mat"):
-            DTUChamfer().evaluate(F.dtu_sphere_mesh(), scene, frame="dataset", cull=False)
+            DTUChamfer().evaluate(F.dtu_sphere_mesh(), scene, frame="dataset", cull="none")
 
 
 def test_bad_meshes(scene, tmp_path):
@@ -185,7 +185,7 @@ def _sequential_reference(mesh_mm, root, seed=0):
 def test_matches_a_sequential_implementation_bit_for_bit(tmp_path):
     root = F.make_dtu_gt(tmp_path, plane_z=F.DTU_CENTER[2] - 10, obs_lower_half=False)
     mesh = F.dtu_sphere_mesh(F.DTU_RADIUS + 0.3, subdivisions=3)
-    got = DTUChamfer().evaluate(mesh, F.dtu_scene(root), cull=False)["metrics"]
+    got = DTUChamfer().evaluate(mesh, F.dtu_scene(root), cull="none")["metrics"]
     mm = trimesh.Trimesh(mesh.vertices * F.DTU_SCALE + F.DTU_CENTER, mesh.faces, process=False)
     acc, comp = _sequential_reference(mm, root)
     assert (got["accuracy"], got["completeness"]) == (acc, comp)

@@ -116,7 +116,8 @@ def test_scene_floor_renders_the_surroundings(tmp_path):
     gt = np.asarray(o3d.io.read_point_cloud(str(root / "tnt-spot.ply")).points)
     gt_extent, mesh_extent = np.ptp(gt[:, :2], axis=0), np.ptp(verts[:, :2], axis=0)
     assert (mesh_extent > 2 * gt_extent).all(), (mesh_extent, gt_extent)
-    assert report["results"]["tnt_f1"]["metrics"]["precision"] > 0.5
+    f1 = report["results"]["tnt_f1"]["metrics"]  # 96x54 depth, TSDF voxels ~ tau: about half within tau
+    assert f1["precision_sampled"] > 0.45 and f1["recall_sampled"] > 0.45
 
 
 def test_renderer_depth_is_the_render_depth(spot):

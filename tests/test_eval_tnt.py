@@ -5,7 +5,7 @@ import pytest
 
 import eval_fixtures as F
 from gsbench.errors import EvaluationError
-from gsbench.evaluators.tnt_f1 import TnTF1, precision_recall, tnt_gt_files
+from gsbench.evaluators.tnt_f1 import SETS, TnTF1, precision_recall, tnt_gt_files, uniform_rate
 
 TAU = F.TNT_TAU
 WORLD = F.similarity(0.7, [0, 1, 1], 1.1, [2.0, -1.0, 3.0])  # an arbitrary reconstruction frame
@@ -37,12 +37,13 @@ def test_scores_are_strict_threshold_fractions():
 
 
 def test_zero_offset_scores_one(exact):
-    assert exact["metrics"] == {"precision": 1.0, "recall": 1.0, "f1": 1.0}
+    assert exact["metrics"] == {f"{m}{suffix}": 1.0 for m in ("precision", "recall", "f1") for suffix in SETS}
     d = exact["diagnostics"]
     assert d["stages"]["ransac"]["fitness"] == 1.0 and not d["suspect_alignment"]
     assert d["scale"] == pytest.approx(np.cbrt(np.linalg.det(F.TNT_TRANS[:3, :3])), rel=1e-3)
     assert d["crop_fraction"] == 1.0
     assert exact["protocol"]["tau"] == TAU and exact["protocol"]["icp_criteria"] == "official"
+    assert exact["protocol"]["version"] == 2
 
 
 def test_f1_falls_as_the_offset_passes_tau(scene):
@@ -63,7 +64,7 @@ def test_similarity_is_realigned(scene, tnt_root, exact):
 
 
 def test_deterministic(scene, exact):
-    again = TnTF1().evaluate(F.tnt_sphere_mesh(), scene, icp_criteria="intended", points="vertices")
+    again = TnTF1().evaluate(F.tnt_sphere_mesh(), scene, icp_criteria="intended")
     assert again["metrics"]["f1"] > 0.99
     one = TnTF1().evaluate(F.tnt_sphere_mesh(0.7 * TAU), scene)
     two = TnTF1().evaluate(F.tnt_sphere_mesh(0.7 * TAU), scene)

@@ -46,7 +46,7 @@ def test_capture_without_gt_beside_the_fixture_runs(tmp_path):
 
     # the DTU leaderboard is the fixture's, ranked as before: scan1001 is no column and no "no metric" cell
     golden = (GOLDEN / "leaderboard.md").read_text()
-    board = golden[golden.index("### DTU protocol"):golden.index("- Chamfer (mm), lower is better")]
+    board = golden[golden.index("### DTU protocol"):golden.index("- Chamfer, official script (mm), lower is better")]
     assert board in md
     assert "no metric" not in md and "(1/3 scenes)" not in md and "(2/3 scenes)" not in md
     assert "Not on this board: scan1001" in md

@@ -49,6 +49,7 @@ def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Pat
     """Fuse the exact depth of ``scene_name`` and evaluate it (module docstring); the mesh goes to
     ``out/floor.ply``. Returns `gsbench.evaluators.api.evaluate_mesh_file`'s report plus the config."""
     from gsbench.evaluators.api import evaluate_mesh_file  # noqa: PLC0415
+    from gsbench.evaluators.resolve import run_options  # noqa: PLC0415
     from gsbench.mesh.cleanup import canonical_order  # noqa: PLC0415
     from gsbench.mesh.tsdf import tsdf_fusion  # noqa: PLC0415
     from gsbench.runner import load_run_scene, plan_run_evaluation, resolve_run  # noqa: PLC0415
@@ -63,7 +64,7 @@ def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Pat
     mesh_path = out / "floor.ply"
     canonical_order(mesh).export(mesh_path)
     names = [n for n in plan_run_evaluation(cfg, scene).mesh if n != "surface_offset"] + ["surface_offset"]
-    options = {"dtu_chamfer": {"cull": cfg.eval.dtu_culling}} if "dtu_chamfer" in names else {}
+    options = run_options(cfg.eval.dtu_culling, names)
     report = evaluate_mesh_file(mesh_path, scene, names, options)
     report["config"] = {"preset": preset, "overrides": list(overrides), "resolution": [scene.cameras[0].width,
                         scene.cameras[0].height], "mesh": vars(cfg.mesh).copy(), "use_masks": masks is not None}

@@ -21,13 +21,18 @@ from gsbench.report import plots as figures
 from gsbench.report.aggregate import Board, ablations, leaderboard
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.html import document_html
-from gsbench.report.metrics import metric_specs, primary_metric, reported
+from gsbench.report.metrics import COMPANIONS, metric_specs, primary_metric, reported
 from gsbench.report.tables import Plot, Section, document_markdown
 from gsbench.report.views import (ablation_table, environment_table, failed_table, leaderboard_csv,
                                   leaderboard_table, nogt_table, protocol_table, runs_table, skipped_table,
                                   speed_table)
 
 TITLE = "gsbench report"
+PROTOCOLS_NOTE = ("Each dataset is ranked by its official protocol (DTU: the DTUeval script's Chamfer; TnT: the "
+                  "official toolbox's F1 on the mesh vertices). Beside it: the same distances on area samples of "
+                  "the mesh (independent of how the surface is triangulated) and, for TnT, F1 on vertices plus face "
+                  "centroids, the point set of the 2DGS / GOF / RaDe-GS scripts that produced those papers' TnT "
+                  "numbers, so their reported values sit beside that board.")
 ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
              "between its runs on one scene (so different configs are never averaged as if they were seeds).")
 
@@ -69,8 +74,9 @@ def _summary(runs) -> str:
     return f"{len(runs)} runs ({counts}) on {len(datasets)} dataset(s): {', '.join(datasets)}."
 
 
-def _leaderboards(runs, warnings: list[str]) -> tuple[dict, list[Board]]:
-    """(dataset -> ranking metric, one leaderboard per dataset with the methods' reported numbers)."""
+def _leaderboards(runs, warnings: list[str]) -> tuple[dict, list[Board], list[Board]]:
+    """(dataset -> ranking metric, one leaderboard per dataset, the companion leaderboards of `COMPANIONS`
+    that some run has); a method's reported number sits on the board of the metric it reports."""
     specs = metric_specs()
     primary = {}
     for dataset in sorted({r.dataset for r in runs}):
@@ -79,19 +85,23 @@ def _leaderboards(runs, warnings: list[str]) -> tuple[dict, list[Board]]:
             warnings.append(f"dataset '{dataset}': no run has a metric that ranks, so it has no leaderboard")
         else:
             primary[dataset] = spec
-    boards = []
+    boards, companions = [], []
     for dataset, spec in primary.items():
         methods = sorted({r.method for r in runs if r.dataset == dataset})
         refs = {m: reported(m, dataset, warnings) for m in methods}
-        # a paper's number sits only beside the metric it reports (not beside a fallback such as PSNR)
-        board = leaderboard(runs, dataset, spec, {m: r for m, r in refs.items() if r is not None and r.metric == spec.name})
-        if board.scenes:
-            boards.append(board)
-        else:
-            warnings.append(f"dataset '{dataset}': no scene can be scored by {spec.label} (its evaluator was skipped "
-                            f"on {', '.join(board.unscored)}), so it has no leaderboard; see Captures without "
-                            "ground truth")
-    return primary, boards
+        seen = {m for r in runs if r.dataset == dataset and r.ok for m in r.metrics}
+        extra = [specs[name] for name in COMPANIONS.get(dataset, ()) if name in seen and name in specs]
+        for board_spec in (spec, *extra):
+            # a paper's number sits only beside the metric it reports (not beside a fallback such as PSNR)
+            board = leaderboard(runs, dataset, board_spec,
+                                {m: r for m, r in refs.items() if r is not None and r.metric == board_spec.name})
+            if board.scenes:
+                (boards if board_spec is spec else companions).append(board)
+            elif board_spec is spec:
+                warnings.append(f"dataset '{dataset}': no scene can be scored by {spec.label} (its evaluator was "
+                                f"skipped on {', '.join(board.unscored)}), so it has no leaderboard; see Captures "
+                                "without ground truth")
+    return primary, boards, companions
 
 
 def _without_gt(runs) -> Section | None:
@@ -141,7 +151,7 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     runs = label_variants(runs)
     manifests, manifest_warnings = load_manifests(runs_dir)
     warnings += manifest_warnings
-    primary, boards = _leaderboards(runs, warnings)
+    primary, boards, companions = _leaderboards(runs, warnings)
 
     made = _Plots(plots)
     speed = Section("speed", "Speed and size against error", [], [])
@@ -151,7 +161,8 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
                                  figures.speed_figure, board)
     sweeps, sweep_labels = _sweeps(manifests, runs, primary, made)
     without_gt = _without_gt(runs)
-    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE], [leaderboard_table(b) for b in boards]),
+    ranked = [leaderboard_table(b) for b in sorted([*boards, *companions], key=lambda b: b.dataset)]
+    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked),
                 speed, *([without_gt] if without_gt else []), sweeps,
                 Section("failed", "Failed and unfinished runs", [], [failed_table(runs)]),
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),
@@ -162,7 +173,7 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for name, text in (("leaderboard.md", document_markdown(TITLE, intro, sections, warnings)),
-                       ("leaderboard.csv", leaderboard_csv(boards))):
+                       ("leaderboard.csv", leaderboard_csv([*boards, *companions]))):
         (out / name).write_text(text)
         written.append(out / name)
     if made.made:

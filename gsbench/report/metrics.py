@@ -11,6 +11,11 @@ PSNR/SSIM may rank a leaderboard (when no run of a dataset has its papers' metri
 do: mask IoU and the outside-hull share compare with masks, not with the object, and the mesh
 statistics describe a mesh (``area``, ``vertices``, ``faces`` are not scores at all).
 
+Protocols: DTU's ranking metric is the official script's Chamfer and TnT's the official toolbox's F1
+(mesh vertices); `COMPANIONS` are each dataset's further leaderboards (area samples; for TnT also
+vertices plus face centroids, the convention of the 2DGS / GOF / RaDe-GS scripts with which those papers
+computed their TnT numbers). Every label names its protocol (`DISPLAY`).
+
 Reported numbers: a method plugin class may declare ``REPORTED`` (read from the class itself, not
 inherited, since a subclass is a different method)::
 
@@ -29,14 +34,24 @@ PRIMARY = {"dtu": "chamfer", "tnt": "f1"}
 PRIMARY_ORDER = ("chamfer", "f1", "psnr")
 DATASET_TITLES = {"dtu": "DTU protocol", "tnt": "Tanks and Temples protocol"}
 REAL_DATASETS = {"dtu": "real DTU", "tnt": "real TnT"}
-DISPLAY = {"chamfer": "Chamfer", "f1": "F1", "psnr": "PSNR", "ssim": "SSIM", "normal_consistency": "normal consistency",
+DISPLAY = {"chamfer": "Chamfer, official script", "chamfer_sampled": "Chamfer, area samples",
+           "f1": "F1, official toolbox (vertices)", "f1_centroids": "F1, vertices + centroids (2DGS / GOF scripts)",
+           "f1_sampled": "F1, area samples", "psnr": "PSNR", "ssim": "SSIM",
+           "normal_consistency": "normal consistency", "normal_consistency_gated": "gated normal consistency",
            "mask_iou": "mask IoU", "mask_iou_min": "worst-view mask IoU",
            "outside_hull_area_share": "outside-hull area share"}
+# Each dataset's other leaderboards, after its ranking one: the tessellation-independent protocol and,
+# for TnT, the point set of the papers' own scripts (where their reported numbers are shown).
+COMPANIONS = {"dtu": ("chamfer_sampled",), "tnt": ("f1_centroids", "f1_sampled")}
 FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics
     "chamfer": (False, "mm"), "accuracy": (False, "mm"), "completeness": (False, "mm"),
+    "chamfer_sampled": (False, "mm"), "accuracy_sampled": (False, "mm"), "completeness_sampled": (False, "mm"),
     "f1": (True, ""), "precision": (True, ""), "recall": (True, ""),
+    "f1_centroids": (True, ""), "precision_centroids": (True, ""), "recall_centroids": (True, ""),
+    "f1_sampled": (True, ""), "precision_sampled": (True, ""), "recall_sampled": (True, ""),
     "normal_consistency": (True, ""), "normal_accuracy": (True, ""), "normal_completeness": (True, ""),
-    "normal_consistency_ungated": (True, ""), "psnr": (True, "dB"), "ssim": (True, ""),
+    "normal_consistency_gated": (True, ""), "normal_accuracy_gated": (True, ""),
+    "normal_completeness_gated": (True, ""), "psnr": (True, "dB"), "ssim": (True, ""),
     "mask_iou": (True, ""), "mask_iou_min": (True, ""), "outside_hull_area_share": (False, ""),
     "components": (False, ""), "watertight": (True, ""), "area": (False, "units^2"), "vertices": (False, ""),
     "faces": (False, ""),

@@ -14,7 +14,7 @@ import math
 
 from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
 from gsbench.report.collect import Run
-from gsbench.report.metrics import NO_GT, REAL_DATASETS, MetricSpec
+from gsbench.report.metrics import COMPANIONS, NO_GT, REAL_DATASETS, MetricSpec
 from gsbench.report.pareto import COSTS, cost_points
 from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
 
@@ -86,7 +86,9 @@ def leaderboard_table(board: Board) -> Table:
             f"NOT comparable with synthetic scenes or CPU budgets; they show the scale only. Sources: "
             + "; ".join(f"{m}: {r.source}" for m, r in sources) + "."
         )
-    return Table(f"leaderboard-{_slug(board.dataset)}", board.title, header, rows, notes)
+    companion = board.spec.name in COMPANIONS.get(board.dataset, ())
+    anchor = f"leaderboard-{_slug(board.dataset)}" + (f"-{_slug(board.spec.name)}" if companion else "")
+    return Table(anchor, board.title, header, rows, notes)
 
 
 def fronts(board: Board) -> dict[str, set[str]]:
