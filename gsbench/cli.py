@@ -12,7 +12,18 @@ import os
 import sys
 from pathlib import Path
 
-from gsbench.errors import DataError, GsbenchError
+from gsbench.errors import DataError, GsbenchError, Interrupted
+
+
+def threads_count(text: str) -> int:
+    """``--threads``: an integer >= 0 (0: every core), else argparse's usage error."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0 (0: every core), got {text!r}")
+    return value
 
 
 def _set_threads(threads: int | None) -> None:
@@ -72,6 +83,7 @@ def cmd_scene_floor(args) -> int:
 def cmd_config(args) -> int:
     import yaml
 
+    from gsbench.checks import check_run_config
     from gsbench.config import resolve
     from gsbench.registry import METHODS
 
@@ -86,6 +98,7 @@ def cmd_config(args) -> int:
         seed=args.seed,
         gt=args.gt,
     )
+    check_run_config(cfg)
     print(f"# run id {cfg.run_id}")
     print(yaml.safe_dump(cfg.to_dict(), sort_keys=False), end="")
     return 0
@@ -160,7 +173,8 @@ def cmd_bench(args) -> int:
 def cmd_report(args) -> int:
     from gsbench.report.build import write_report
 
-    written = write_report(Path(args.runs_dir), Path(args.out), plots=not args.no_plots)
+    written = write_report(Path(args.runs_dir), Path(args.out), plots=not args.no_plots,
+                           warn=lambda message: print(f"gsbench: warning: {message}", file=sys.stderr))
     plots = sum(1 for p in written if p.suffix == ".png")
     print(f"report written to {args.out}: " + ", ".join(p.name for p in written if p.suffix != ".png")
           + (f" and {plots} plot{'s' if plots > 1 else ''} in plots/" if plots else ""))
@@ -174,7 +188,7 @@ GT_HELP = ("folder holding the ground truth when it is not beside the scene: DTU
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsbench", description="Benchmark surface-reconstruction Gaussian splatting.")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
-    parser.add_argument("--threads", type=int, default=None, help="OpenMP / torch threads")
+    parser.add_argument("--threads", type=threads_count, default=None, help="OpenMP / torch threads (0 = all)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sub.add_parser("list", help="methods, evaluators and built-in scenes").set_defaults(func=cmd_list)
@@ -219,7 +233,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", default=None, help="runs folder (default: the config's out, runs/)")
     run.add_argument("--seed", type=int, default=None)
     run.add_argument("--gt", default=None, help=GT_HELP)
-    run.add_argument("--threads", type=int, default=argparse.SUPPRESS, help="OpenMP / torch threads (0 = all)")
+    run.add_argument("--threads", type=threads_count, default=argparse.SUPPRESS, help="OpenMP / torch threads (0 = all)")
     run.set_defaults(func=cmd_run)
 
     sweep = sub.add_parser("sweep", help="expand a sweep file (configs/sweeps/) and run its runs, skipping finished ones")
@@ -227,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--dry-run", action="store_true", help="validate and print the runs and their ids only")
     sweep.add_argument("--set", action="append", metavar="KEY=VALUE", help="override for every run, e.g. train.iterations=1000")
     sweep.add_argument("--out", default=None, help="runs folder (default: each run's config out, runs/)")
-    sweep.add_argument("--threads", type=int, default=argparse.SUPPRESS,
+    sweep.add_argument("--threads", type=threads_count, default=argparse.SUPPRESS,
                        help="OpenMP / torch threads per run (default: the sweep file's executor.threads, "
                             "else the cores divided among the workers)")
     sweep.add_argument("--executor", choices=("local", "ray"), default=None,
@@ -296,6 +310,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("gsbench: interrupted", file=sys.stderr)
         return 130
+    except Interrupted:
+        print("gsbench: interrupted (SIGTERM)", file=sys.stderr)
+        return 143
 
 
 if __name__ == "__main__":

@@ -32,6 +32,10 @@ class BuildError(GsbenchError):
     """The C++ rasterizer extension could not be compiled or loaded."""
 
 
+class Interrupted(BaseException):
+    """SIGTERM received during a run: it stops like a Ctrl-C (status ``interrupted``, resumable)."""
+
+
 def missing_dependency(package: str, fix: str) -> GsbenchError:
     """An ImportError turned into a message that names the fix."""
     return GsbenchError(f"the Python package '{package}' could not be imported; fix: {fix}")

@@ -1,7 +1,8 @@
 """Run records: one JSON per run, written atomically, with the environment that produced it.
 
 Schema (DESIGN.md §3 RunRecord, frameworks.md §3.4), version `SCHEMA_VERSION`:
-identity (method, scene, dataset, seed, run_id, status, error_tail), resolved config and effective loss
+identity (method, scene, dataset, seed, run_id, status — ok, failed, interrupted (Ctrl-C or SIGTERM,
+resumable), … — and error_tail), resolved config and effective loss
 terms, ``inputs`` (what was trained on: the resolution and the size on disk, the downscale factor, the
 views trained and held out, masks, the initial Gaussian count), eval protocols, metrics, ``skipped``
 evaluators with the reason each could not score the scene, timings per stage in seconds (``load``, ``train``, ``extract``,
@@ -31,7 +32,7 @@ from pathlib import Path
 import gsbench
 
 SCHEMA_VERSION = 1
-STATUSES = ("ok", "failed", "oom", "timeout", "running", "suspect_alignment")
+STATUSES = ("ok", "failed", "interrupted", "oom", "timeout", "running", "suspect_alignment")
 TRACKED_PACKAGES = ("torch", "numpy", "scipy", "open3d", "pymeshlab", "trimesh", "scikit-image", "pycolmap")
 
 

@@ -32,18 +32,24 @@ when stderr is not a terminal.
 from __future__ import annotations
 
 import json
+import signal
+import threading
 import time
 import traceback
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
 import yaml
 
+from gsbench.checks import check_run_config
 from gsbench.config import RunConfig, dataset_of, resolve
+from gsbench.errors import Interrupted
 from gsbench.progress import stage
 from gsbench.records import RunRecord, capture_environment, peak_rss_bytes, sha256_file, write_json_atomic
 from gsbench.registry import METHODS
+from gsbench.run_lock import run_lock
 from gsbench.train import (FINAL_CHECKPOINT, Trainer, load_checkpoint, scaled_losses, schedule_scale, set_threads,
                            split_views)
 
@@ -134,9 +140,13 @@ def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
 
 
 def run(cfg: RunConfig, *, echo=print) -> RunRecord:
-    """Run (or resume) every stage of ``cfg``, write and return its record, print the metrics table."""
-    from gsbench.evaluators.api import format_table  # noqa: PLC0415
+    """Run (or resume) every stage of ``cfg``, write and return its record, print the metrics table.
 
+    The configuration is checked (`gsbench.checks`) and the evaluation planned before anything is read
+    or written; the run folder is locked while this process works in it (`gsbench.run_lock`). Ctrl-C or
+    SIGTERM records status ``interrupted`` (the run resumes from its last checkpoint), any other
+    exception ``failed`` with its traceback tail; both re-raise."""
+    check_run_config(cfg)
     threads = set_threads(cfg.threads)
     stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
     header = load_run_scene(cfg, load_images=False)
@@ -144,7 +154,14 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     for name, reason in plan.skipped.items():
         stage(f"evaluator {name} skipped: {reason}")
     folder = run_dir(cfg)
-    folder.mkdir(parents=True, exist_ok=True)
+    with run_lock(folder), interrupts_raised():
+        return _run_locked(cfg, folder, header, plan, threads, echo)
+
+
+def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) -> RunRecord:
+    """`run` once it holds the folder's lock: the record, the stages, the status."""
+    from gsbench.evaluators.api import format_table  # noqa: PLC0415
+
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     record = RunRecord(run_id=cfg.run_id, method=cfg.method["name"], scene=cfg.scene, dataset=dataset_of(cfg.scene),
                        seed=cfg.seed, config=cfg.to_dict(),
@@ -156,6 +173,9 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     try:
         report = _run_stages(cfg, folder, stages, record, plan)
         record.status = "ok"
+    except (KeyboardInterrupt, Interrupted):
+        record.status = "interrupted"
+        raise
     except BaseException:
         record.status = "failed"
         record.error_tail = "".join(traceback.format_exc().splitlines(keepends=True)[-ERROR_TAIL_LINES:])
@@ -173,6 +193,23 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     echo(format_table(report))
     echo(f"record written to {folder / RECORD}")
     return record
+
+
+@contextmanager
+def interrupts_raised():
+    """Turn SIGTERM into `Interrupted` for the block (main thread only: elsewhere signals stay as they are)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum, _frame):
+        raise Interrupted(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _stored_report(eval_path: Path, plan) -> dict | None:

@@ -115,9 +115,11 @@ def _label(variant: str | None, values: dict) -> str:
 
 def expand(sweep: dict, overrides=()) -> list[SweepRun]:
     """Resolve every run of ``sweep`` (module docstring); ``overrides`` (``a.b=c`` texts, e.g. a
-    smaller budget) apply to every run after the sweep's own settings. Errors name the run's label."""
+    smaller budget) apply to every run after the sweep's own settings. Every run is checked
+    (`gsbench.checks.check_run_config`), so a bad grid value fails here, before any run starts (also with
+    ``--dry-run``); errors name the run's label."""
+    from gsbench.checks import check_run_config  # noqa: PLC0415
     from gsbench.config import parse_override  # noqa: PLC0415
-    from gsbench.losses import get_term  # noqa: PLC0415
     from gsbench.runner import resolve_run  # noqa: PLC0415
 
     extra = {}
@@ -135,11 +137,11 @@ def expand(sweep: dict, overrides=()) -> list[SweepRun]:
         label = _label(variant, {**point, **paired})
         for scene in sweep.get("scenes") or [settings.get("scene")]:
             for seed in sweep.get("seeds") or [settings.get("seed", 0)]:
-                runs.append(SweepRun(label, _resolve(settings, scene, seed, label, resolve_run, get_term)))
+                runs.append(SweepRun(label, _resolve(settings, scene, seed, label, resolve_run, check_run_config)))
     return runs
 
 
-def _resolve(settings: dict, scene, seed, label: str, resolve_run, get_term) -> RunConfig:
+def _resolve(settings: dict, scene, seed, label: str, resolve_run, check_run_config) -> RunConfig:
     method = settings.get("method")
     if not method or not scene:
         raise ConfigError(f"sweep run '{label}': needs a method and a scene (in base, variants, grid or scenes)")
@@ -147,8 +149,7 @@ def _resolve(settings: dict, scene, seed, label: str, resolve_run, get_term) -> 
     try:
         cfg = resolve_run(str(method), str(scene), preset=str(settings.get("preset", "cpu")),
                           overrides=overrides, seed=int(seed))
-        for term in cfg.losses:
-            get_term(term)
+        check_run_config(cfg)
     except ConfigError as exc:
         raise ConfigError(f"sweep run '{label}' ({method} on {scene}): {exc}") from exc
     return cfg

@@ -59,7 +59,7 @@ from gsbench.data.camera import Scene
 from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import ConfigError, DataError
 from gsbench.gaussians import Gaussians
-from gsbench.losses import TermSpec
+from gsbench.losses import TermSpec, active_terms
 from gsbench.mesh.cleanup import canonical_order
 from gsbench.mesh.tsdf import tsdf_fusion
 from gsbench.optim import make_adam
@@ -161,22 +161,55 @@ class Method:
         self.optimizer: torch.optim.Optimizer | None = None
         self.sh_degree = 0
         self.extent = 1.0
+        self.scene_radius = 1.0
 
     @classmethod
     def info(cls) -> MethodInfo:
         return cls.INFO
 
     # ---- setup --------------------------------------------------------------------------------
-    def setup(self, scene: Scene, cfg: RunConfig) -> None:
-        """Create the Gaussians and the optimizer for ``scene`` under the resolved ``cfg``."""
+    def configure(self, cfg: RunConfig) -> None:
+        """Bind ``cfg`` without a scene: the method's parameters (its ``Config``) and background, checked by
+        `check_params`. `setup` starts here; `check_config` stops here."""
         self.cfg = cfg
         self.params = self.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
+        self.background = (1.0, 1.0, 1.0) if cfg.data.white_background else (0.0, 0.0, 0.0)
+        self.check_params()
+
+    def check_params(self) -> None:
+        """ConfigError for a method, mesh or raster setting out of range (what needs no scene); methods
+        with parameters of their own extend it."""
+        cfg, p = self.cfg, self.params
+        if cfg.mesh.depth not in DEPTH_OUTPUTS:
+            raise ConfigError(f"mesh.depth must be one of {sorted(DEPTH_OUTPUTS)}, got '{cfg.mesh.depth}'")
+        self.check_extractor(cfg)
+        if p.random_init_region not in INIT_REGIONS:
+            raise ConfigError(f"method.random_init_region must be one of {', '.join(INIT_REGIONS)}, "
+                              f"got '{p.random_init_region}'")
+        if cfg.raster.surfel_filter < 0:
+            raise ConfigError(f"raster.surfel_filter must be >= 0 (0 switches the filter off), got "
+                              f"{cfg.raster.surfel_filter}")
+
+    def check_extractor(self, cfg: RunConfig) -> None:
+        """ConfigError unless ``cfg.mesh.extractor`` is one of the method's `MESH_EXTRACTORS`."""
+        if cfg.mesh.extractor not in self.MESH_EXTRACTORS:
+            raise ConfigError(f"method '{self.name}' supports mesh.extractor "
+                              f"{' or '.join(repr(e) for e in self.MESH_EXTRACTORS)}, got '{cfg.mesh.extractor}'")
+
+    @classmethod
+    def check_config(cls, cfg: RunConfig) -> None:
+        """Every check of ``cfg`` this method can make without a scene: `check_params`, and each configured
+        loss term's name and the parameters the method binds to it (`gsbench.losses.active_terms`)."""
+        method = cls()
+        method.configure(cfg)
+        active_terms(cfg.losses, 0, method.term_params(), method.loss_terms())
+
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        """Create the Gaussians and the optimizer for ``scene`` under the resolved ``cfg``."""
+        self.configure(cfg)
         self.scene_radius = scene.radius
         views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
         self.extent = cameras_extent([scene.cameras[i] for i in views])
-        self.background = (1.0, 1.0, 1.0) if cfg.data.white_background else (0.0, 0.0, 0.0)
-        if cfg.mesh.depth not in DEPTH_OUTPUTS:
-            raise ConfigError(f"mesh.depth must be one of {sorted(DEPTH_OUTPUTS)}, got '{cfg.mesh.depth}'")
         self.gaussians = self.initial_gaussians(scene, cfg)
         self.optimizer = self.make_optimizer(self.gaussians)
         self.sh_degree = 0
@@ -185,9 +218,6 @@ class Method:
         """SfM points (seeded subsample to the caps) or random points in the masks' visual hull or the
         scene sphere (``random_init_region``, module docstring)."""
         p, dims = self.params, 2 if self.info().primitive == "2d" else 3
-        if p.random_init_region not in INIT_REGIONS:
-            raise ConfigError(f"method.random_init_region must be one of {', '.join(INIT_REGIONS)}, "
-                              f"got '{p.random_init_region}'")
         rng = np.random.default_rng(cfg.seed)
         if scene.points is not None and len(scene.points):
             points, colors = np.asarray(scene.points), scene.colors
@@ -299,8 +329,6 @@ class Method:
     def raster_settings(self) -> RasterSettings:
         """The render settings of the current step (``raster`` config, background, active SH degree)."""
         r = self.cfg.raster
-        if r.surfel_filter < 0:
-            raise ConfigError(f"raster.surfel_filter must be >= 0 (0 switches the filter off), got {r.surfel_filter}")
         return RasterSettings(sh_degree=self.sh_degree, background=self.background, near_plane=r.near_plane,
                               far_plane=r.far_plane, scene_radius=self.scene_radius, antialias2d=r.antialias2d,
                               eps2d=None if r.eps2d < 0 else r.eps2d, surfel_filter=r.surfel_filter)
@@ -318,9 +346,7 @@ class Method:
     @torch.no_grad()
     def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
         """Mesh the trained Gaussians with ``mesh.extractor`` into ``out_path`` (.ply); returns its size."""
-        if cfg.mesh.extractor not in self.MESH_EXTRACTORS:
-            raise ConfigError(f"method '{self.name}' supports mesh.extractor "
-                              f"{' or '.join(repr(e) for e in self.MESH_EXTRACTORS)}, got '{cfg.mesh.extractor}'")
+        self.check_extractor(cfg)
         views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
         if cfg.mesh.extractor == "tets":
             from gsbench.mesh.tets import tetra_mesh  # noqa: PLC0415  (CGAL/scipy only when used)

@@ -66,11 +66,18 @@ class IBGSFields:
 class IBGSMixin:
     """IBGS parameterisation, losses and densification on top of a base method (module docstring)."""
 
+    def check_params(self) -> None:
+        """The base checks, the neighbourhood size and its refresh interval."""
+        super().check_params()
+        p = self.params
+        if p.knn_k < 1:
+            raise ConfigError(f"method.knn_k must be >= 1 neighbour, got {p.knn_k}")
+        if p.knn_refresh_every < 1:
+            raise ConfigError(f"method.knn_refresh_every must be >= 1 step, got {p.knn_refresh_every}")
+
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
         super().setup(scene, cfg)
         p = self.params
-        if p.knn_refresh_every < 1:
-            raise ConfigError(f"method.knn_refresh_every must be >= 1 step, got {p.knn_refresh_every}")
         g = self.gaussians
         g.params["quats"].data.zero_()
         g.params["quats"].data[:, 0] = 1.0  # ΔR = I

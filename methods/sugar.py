@@ -100,8 +100,9 @@ class SuGaR(Method):
         "tnt": {"metric": "f1_centroids", "mean": 0.19, "source": "2DGS paper, TnT table (SuGaR row)"},
     }
 
-    def setup(self, scene: Scene, cfg: RunConfig) -> None:
-        super().setup(scene, cfg)
+    def check_params(self) -> None:
+        """The base checks, the coarse-stage schedule, the prune threshold, the kNN and the regulariser."""
+        super().check_params()
         p = self.params
         if not 0 < p.warmup_until <= p.hard_prune_at:
             raise ConfigError(f"SuGaR needs 0 < method.warmup_until <= method.hard_prune_at, got "
@@ -112,6 +113,9 @@ class SuGaR(Method):
             raise ConfigError(f"method.knn_k and method.knn_every must be >= 1, got {p.knn_k} and {p.knn_every}")
         sugar_terms.check_mode(p.regularizer)
         sugar_terms.check_samples(p.num_samples)
+
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        super().setup(scene, cfg)
         self.knn: torch.Tensor | None = None
 
     def strategy(self) -> Strategy:

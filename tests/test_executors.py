@@ -75,13 +75,12 @@ base:
   method: 3dgs
   scene: {scene}
   preset: quick
-  method.random_init_points: 1000
-  train: {{checkpoint_every: 0, log_every: 10}}
+  train: {{iterations: 20, checkpoint_every: 0, log_every: 10}}
   mesh: {{voxel_size: 0.02, sdf_trunc: 0.08}}
   eval.evaluators: [dtu_chamfer]
-zip:  # the third run fails once its scene is loaded: the Trainer rejects 0 iterations
+zip:  # the third run fails once its scene is loaded: a scene without SfM points needs random init points
   seed: [0, 1, 0]
-  train.iterations: [20, 20, 0]
+  method.random_init_points: [1000, 1000, 0]
 """
 
 
@@ -105,9 +104,9 @@ def sweep_twice(scene, tmp_path, capsys, *options):
     records = [RunRecord.read(out / e["dir"] / "record.json") for e in manifest["runs"]]
     assert [r.status for r in records] == ["ok", "ok", "failed"]
     assert all(r.environment["threads"] == 1 and r.metrics["chamfer"] > 0 for r in records[:2])
-    assert "train.iterations must be >= 1" in records[2].error_tail
+    assert "random_init_points must be > 0" in records[2].error_tail
     first = capsys.readouterr().out
-    assert "2 ok, 0 skipped (finished earlier), 1 failed, 0 cancelled" in first and "train.iterations must be >= 1" in first
+    assert "2 ok, 0 skipped (finished earlier), 1 failed, 0 cancelled" in first and "random_init_points must be > 0" in first
 
     assert main(command) == 1
     assert "0 ok, 2 skipped (finished earlier), 1 failed, 0 cancelled" in capsys.readouterr().out

@@ -202,9 +202,9 @@ def test_tets_extractor_calls_tetra_mesh_with_the_filtered_gaussians(tiny_spot, 
     assert (calls["kernel"], calls["level"], calls["steps"]) == ("raymax", 0.5, 3)
     assert calls["settings"].scene_radius == scene.radius
     for name in ("radegs", "3dgs"):
-        other, _, other_cfg = setup_method(name, tiny_spot, "mesh.extractor=tets")
         with pytest.raises(ConfigError, match="supports mesh.extractor 'tsdf', got 'tets'"):
-            other.extract_mesh(scene, other_cfg, tmp_path / "x.ply")
+            METHODS.get(name).check_config(resolve_run(name, str(tiny_spot), preset="quick",
+                                                       overrides=["mesh.extractor=tets"]))
 
 
 # ---- quick end-to-end runs -----------------------------------------------------------------------

@@ -141,11 +141,12 @@ def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict
     return section, labels
 
 
-def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = None) -> list[Path]:
+def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = None, warn=None) -> list[Path]:
     """Write the report of every record below ``runs_dir`` into ``out``; return the written files.
 
     ``plots=False`` skips matplotlib (no PNGs, no figures in the page); ``generated`` is the time shown
-    in the HTML (default: now, UTC)."""
+    in the HTML (default: now, UTC); ``warn(message)`` is called with each warning the report carries
+    (damaged records left out, …), e.g. to print them on the console."""
     runs_dir, out = Path(runs_dir), Path(out)
     runs, warnings = load_runs(runs_dir)
     runs = label_variants(runs)
@@ -168,6 +169,8 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),
                 Section("environment", "Environment", [], [environment_table(runs)])]
     warnings = list(dict.fromkeys(warnings))
+    for message in warnings if warn is not None else ():
+        warn(message)
     intro = [_summary(runs)]
 
     out.mkdir(parents=True, exist_ok=True)

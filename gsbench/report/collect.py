@@ -143,7 +143,8 @@ def _keep_first(copies: list[Run]) -> list[Run]:
 def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
     """Every readable record below ``runs_dir`` (one per run id), sorted; and the warnings.
 
-    A missing folder or one without records is a GsbenchError naming the folder."""
+    A missing folder, or one without a readable record, is a GsbenchError naming the folder (and each
+    damaged record); a damaged record beside good ones is left out with a warning naming it."""
     runs_dir = Path(runs_dir)
     if not runs_dir.is_dir():
         raise GsbenchError(f"runs folder '{runs_dir}' does not exist (expected the --out folder of gsbench run/sweep)")
@@ -162,6 +163,9 @@ def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
             continue
         run = _run(data, rel)
         found.setdefault(run.run_id, []).append(run)
+    if not found and warnings:
+        raise GsbenchError(f"no readable run record under '{runs_dir}': {len(warnings)} damaged: {'; '.join(warnings)} "
+                           "(fix: re-run those runs; gsbench run resumes from their checkpoints)")
     if not found:
         raise GsbenchError(
             f"no run records ({RECORD_NAME}) under '{runs_dir}'; expected "

@@ -1,4 +1,4 @@
-"""Figures of the report as PNG bytes (matplotlib, the ``report`` extra), drawn on the Agg canvas
+"""Figures of the report as PNG bytes (matplotlib, a dependency of gsbench), drawn on the Agg canvas
 without pyplot, so no global backend state or display is touched.
 
 - `speed_figure`: per dataset, four panels (training time, total time, peak RSS in training, Gaussians) against
@@ -26,7 +26,7 @@ def _figure(width: float, height: float):
         from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
         from matplotlib.figure import Figure  # noqa: PLC0415
     except ImportError as exc:
-        fix = "pip install gsbench[report] (or run gsbench report --no-plots)"
+        fix = "pip install matplotlib, a dependency of gsbench (or run gsbench report --no-plots)"
         raise missing_dependency("matplotlib", fix) from exc
     figure = Figure(figsize=(width, height), dpi=100, layout="constrained")
     FigureCanvasAgg(figure)

@@ -1,0 +1,39 @@
+"""Every check of a run's configuration that needs no scene, made before anything is read or written.
+
+`check_run_config` is called by ``gsbench run`` (before the scene's cameras are read), by ``gsbench
+sweep`` for every expanded run (``--dry-run`` too) and by ``gsbench config``. It raises one
+`ConfigError` naming the key, the value and the accepted range; checks that need the scene (its
+views, points, masks, ground truth) stay where the scene is read (`gsbench.evaluators.resolve`,
+the loaders).
+
+- ``threads`` >= 0 (0: every core); ``train.iterations`` >= 1; ``train.checkpoint_every`` >= 0
+  (0: only the final checkpoint); ``train.log_every`` >= 0; ``train.max_gaussians`` >= 0;
+- the method's own parameters, mesh and raster options (`gsbench.methods.base.Method.check_config`,
+  when the plugin has it), and every configured loss term: its name and the parameters the method
+  binds to it.
+"""
+
+from __future__ import annotations
+
+from gsbench.config import RunConfig
+from gsbench.errors import ConfigError
+
+NON_NEGATIVE = {"train.checkpoint_every": "0: only the final checkpoint", "train.log_every": "0: no metric lines",
+                "train.max_gaussians": "0: no cap"}
+
+
+def check_run_config(cfg: RunConfig) -> None:
+    """Raise ConfigError for the first value out of range (module docstring)."""
+    from gsbench.registry import METHODS  # noqa: PLC0415  (plugins import torch)
+
+    if cfg.threads < 0:
+        raise ConfigError(f"threads must be >= 0 (0: every core), got {cfg.threads} (--threads or threads:)")
+    if cfg.train.iterations < 1:
+        raise ConfigError(f"train.iterations must be >= 1, got {cfg.train.iterations}")
+    for key, meaning in NON_NEGATIVE.items():
+        value = getattr(cfg.train, key.split(".")[1])
+        if value < 0:
+            raise ConfigError(f"{key} must be >= 0 ({meaning}), got {value}")
+    check_method = getattr(METHODS.get(cfg.method["name"]), "check_config", None)  # plugins need not have it
+    if check_method is not None:
+        check_method(cfg)
