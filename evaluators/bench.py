@@ -28,6 +28,7 @@ import scipy.io
 
 from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
 from gsbench.errors import import_open3d
+from gsbench.evaluators import gt_io
 from gsbench.evaluators.base import peak_rss_bytes
 from gsbench.evaluators.dtu_chamfer import DTUChamfer
 
@@ -135,8 +136,6 @@ def _write_tnt_gt(root: Path, gt: np.ndarray, tau: float, n_views: int) -> Scene
     ``_COLMAP_SfM.log``) and the matching scene (the GT frame is the scene frame)."""
     import json  # noqa: PLC0415
 
-    from gsbench.evaluators import gt_io  # noqa: PLC0415
-
     o3d = import_open3d()
     o3d.io.write_point_cloud(str(root / "Bench.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(gt)))
     h = 1.5
@@ -156,7 +155,7 @@ def _time_scoring(mesh, scene, tau: float) -> dict:
     from gsbench.evaluators import tnt_f1  # noqa: PLC0415
 
     o3d = import_open3d()
-    volume = o3d.visualization.read_selection_polygon_volume(str(Path(scene.gt.root) / "Bench.json"))
+    volume = gt_io.read_crop_volume(Path(scene.gt.root) / "Bench.json")
     gt = o3d.io.read_point_cloud(str(Path(scene.gt.root) / "Bench.ply"))
     t = np.asarray(volume.crop_point_cloud(gt).voxel_down_sample(tau / 2).points)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(mesh.vertices)))

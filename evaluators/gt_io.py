@@ -9,7 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gsbench.data.filecheck import check_crop_json, check_ply
 from gsbench.errors import EvaluationError, import_open3d
+
+GT_FIX = "download the ground truth again (or pass --gt PATH, a folder with an intact copy)"
 
 
 def read_points(path: Path, with_normals: bool = False):
@@ -20,6 +23,7 @@ def read_points(path: Path, with_normals: bool = False):
     o3d = import_open3d()
     if not path.is_file():
         raise EvaluationError(f"ground-truth point cloud not found: {path}")
+    check_ply(path, GT_FIX)  # open3d reads a truncated binary PLY without an error, as garbage
     pcd = o3d.io.read_point_cloud(str(path))
     pts = np.asarray(pcd.points, dtype=np.float64)
     if len(pts) == 0:
@@ -90,3 +94,10 @@ def write_colored_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> Non
     pcd.colors = o3d.utility.Vector3dVector(colors)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     o3d.io.write_point_cloud(str(path), pcd)
+
+
+def read_crop_volume(path: Path):
+    """The TnT crop volume (open3d ``SelectionPolygonVolume``) of ``path``, checked first (open3d returns
+    an empty volume for a file it cannot read)."""
+    check_crop_json(path, GT_FIX)
+    return import_open3d().visualization.read_selection_polygon_volume(str(path))

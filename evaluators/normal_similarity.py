@@ -129,7 +129,7 @@ def _protocol_filters(scene: Scene, opts: NormalOptions):
         gt = DTUGroundTruth.read(dtu_gt_paths(root, scene.gt.scan))
         return (lambda p: gt.in_box(p, opts.patch_size) & gt.observed(p)), gt.above_plane
     if scene.gt.kind == "tnt":
-        volume = import_open3d().visualization.read_selection_polygon_volume(str(root / f"{scene.gt.name}.json"))
+        volume = gt_io.read_crop_volume(root / f"{scene.gt.name}.json")
         return (lambda p: crop_mask(volume, p)), (lambda p: crop_mask(volume, p))
     return None, None
 

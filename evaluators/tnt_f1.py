@@ -199,7 +199,7 @@ class TnTF1(Evaluator):
             vertices = to_dataset_frame(geo.vertices, scene, opts.frame)
             source = _pcd(o3d, vertices)
             gt = _pcd(o3d, gt_io.read_points(files["GT point cloud"]))
-            volume = o3d.visualization.read_selection_polygon_volume(str(files["crop volume"]))
+            volume = gt_io.read_crop_volume(files["crop volume"])
             if len(np.asarray(volume.bounding_polygon)) < 3:
                 raise EvaluationError(f"tnt_f1: crop volume {files['crop volume']} has no bounding polygon")
             trans = gt_io.read_matrix4(files["alignment"])

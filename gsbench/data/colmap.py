@@ -45,26 +45,50 @@ def _intrinsics(cam, sparse_dir: Path) -> np.ndarray:
             "fix: run `colmap image_undistorter` and load its output folder"
         )
     K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+    if not np.all(np.isfinite(K)):
         raise DataError(
-            f"{_model_file(sparse_dir, 'cameras')}: camera {cam.camera_id} has non-finite or non-positive focal "
+            f"{_model_file(sparse_dir, 'cameras')}: camera {cam.camera_id} has non-finite parameters "
+            f"{list(np.asarray(cam.params).tolist())}; fix: re-run the COLMAP reconstruction"
+        )
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise DataError(
+            f"{_model_file(sparse_dir, 'cameras')}: camera {cam.camera_id} has a non-positive focal "
             f"length (K={K.tolist()}); fix: re-run the COLMAP reconstruction"
         )
     return K
 
 
 def read_colmap_model(sparse_dir: Path) -> ColmapModel:
-    """Read ``cameras``, ``images`` and ``points3D`` (.bin or .txt) from a COLMAP model folder."""
+    """Read ``cameras``, ``images`` and ``points3D`` (.bin or .txt) from a COLMAP model folder.
+
+    Binary files are checked against their sizes first (`gsbench.data.filecheck.check_colmap_model`):
+    pycolmap's reader hangs, allocating without bound, on a truncated ``points3D.bin``. Whatever
+    pycolmap still rejects becomes a one-line `DataError` naming the file (or the line of a text model).
+    """
     import pycolmap  # noqa: PLC0415
 
+    from gsbench.data.filecheck import (  # noqa: PLC0415
+        COLMAP_FIX,
+        check_colmap_model,
+        colmap_text_count_problem,
+        locate_colmap_text_error,
+        one_line,
+    )
+
     sparse_dir = Path(sparse_dir)
+    kind = check_colmap_model(sparse_dir)
     try:
         rec = pycolmap.Reconstruction(str(sparse_dir))
-    except (ValueError, RuntimeError) as exc:
+    except Exception as exc:  # noqa: BLE001  pycolmap raises ValueError, IndexError, RuntimeError, ...
+        where = locate_colmap_text_error(sparse_dir) if kind == "txt" else ""
+        if where:
+            raise DataError(f"{one_line(where)}; fix: {COLMAP_FIX}") from exc
         raise DataError(
-            f"{sparse_dir}: not a readable COLMAP model ({exc}); "
-            "fix: it must hold cameras, images and points3D (.bin or .txt) as written by COLMAP"
+            f"{sparse_dir}: pycolmap cannot read the COLMAP {kind} model ({type(exc).__name__}: {one_line(exc)}); "
+            f"fix: {COLMAP_FIX}"
         ) from exc
+    if kind == "txt" and (problem := colmap_text_count_problem(sparse_dir, len(rec.cameras), len(rec.points3D))):
+        raise DataError(f"{problem}; fix: {COLMAP_FIX}")
     cameras = []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
         if not image.has_pose:
@@ -77,17 +101,26 @@ def read_colmap_model(sparse_dir: Path) -> ColmapModel:
         R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
         t = np.asarray(pose.translation, dtype=np.float64)
         if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            frames = sparse_dir / f"frames{_model_file(sparse_dir, 'images').suffix}"
+            where = f"{frames} (the pose of its frame {image.frame_id})" if frames.is_file() else _model_file(sparse_dir, 'images')
             raise DataError(
-                f"{_model_file(sparse_dir, 'images')}: image {image.name} has a non-finite pose; "
+                f"{where}: image {image.name} has a non-finite pose (R={np.round(R, 6).tolist()}, t={t.tolist()}); "
                 "fix: re-run the COLMAP reconstruction"
             )
         cameras.append(Camera(K=_intrinsics(cam, sparse_dir), R=R, t=t, width=int(cam.width),
                               height=int(cam.height), name=image.name))
     if not cameras:
         raise DataError(f"{_model_file(sparse_dir, 'images')}: the model has no images; fix: re-run COLMAP")
-    pts = list(rec.points3D.values())
+    ids, pts = list(rec.points3D.keys()), list(rec.points3D.values())
     points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     colors = np.array([p.color for p in pts], dtype=np.float64).reshape(-1, 3) / 255.0
+    finite = np.all(np.isfinite(points), axis=1)
+    if not np.all(finite):
+        k = int(np.flatnonzero(~finite)[0])
+        raise DataError(
+            f"{_model_file(sparse_dir, 'points3D')}: {int(np.sum(~finite))} of {len(pts)} points have non-finite "
+            f"coordinates (point3D {ids[k]} at {points[k].tolist()}); fix: {COLMAP_FIX}"
+        )
     return ColmapModel(cameras=cameras, points=points, colors=colors)
 
 

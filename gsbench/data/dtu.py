@@ -20,7 +20,9 @@ subtracts it (`world_mat`).
 
 Ground truth (kind ``dtu``) is looked up in ``gt_root`` (``--gt``) if given, else in the scene folder,
 else in its parent: ``Points/stl/stl{scan:03d}_total.ply`` and ``ObsMask/``. The scan number comes from the
-meta file or the folder name ``scan{id}``.
+meta file or the folder name ``scan{id}``. The GT files found are checked at load
+(`check_dtu_ground_truth`: PLY header against the file size, the .mat variables), so a damaged ground
+truth fails before training rather than at evaluation.
 """
 
 from __future__ import annotations
@@ -84,28 +86,53 @@ def write_cameras_npz(path: Path, cameras_mm: list[Camera], scale_mat: np.ndarra
     np.savez(path, **arrays)
 
 
-def read_cameras_npz(path: Path, count: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """Normalised projections ``(world_mat_i @ scale_mat_i)[:3]`` for i < count, and ``scale_mat_0``."""
+NPZ_FIX = "replace it with the IDR/VolSDF cameras.npz (world_mat_i and scale_mat_i, 4x4 each)"
+
+
+def _matrix_problem(m: np.ndarray) -> str:
+    """What is wrong with a camera matrix from cameras.npz, or ``""``."""
+    if m.shape != (4, 4):
+        return f"must be a 4x4 matrix, got shape {m.shape}"
+    if not np.all(np.isfinite(m)):
+        bad = np.argwhere(~np.isfinite(m))
+        entries = ", ".join(f"{m[tuple(ij)]} at [{ij[0]}, {ij[1]}]" for ij in bad[:4])
+        return f"contains non-finite values ({entries}{' ...' if len(bad) > 4 else ''})"
+    return ""
+
+
+def read_cameras_npz(path: Path, count: int, names=None) -> tuple[list[np.ndarray], np.ndarray]:
+    """Normalised projections ``(world_mat_i @ scale_mat_i)[:3]`` for i < count, and ``scale_mat_0``.
+
+    The archive is checked first (`gsbench.data.filecheck.check_npz`: a valid zip of plain ``.npy``
+    arrays whose sizes match their headers); ``names`` (the image of each camera) go into messages.
+    """
+    from gsbench.data.filecheck import check_npz, damaged  # noqa: PLC0415
+
     if not path.is_file():
         raise DataError(f"{path}: cameras.npz not found; fix: add the IDR/VolSDF cameras.npz (world_mat_i, scale_mat_i)")
-    try:
-        data = np.load(path)
-        keys = set(data.files)
-    except (OSError, ValueError) as exc:
-        raise DataError(f"{path}: unreadable npz ({exc}); fix: replace it with the IDR/VolSDF cameras.npz") from exc
+    keys = set(check_npz(path, NPZ_FIX))
     n_world = len([k for k in keys if re.fullmatch(r"world_mat_\d+", k)])
     if n_world != count:
         raise DataError(f"{path}: {n_world} cameras (world_mat_i) but {count} images; fix: one world_mat_i per image")
     projections = []
-    for i in range(count):
-        if f"scale_mat_{i}" not in keys:
-            raise DataError(f"{path}: scale_mat_{i} missing; fix: add scale_mat_i for every camera")
-        wm, sm = np.asarray(data[f"world_mat_{i}"], float), np.asarray(data[f"scale_mat_{i}"], float)
-        for key, m in ((f"world_mat_{i}", wm), (f"scale_mat_{i}", sm)):
-            if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-                raise DataError(f"{path}: {key} must be a finite 4x4 matrix, got shape {m.shape}; fix: regenerate cameras.npz")
-        projections.append((wm @ sm)[:3])
-    scale_mat = np.asarray(data["scale_mat_0"], float)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            for i in range(count):
+                for key in (f"world_mat_{i}", f"scale_mat_{i}"):
+                    if key not in keys:
+                        raise DataError(f"{path}: {key} missing; fix: add world_mat_i and scale_mat_i for every camera")
+                wm, sm = np.asarray(data[f"world_mat_{i}"], float), np.asarray(data[f"scale_mat_{i}"], float)
+                for key, m in ((f"world_mat_{i}", wm), (f"scale_mat_{i}", sm)):
+                    problem = _matrix_problem(m)
+                    if problem:
+                        camera = f"camera {i}" + (f", image {names[i]}" if names is not None and i < len(names) else "")
+                        raise DataError(f"{path}: {key} ({camera}) {problem}; fix: regenerate cameras.npz")
+                projections.append((wm @ sm)[:3])
+            scale_mat = np.asarray(data["scale_mat_0"], float)
+    except DataError:
+        raise
+    except Exception as exc:  # noqa: BLE001  a member that passed the checks but still cannot be decoded
+        raise damaged(path, f"{type(exc).__name__}: {exc}", NPZ_FIX) from exc
     if scale_mat[0, 0] <= 0:
         raise DataError(f"{path}: scale_mat_0 has non-positive scale {scale_mat[0, 0]}; fix: regenerate cameras.npz")
     return projections, scale_mat
@@ -151,14 +178,52 @@ def dtu_ground_truth(root: Path, scan: int | None, gt_root: Path | None = None) 
     return None, f"{' or '.join(map(str, stl))} not found"
 
 
-def _mask_paths(root: Path, n_images: int) -> list[Path]:
+def _view_key(path: Path):
+    """The number in a view's file stem (``000012.png`` and ``012.png`` -> 12), else the stem."""
+    digits = re.findall(r"\d+", path.stem)
+    return int(digits[-1]) if digits else path.stem
+
+
+def _unmatched(images: list[Path], masks: list[Path]) -> str:
+    """Which images have no mask (and which masks no image), matched by the number in their names."""
+    image_keys, mask_keys = [_view_key(p) for p in images], [_view_key(p) for p in masks]
+    if len(set(image_keys)) != len(image_keys) or len(set(mask_keys)) != len(mask_keys):
+        return ""
+    def names(paths, keys, others):
+        found = [p.name for p, k in zip(paths, keys) if k not in others]
+        return ", ".join(found[:5]) + (f" and {len(found) - 5} more" if len(found) > 5 else "")
+    lonely_images, lonely_masks = names(images, image_keys, set(mask_keys)), names(masks, mask_keys, set(image_keys))
+    parts = ([f"no mask for image {lonely_images}"] if lonely_images else []) + \
+            ([f"no image for mask {lonely_masks}"] if lonely_masks else [])
+    return "; ".join(parts)
+
+
+def _mask_paths(root: Path, images: list[Path]) -> list[Path]:
     folder = root / "mask"
     if not folder.is_dir():
         raise DataError(f"{folder}: mask folder not found; fix: add one object mask (PNG, object=255) per image")
     masks = list_images(folder)
-    if len(masks) != n_images:
-        raise DataError(f"{folder}: {len(masks)} masks for {n_images} images; fix: one mask per image, same sort order")
+    if len(masks) != len(images):
+        which = _unmatched(images, masks)
+        raise DataError(f"{folder}: {len(masks)} masks for {len(images)} images{f' ({which})' if which else ''}; "
+                        "fix: one mask per image, same sort order")
     return masks
+
+
+def check_dtu_ground_truth(gt: GroundTruth | None) -> None:
+    """Header checks of the DTU protocol's files that exist (`gsbench.data.filecheck`), so a damaged
+    ground truth fails when the scene is loaded, not after training."""
+    from gsbench.data.filecheck import check_mat, check_ply  # noqa: PLC0415
+
+    if gt is None:
+        return
+    fix = "re-download the DTU SampleSet (Points/stl and ObsMask) or re-generate the scene"
+    paths = dtu_gt_paths(gt.root, gt.scan)
+    check_ply(paths["STL points"], fix)
+    if paths["ObsMask"].is_file():
+        check_mat(paths["ObsMask"], ("ObsMask", "BB", "Res"), fix)
+    if paths["Plane"].is_file():
+        check_mat(paths["Plane"], ("P",), fix)
 
 
 def load_dtu(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,
@@ -172,8 +237,8 @@ def load_dtu(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bo
     paths = list_images(folder)
     if not paths:
         raise DataError(f"{folder}: no images; fix: put the RGB views (PNG) in image/")
-    masks = _mask_paths(root, len(paths))
-    projections, scale_mat = read_cameras_npz(root / "cameras.npz", len(paths))
+    masks = _mask_paths(root, paths)
+    projections, scale_mat = read_cameras_npz(root / "cameras.npz", len(paths), [p.name for p in paths])
     size = image_size(paths[0])
     downscale = fit_downscale(*size, downscale, max_size)
     cameras = []
@@ -184,6 +249,7 @@ def load_dtu(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bo
     images, mask_arrays = read_views(paths, masks, [size] * len(paths), downscale, load_images)
     meta = read_meta(root)
     gt, gt_missing = dtu_ground_truth(root, scan_number(root, meta), gt_root)
+    check_dtu_ground_truth(gt)
     return Scene(
         name=meta.get("name", root.name), fmt="dtu", root=root, cameras=cameras, images=images, masks=mask_arrays,
         normalisation=normalisation_from_scale_mat(scale_mat), gt=gt, gt_missing=gt_missing,
@@ -203,15 +269,17 @@ def load_dtu_colmap(root: Path, *, downscale: float = 1.0, max_size=(), load_ima
     root = Path(root)
     model = read_colmap_model(root / "sparse" / "0")
     paths = colmap_image_paths(root, model.cameras)
-    masks = _mask_paths(root, len(paths))
+    masks = _mask_paths(root, paths)
     npz = root / "cameras.npz"
-    norm = normalisation_from_scale_mat(read_cameras_npz(npz, len(paths))[1]) if npz.exists() else Normalisation()
+    norm = (normalisation_from_scale_mat(read_cameras_npz(npz, len(paths), [p.name for p in paths])[1])
+            if npz.exists() else Normalisation())
     size = (model.cameras[0].width, model.cameras[0].height)
     downscale = fit_downscale(*size, downscale, max_size)
     images, mask_arrays = read_views(paths, masks, [(c.width, c.height) for c in model.cameras], downscale, load_images)
     cameras = [c if downscale == 1.0 else c.scaled(1.0 / downscale) for c in model.cameras]
     meta = read_meta(root)
     gt, gt_missing = dtu_ground_truth(root, scan_number(root, meta), gt_root)
+    check_dtu_ground_truth(gt)
     return Scene(
         name=meta.get("name", root.name), fmt="dtu-colmap", root=root, cameras=cameras, images=images,
         masks=mask_arrays, points=model.points if len(model.points) else None,

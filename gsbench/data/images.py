@@ -53,26 +53,51 @@ def scaled_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     return max(1, int(round(width / downscale))), max(1, int(round(height / downscale)))
 
 
+PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC: the last 8 bytes of a complete PNG
+
+
+def _unreadable(path: Path, exc) -> DataError:
+    detail = " ".join(str(exc).split())
+    return DataError(f"{path}: unreadable image ({detail}); fix: replace the file with a valid PNG/JPEG")
+
+
 def _open(path: Path):
     from PIL import Image, UnidentifiedImageError  # noqa: PLC0415
 
     try:
         img = Image.open(path)
         img.load()
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DataError(f"{path}: unreadable image ({exc}); fix: replace the file with a valid PNG/JPEG") from exc
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError, ValueError) as exc:
+        raise _unreadable(path, exc) from exc
     return img
 
 
+def _check_png_end(path: Path) -> None:
+    """A PNG must end with its IEND chunk (checked from the last bytes, so a truncated file is caught
+    by header-only loads too, which never decode the pixels)."""
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        f.seek(max(0, size - 1024))
+        tail = f.read()
+    if PNG_END not in tail:
+        raise DataError(f"{path}: truncated PNG (no IEND chunk at the end of its {size} bytes); "
+                        "fix: replace the file with a complete PNG")
+
+
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels."""
+    """(width, height) from the file header, without decoding the pixels (PNGs: also that the file is
+    complete, `_check_png_end`). An image larger than PIL's decompression-bomb limit is an error."""
     from PIL import Image, UnidentifiedImageError  # noqa: PLC0415
 
     try:
         with Image.open(path) as img:
-            return img.size
-    except (OSError, UnidentifiedImageError) as exc:
-        raise DataError(f"{path}: unreadable image ({exc}); fix: replace the file with a valid PNG/JPEG") from exc
+            size, fmt = img.size, img.format
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError, ValueError) as exc:
+        raise _unreadable(path, exc) from exc
+    if fmt == "PNG":
+        _check_png_end(path)
+    return size
 
 
 def _resize(img, downscale: float):

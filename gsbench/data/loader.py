@@ -39,12 +39,28 @@ def detect_format(root: Path) -> str:
     """``dtu-colmap`` (sparse/0 + mask/), ``tnt`` (sparse/0) or ``dtu`` (cameras.npz or image/)."""
     root = Path(root)
     if not root.is_dir():
-        raise DataError(f"{root}: scene folder not found; fix: give a scene folder or a built-in name (gsbench list)")
+        raise _not_a_folder(root)
     if (root / "sparse" / "0").is_dir():
         return "dtu-colmap" if (root / "mask").is_dir() else "tnt"
     if (root / "cameras.npz").exists() or (root / "image").is_dir():
         return "dtu"
     raise DataError(f"{root}: not a recognised scene layout; expected {LAYOUTS}; fix: arrange the folder in one of these layouts")
+
+
+def _not_a_folder(root: Path) -> DataError:
+    """Why ``root`` is not a scene folder: it is a file, an unknown built-in name, or it does not exist."""
+    builtin = ", ".join(BUILTIN_SCENES)
+    if root.is_file():
+        return DataError(f"{root} is a file; expected a scene folder ({LAYOUTS}) or a built-in name; "
+                         f"fix: give a scene folder (e.g. {root.parent})")
+    name = str(root)
+    if name.startswith("synthetic/"):
+        if name in BUILTIN_SCENES:
+            return DataError(f"{name} is a built-in scene name, not a folder; fix: generate it with "
+                             f"`gsbench scene make {name}` (it prints the folder) and give that folder")
+        return DataError(f"{name}: no built-in scene of that name and no such folder; built-in scenes: {builtin}; "
+                         "fix: use one of them (gsbench list) or give a scene folder")
+    return DataError(f"{root}: scene folder not found; fix: give a scene folder or a built-in name ({builtin})")
 
 
 def _is_builtin_name(name) -> bool:

@@ -9,6 +9,9 @@ Layout (one folder per scene; GT files live in the scene folder itself, prefixed
     {scene}/{scene}_trans.txt             4x4 similarity COLMAP frame -> GT frame
     {scene}/{scene}_COLMAP_SfM.log        reference trajectory (camera-to-world, COLMAP frame)
 
+When all four GT files are there, their headers are checked at load (`check_tnt_ground_truth`), so a
+damaged ground truth fails before training rather than at evaluation.
+
 ``{scene}`` is the meta file's ``name``, else the prefix of the ``*_COLMAP_SfM.log`` found, else the
 folder name. tau is the meta file's ``tau``, else the official value for the scene name (config.py of
 the TnT toolbox), else None.
@@ -103,6 +106,20 @@ def gt_files(root: Path, name: str) -> dict[str, Path]:
     return {suffix: root / f"{name}{suffix}" for suffix in GT_SUFFIXES}
 
 
+def check_tnt_ground_truth(files: dict[str, Path]) -> None:
+    """Header checks of the four TnT GT files (`gsbench.data.filecheck`), so a damaged ground truth
+    fails when the scene is loaded, not after training: the point cloud's PLY header against its size,
+    the crop volume's JSON, the 4x4 alignment and the trajectory's poses."""
+    from gsbench.data.filecheck import check_crop_json, check_log, check_ply, read_matrix4_text  # noqa: PLC0415
+
+    fix = (f"re-download the Tanks and Temples ground truth of the scene (GT/{files['.ply'].stem}/) "
+           "or re-generate the scene")
+    check_ply(files[".ply"], fix)
+    check_crop_json(files[".json"], fix)
+    read_matrix4_text(files["_trans.txt"], fix)
+    check_log(files["_COLMAP_SfM.log"], fix)
+
+
 def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,
              gt_root: Path | None = None) -> Scene:
     """Load a TnT-layout scene (see the module docstring); cameras and SfM points are normalised.
@@ -129,6 +146,7 @@ def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bo
     missing = [str(p) for p in gt_files(gt_folder, name).values() if not p.is_file()]
     gt = None
     if not missing:
+        check_tnt_ground_truth(gt_files(gt_folder, name))
         gt = GroundTruth(kind="tnt", root=gt_folder, name=name, tau=meta.get("tau", TNT_TAU.get(name)),
                          normal_maps=optional_dir(root / "gt_normal"), depth_maps=optional_dir(root / "gt_depth"))
     has_points = len(model.points) > 0
