@@ -1,6 +1,6 @@
 """Mask culling before DTU evaluation, on CPU (2DGS ``scripts/eval_dtu/evaluate_single_scene.py``).
 
-Reference steps (evaluation.md §1.3) and how gsbench maps them:
+Reference steps (docs/evaluation.md §2.3) and how gsbench maps them:
 
 1. Cameras: the reference decomposes ``cameras.npz`` into normalised-frame K and pose; gsbench uses
    the scene's cameras, which are in the same normalised frame.

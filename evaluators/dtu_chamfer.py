@@ -65,7 +65,7 @@ class DTUOptions:
 
 
 def dtu_gt_files(scene: Scene) -> dict[str, Path]:
-    """The three DTUeval-python inputs for the scene's scan (evaluation.md §1.1)."""
+    """The three DTUeval-python inputs for the scene's scan (docs/evaluation.md §2.1)."""
     gt = require_gt(scene, "dtu", DTUChamfer.name)
     if gt.scan is None:
         raise EvaluationError(f"dtu_chamfer: scene '{scene.name}' GroundTruth has no scan number")

@@ -1,4 +1,4 @@
-"""Normal consistency of a mesh against ground truth (evaluation.md §3, recommendation B), protocol v2.
+"""Normal consistency of a mesh against ground truth (docs/evaluation.md §4.1), protocol v2.
 
 Definition (Occupancy Networks ``im2mesh/eval.py``, the one the papers that report it use):
 
@@ -102,7 +102,7 @@ def _abs_cos(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def rendered_normal_similarity(pred_normals: np.ndarray, gt_normals: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean cosine ``n_pred . n_gt`` over ``mask`` for HxWx3 normal maps (evaluation.md §3 A).
+    """Mean cosine ``n_pred . n_gt`` over ``mask`` for HxWx3 normal maps (docs/evaluation.md §4.3).
 
     Both maps are normalised per pixel first; pixels where either normal has zero length are excluded.
     Signed (no absolute value): rendered and GT normals share an orientation convention.

@@ -1,7 +1,7 @@
 """Tanks-and-Temples precision / recall / F-score, reproducing the official toolbox (protocol v2).
 
 Reference: isl-org/TanksAndTemples ``python_toolbox/evaluation`` (``run.py``, ``registration.py``,
-``evaluation.py``), ported to ``open3d.pipelines.registration`` (evaluation.md §2.3-2.6).
+``evaluation.py``), ported to ``open3d.pipelines.registration`` (docs/evaluation.md §3.3–3.5).
 
 Three point sets of one mesh, each scored after the same alignment (steps 2-4, done with the first):
 
@@ -25,7 +25,7 @@ Protocol v1 (before 2026-11-24) ranked by vertices plus centroids; v2 headlines 
    centres mapped by ``{scene}_trans.txt``; open3d ``registration_ransac_based_on_correspondence``,
    max distance 0.2, point-to-point **with scaling**, ``ransac_n=6``. On open3d >= 0.12 the criteria
    are ``RANSACConvergenceCriteria(100000, 1.0)``: confidence 1.0 runs every iteration, which makes the
-   result deterministic (evaluation.md §2.5); ``o3d.utility.random.seed(seed)`` is set as well.
+   result deterministic (docs/evaluation.md §3.5); ``o3d.utility.random.seed(seed)`` is set as well.
 4. Three ICP refinements (``registration_vol_ds`` twice, then ``registration_unif``), each: transform
    by the current T, crop by the GT polygon volume, downsample, point-to-point ICP with scaling,
    ``T = T_icp @ T``. Voxel tau / distance 80 tau; voxel tau/2 / distance 20 tau; uniform
@@ -82,7 +82,7 @@ class TnTOptions:
 
 
 def tnt_gt_files(scene: Scene) -> dict[str, Path]:
-    """The toolbox inputs of the scene (evaluation.md §2.1)."""
+    """The toolbox inputs of the scene (docs/evaluation.md §3.1)."""
     gt = require_gt(scene, "tnt", TnTF1.name)
     root, name = Path(gt.root), gt.name
     return {

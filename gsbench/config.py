@@ -1,6 +1,6 @@
 """Run configuration: stdlib dataclasses, YAML layering, ``--set a.b=c`` overrides, canonical run id.
 
-Layers, each overriding the previous (DESIGN.md §4):
+Layers, each overriding the previous (docs/design.md §9.1):
 
     code defaults <- configs/methods/<method>.yaml <- configs/datasets/<dataset>.yaml
                   <- configs/methods/<method>.<dataset>.yaml
@@ -103,9 +103,9 @@ class MeshConfig:
 
     ``extractor``: ``tsdf`` (fused rendered ``depth``; ``voxel_size``, ``sdf_trunc``, ``depth_trunc``,
     ``num_clusters``) or ``tets`` (GOF marching tetrahedra on the opacity ``level`` set with
-    ``bisection_steps`` bisection steps, GOF/RaDe doc §1.7) or ``poisson`` (SuGaR: points on the
+    ``bisection_steps`` bisection steps, docs/methods/gof.md §7) or ``poisson`` (SuGaR: points on the
     density ``level`` set along the rays of the rendered ``depth``, screened Poisson,
-    `gsbench.mesh.levelset`, methods-3dgs-2dgs-sugar.md §3.3); which ones a method supports is its own.
+    `gsbench.mesh.levelset`, docs/methods/sugar.md §4); which ones a method supports is its own.
     ``poisson_depth``: octree depth (SuGaR 10; 0 = from the pixel footprint, at most 10);
     ``poisson_density_quantile``: vertices below this quantile of the Poisson density are removed (0.1);
     ``poisson_points``: level-set points kept over all views (SuGaR's n_total_points, 10M);

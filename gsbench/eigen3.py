@@ -1,10 +1,10 @@
 """Stable, differentiable batched eigen-decomposition of symmetric 3×3 matrices (IBGS local covariances).
 
-IBGS (methods-gof-radegs-ibgs.md §3.2 step 3) decomposes every training step the covariance
+IBGS (docs/methods/ibgs.md §3.2) decomposes every training step the covariance
 ``C_i = (1/n) Σ (p − μ̄)(p − μ̄)ᵀ`` of each Gaussian's neighbour means and differentiates through it.
 ``torch.linalg.eigh`` is slow for that (~200 ms for 100k float64 matrices) and its eigenvector
 gradient is NaN/inf for repeated eigenvalues (coplanar isotropic patches, collinear or duplicated
-points, K = 2), all of which occur in training (§3.4 item 1). This module implements recipe §3.4 (a):
+points, K = 2), all of which occur in training (docs/methods/ibgs.md §7). This module implements recipe docs/methods/ibgs.md §3.2, §3.3:
 
 * forward: a float64 closed form in the C++ extension (``gsbench/raster/csrc/eigen3.cpp``, OpenMP
   over the batch): trigonometric eigenvalues, the isolated eigenvector by Kopp's cross products, the
@@ -29,7 +29,7 @@ from gsbench.errors import ConfigError, NumericalError
 
 EIGEN_ENV = "GSBENCH_EIGEN"
 IMPLS = ("fast", "reference")
-# Absolute part of the gap regulariser ε (§3.4 (a)); keeps F finite for C = 0. It dominates ε, and so
+# Absolute part of the gap regulariser ε (docs/methods/ibgs.md §3.3); keeps F finite for C = 0. It dominates ε, and so
 # damps eigenvector gradients, when max|λ| < GAP_EPS_FLOOR/gap_eps (1e-9 at the default gap_eps).
 GAP_EPS_FLOOR = 1e-12
 
@@ -42,7 +42,7 @@ def sym3_eigh(C: torch.Tensor, gap_eps: float = 1e-3, impl: str | None = None) -
     ``v1, v2, v3`` are orthonormal eigenvectors with ``det V = +1`` (``v3 = v1 × v2``). Column signs are
     otherwise arbitrary: use only sign-invariant functions of ``V`` (``|v·a|``, ``(v·a)²``, ``V D Vᵀ``).
 
-    Forward (C++, float64; methods-gof-radegs-ibgs.md §3.4 (a)), per matrix with ``s = max|S_ij|``
+    Forward (C++, float64; docs/methods/ibgs.md §3.2), per matrix with ``s = max|S_ij|``
     and ``A = S/s − qI``, ``q = tr(S/s)/3``, ``p = sqrt(‖A‖²_F/6)``:
 
     * ``p <= 1e-14`` (incl. ``S = 0``; the anisotropy is at the rounding level of ``S``): isotropic,

@@ -1,4 +1,4 @@
-"""Executors: where the runs of a sweep run (DESIGN.md §3 "Executor"), behind one seam.
+"""Executors: where the runs of a sweep run (docs/design.md §10.2), behind one seam.
 
 The seam is `concurrent.futures.Executor`: ``submit(fn, *args) -> Future``, ``shutdown(wait,
 cancel_futures)`` and the context manager, plus ``terminate_workers()`` (the name Python 3.14 gives it

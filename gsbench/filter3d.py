@@ -1,4 +1,4 @@
-"""Mip-Splatting 3D smoothing filter as GOF and RaDe-GS compute it (methods-gof-radegs-ibgs.md §1.1, §2.5).
+"""Mip-Splatting 3D smoothing filter as GOF and RaDe-GS compute it (docs/methods/gof.md §2.2, docs/methods/radegs.md §2.1).
 
 For each Gaussian centre μ and each *training* camera, μ is *seen* when its camera z > ``near`` and its
 projection (u, v) = (fx·x/z + cx, fy·y/z + cy) lies in the image enlarged by 15 % on every side,
@@ -11,7 +11,7 @@ the largest ``fx`` of the training cameras, the filter standard deviation is
 and this module returns the *variance* σ_f², the `gsbench.raster.RasterGaussians.filter3d` the
 rasterizer applies (``s_eff = sqrt(s² + σ_f²)``, ``o_eff = o·sqrt(Π s² / Π (s² + σ_f²))``). σ_f carries
 no gradient. GOF/Mip-Splatting use ``near`` = 0.2 in their normalised frame; gsbench passes the
-raster near plane (``raster.near_plane`` × scene radius, DESIGN.md §5), 0.2 for a unit scene.
+raster near plane (``raster.near_plane`` × scene radius, docs/design.md §12.1), 0.2 for a unit scene.
 
 `Filter3D` holds the current variance of one training run; the method renders with it, the
 `gsbench.strategy.AbsGradStrategy` recomputes it on GOF's schedule and uses it in the opacity reset.
@@ -33,7 +33,7 @@ SCREEN_MARGIN = 0.15  # the image is enlarged by 15 % on every side
 
 @torch.no_grad()
 def filter3d_variance(means: torch.Tensor, cameras: Sequence[Camera], *, near: float) -> torch.Tensor:
-    """σ_f² (N,) of the centres ``means`` (N,3) over ``cameras`` (module docstring, GOF §1.1)."""
+    """σ_f² (N,) of the centres ``means`` (N,3) over ``cameras`` (module docstring, docs/methods/gof.md §2.2)."""
     if not cameras:
         raise NumericalError("the 3D filter needs at least one training camera, got none; check data.holdout_every")
     xyz = means.detach().to(torch.float64)
@@ -60,7 +60,7 @@ def filter3d_variance(means: torch.Tensor, cameras: Sequence[Camera], *, near: f
 
 
 def filter_coefficient(scales: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
-    """The opacity factor sqrt(Π_k s_k² / Π_k (s_k² + σ_f²)) (N,) of the filter (GOF §1.1)."""
+    """The opacity factor sqrt(Π_k s_k² / Π_k (s_k² + σ_f²)) (N,) of the filter (docs/methods/gof.md §2.3)."""
     s2 = scales * scales
     return torch.sqrt(torch.prod(s2 / (s2 + variance.reshape(-1, 1)), dim=-1))
 

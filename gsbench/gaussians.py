@@ -1,7 +1,7 @@
 """The Gaussians container: stored parameters, their activations and initialisation.
 
-Storage and activations follow 3DGS `scene/gaussian_model.py` (methods-3dgs-2dgs-sugar.md §1.1):
-means raw (N,3); log-scales (N,3), or (N,2) for 2D surfels (2DGS §2.1); quaternions (w,x,y,z)
+Storage and activations follow 3DGS `scene/gaussian_model.py` (docs/methods/3dgs.md §2):
+means raw (N,3); log-scales (N,3), or (N,2) for 2D surfels (docs/methods/2dgs.md §2); quaternions (w,x,y,z)
 normalised on use; opacity logits, ``o = sigmoid``; SH DC (N,1,3) and rest (N,K-1,3).
 
 Initialisation from SfM points: DC = (rgb − 0.5)/C0, rest 0; isotropic scale

@@ -1,16 +1,16 @@
 """Local covariance of neighbour means, its eigen-decomposition, and frame continuity (IBGS,
-methods-gof-radegs-ibgs.md §3.2 steps 2–4, §3.4).
+docs/methods/ibgs.md §3, §4, docs/methods/ibgs.md §7.
 
 - Covariance (paper Eq. 4): with P_i = {μ_i} ∪ {μ_j : j ∈ N(i)} (n = K + 1 points; without μ_i when
   ``include_self`` is false), μ̄_i = mean(P_i), ``C_i = (1/n) Σ_{p∈P_i} (p − μ̄_i)(p − μ̄_i)ᵀ + δI`` with
-  δ = 1e-10·radius² (§3.4 (f)), in float64 from the *current* means, so gradients reach all n means.
+  δ = 1e-10·radius² (docs/methods/ibgs.md §3.4), in float64 from the *current* means, so gradients reach all n means.
 - Eigen-decomposition (Eq. 5) by `gsbench.eigen3.sym3_eigh` of C / radius² (then λ × radius², so the
   solver's absolute floors are scale-free): λ1 ≥ λ2 ≥ λ3, columns v1, v2, v3, det V = +1,
-  gap-regularised backward (§3.4 (a)). ``valid`` is false where λ1 <= 2δ, i.e. the neighbours' own
-  spread is below the jitter (coincident points, §3.4 (f)); those rows use V = I and the IBGS losses
+  gap-regularised backward (docs/methods/ibgs.md §3.3). ``valid`` is false where λ1 <= 2δ, i.e. the neighbours' own
+  spread is below the jitter (coincident points, docs/methods/ibgs.md §3.4); those rows use V = I and the IBGS losses
   skip them.
-- Planarity (Eq. 10, [ASSUMED] formula): γ = (λ2 − λ3)/λ1 (λ1 >= δ > 0), detached (§3.2 step 8).
-- Frame continuity (§3.4 (e), item 3): eigenvector signs are arbitrary and the sorted order swaps
+- Planarity (Eq. 10, [ASSUMED] formula): γ = (λ2 − λ3)/λ1 (λ1 >= δ > 0), detached (docs/methods/ibgs.md §5.3).
+- Frame continuity (docs/methods/ibgs.md §4.2): eigenvector signs are arbitrary and the sorted order swaps
   when two eigenvalues cross, so the orientation would jump. `frame_alignment` picks, per Gaussian, the
   column permutation and signs of the new V that best agree with the previous frame (maximising
   Σ_k |v_new,π(k) · v_old,k|), then makes det = +1 by flipping the least aligned column. For surfels
@@ -27,7 +27,7 @@ import torch
 from gsbench.eigen3 import sym3_eigh
 from gsbench.phase_timer import PhaseTimer
 
-COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (§3.4 (f)); λ1 <= 2δ: coincident points
+COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.md §3.4); λ1 <= 2δ: coincident points
 
 PERMUTATIONS_3D = tuple(itertools.permutations(range(3)))
 PERMUTATIONS_2D = ((0, 1, 2), (1, 0, 2))  # surfels: v3 stays the normal
@@ -89,7 +89,7 @@ def local_geometry(means: torch.Tensor, index: torch.Tensor, radius: float, incl
 @torch.no_grad()
 def frame_alignment(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool = False
                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(column permutation (N,3) int64, signs (N,3)) that map ``vectors`` onto ``previous`` (§3.4 (e)).
+    """(column permutation (N,3) int64, signs (N,3)) that map ``vectors`` onto ``previous`` (docs/methods/ibgs.md §4.2).
 
     Apply as ``vectors[:, :, perm] * signs``: column k of the result is ± the new eigenvector that best
     matches previous column k; the signs make each dot product >= 0, then det is made +1 by flipping

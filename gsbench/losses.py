@@ -1,4 +1,4 @@
-"""The loss-term registry: named, weighted, scheduled terms (DESIGN.md "Loss terms").
+"""The loss-term registry: named, weighted, scheduled terms (docs/design.md §3.2).
 
 A term is ``fn(render, batch, state, **params) -> scalar tensor`` registered as a `TermSpec` with the
 render outputs it reads (``requires``) and its parameters with their defaults (``params``).
@@ -38,7 +38,7 @@ from gsbench.errors import ConfigError
 from gsbench.raster.types import OUTPUTS, RenderOutput
 from gsbench.ssim import ssim
 
-ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), §5
+ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), docs/methods/sugar.md §3.2, §5
 
 
 @dataclass
@@ -186,7 +186,7 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
 
 
 def l1_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = False) -> torch.Tensor:
-    """L1 = mean |rgb − image| over H×W×3 (3DGS §1.7, ``l1_loss``).
+    """L1 = mean |rgb − image| over H×W×3 (docs/methods/3dgs.md §4.1, ``l1_loss``).
 
     ``use_mask``: the mean over ``batch.mask`` pixels only (0 for an empty mask); off in 3DGS/2DGS.
     """
@@ -195,19 +195,19 @@ def l1_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = Fa
 
 
 def dssim_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = False) -> torch.Tensor:
-    """D-SSIM = 1 − SSIM(rgb, image), SSIM as `gsbench.ssim` (3DGS §1.7, λ_dssim = 0.2 in configs).
+    """D-SSIM = 1 − SSIM(rgb, image), SSIM as `gsbench.ssim` (docs/methods/3dgs.md §4.1, λ_dssim = 0.2 in configs).
 
     ``use_mask``: SSIM averaged over ``batch.mask`` pixels only (empty mask → 0).
     """
     return 1.0 - ssim(render.rgb, batch.image.to(render.rgb.dtype), batch.mask if use_mask else None)
 
 
-DISTORTION_EPS = 1e-7  # GOF: distortion / ((1 − T_final)² + 1e-7), GOF/RaDe doc §1.3
+DISTORTION_EPS = 1e-7  # GOF: distortion / ((1 − T_final)² + 1e-7), docs/methods/gof.md §4.3
 
 
 def edge_weights(image: torch.Tensor) -> torch.Tensor:
     """exp(−g) (H,W) of an (H,W,3) image, 0 on the 1-pixel border (GOF/RaDe v1 edge-aware distortion,
-    GOF/RaDe doc §2.6): g = the largest of the 4 neighbour differences mean_c |I(p) − I(q)|."""
+    docs/methods/radegs.md §4.3): g = the largest of the 4 neighbour differences mean_c |I(p) − I(q)|."""
     centre = image[1:-1, 1:-1]
     diffs = [(centre - image[1:-1, :-2]), (centre - image[1:-1, 2:]), (centre - image[:-2, 1:-1]),
              (centre - image[2:, 1:-1])]
@@ -217,10 +217,10 @@ def edge_weights(image: torch.Tensor) -> torch.Tensor:
 
 def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict, normalize: bool = False,
                           edge_aware: bool = False) -> torch.Tensor:
-    """L_d = mean over pixels of the distortion map Σ_i Σ_{j<i} w_i w_j (m_i − m_j)² (2DGS §2.4, §2.7).
+    """L_d = mean over pixels of the distortion map Σ_i Σ_{j<i} w_i w_j (m_i − m_j)² (docs/methods/2dgs.md §3.5, §4.2).
 
-    ``normalize`` (GOF §1.3, RaDe v1 §2.6): the map divided by stopgrad(alpha)² + 1e-7 (GOF divides by
-    (1 − T_final)² + 1e-7 with detached weights). ``edge_aware`` (RaDe v1 §2.6): multiplied per pixel
+    ``normalize`` (docs/methods/gof.md §4.3, docs/methods/radegs.md §4.3): the map divided by stopgrad(alpha)² + 1e-7 (GOF divides by
+    (1 − T_final)² + 1e-7 with detached weights). ``edge_aware`` (docs/methods/radegs.md §4.3): multiplied per pixel
     by `edge_weights` of the GT image. Both off in 2DGS.
     """
     distortion = render.distortion
@@ -245,13 +245,13 @@ def pixel_rays(camera: Camera, dtype=torch.float32) -> torch.Tensor:
 
 
 def depth_to_normal(depth: torch.Tensor, camera: Camera) -> torch.Tensor:
-    """Unit camera-space normals (H,W,3) from a camera-z depth map (2DGS ``depth_to_normal``, §2.4).
+    """Unit camera-space normals (H,W,3) from a camera-z depth map (2DGS ``depth_to_normal``, docs/methods/2dgs.md §4.3).
 
     X = depth · ray; dx = X[r+1,c] − X[r−1,c], dy = X[r,c+1] − X[r,c−1] (central differences);
     n = normalize(dx × dy), which faces the camera (y down); the 1-pixel border is 0. Camera space
     rather than world space: the consistency dot product is rotation invariant. Rays use the
     camera's pixel-centre convention (cx = W/2 is the centre), not 2DGS's half-pixel-shifted
-    integer pixels (§6 item 10).
+    integer pixels (docs/methods/2dgs.md §4.3, §8).
     """
     points = depth[..., None] * pixel_rays(camera, depth.dtype)
     dx = points[2:, 1:-1] - points[:-2, 1:-1]
@@ -268,7 +268,7 @@ def _check_depth_ratio(depth_ratio: float) -> float:
 
 
 def surface_depth(render: RenderOutput, depth_ratio: float) -> torch.Tensor:
-    """2DGS surf_depth = (1 − r)·expected + r·median (§2.4); only the needed maps are read."""
+    """2DGS surf_depth = (1 − r)·expected + r·median (docs/methods/2dgs.md §4.3); only the needed maps are read."""
     r = _check_depth_ratio(depth_ratio)
     if r == 1.0:
         return render.median_depth
@@ -297,7 +297,7 @@ def _depth_normal(render: RenderOutput, camera: Camera, depth_ratio: float, mix:
 
 def normal_consistency_term(render: RenderOutput, batch: Batch, state: dict, depth_ratio: float = 1.0,
                             normalize: bool = False, mix: str = "depth") -> torch.Tensor:
-    """L_n = mean over all H×W pixels of 1 − n_r · n_d (2DGS §2.7; GOF §1.6; RaDe-GS §2.6).
+    """L_n = mean over all H×W pixels of 1 − n_r · n_d (docs/methods/2dgs.md §4.3; docs/methods/gof.md §4.2; docs/methods/radegs.md §4.2).
 
     n_d from ``mix`` and r = ``depth_ratio``:
     - ``depth`` (2DGS): `depth_to_normal` of the surface depth (1 − r)·expected + r·median (2DGS
@@ -341,7 +341,7 @@ def flatten_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tenso
 
 def opacity_entropy_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
     """SuGaR entropy: mean over visible Gaussians of −o log(o + ε) − (1−o) log(1 − o + ε), ε = 1e-10
-    (SuGaR coarse stage, §3.2; "visible" = radii > 0 in this render); 0 if none is visible."""
+    (SuGaR coarse stage, docs/methods/sugar.md §3.2; "visible" = radii > 0 in this render); 0 if none is visible."""
     o = _gaussians(state, "opacity_entropy").opacities
     if render.visible is not None:
         o = o[render.visible]

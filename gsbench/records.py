@@ -1,6 +1,6 @@
 """Run records: one JSON per run, written atomically, with the environment that produced it.
 
-Schema (DESIGN.md §3 RunRecord, frameworks.md §3.4), version `SCHEMA_VERSION`:
+Schema (docs/design.md §8.2, docs/design.md §8.2), version `SCHEMA_VERSION`:
 identity (method, scene, dataset, seed, run_id, status — ok, failed, interrupted (Ctrl-C or SIGTERM,
 resumable), … — and error_tail), resolved config and effective loss
 terms, ``inputs`` (what was trained on: the resolution and the size on disk, the downscale factor, the

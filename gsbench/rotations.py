@@ -1,6 +1,6 @@
 """Quaternion helpers in torch, differentiable: Hamilton product and rotation matrix -> quaternion.
 
-Quaternions are (w, x, y, z) as in 3DGS (methods-3dgs-2dgs-sugar.md §1.1); ``quat_to_rotmat``
+Quaternions are (w, x, y, z) as in 3DGS (docs/methods/3dgs.md §2.1); ``quat_to_rotmat``
 (`gsbench.raster.reference`) is the inverse of `rotmat_to_quat` on unit quaternions with w >= 0.
 """
 

@@ -1,5 +1,5 @@
 """IBGS densification: the abs-gradient criterion plus sparsity-aware densification (SADC)
-(methods-gof-radegs-ibgs.md §3.1 item 8, §3.2 steps 9–10; the SADC form is [ASSUMED], switchable).
+(docs/methods/ibgs.md §6, docs/methods/ibgs.md §6; the SADC form is [ASSUMED], switchable).
 
 `SparsityAwareStrategy` is `gsbench.strategy.AbsGradStrategy` (GOF/RaDe clone/split/prune, the paper's
 "improved densification criterion, Eq. (2)" [ASSUMED]) with, at every refinement step:

@@ -1,4 +1,4 @@
-"""Differentiable SSIM as in 3DGS ``utils/loss_utils.py`` (methods-3dgs-2dgs-sugar.md §1.7).
+"""Differentiable SSIM as in 3DGS ``utils/loss_utils.py`` (docs/methods/3dgs.md §4.1).
 
 Layout: images are ``(H, W, C)`` float tensors (C = 3 for RGB), values in [0, 1]; the map has the
 same shape. Per channel, with a normalised 11x11 Gaussian window g (σ = 1.5) applied as a 'same'

@@ -1,4 +1,4 @@
-"""Densification strategies with external state (gsplat-style; DESIGN.md "Strategy").
+"""Densification strategies with external state (gsplat-style; docs/design.md §3.3).
 
 A strategy keeps no tensors itself: `Strategy.init_state` returns a plain dict of tensors the caller
 checkpoints, and the caller runs, per training step (``step`` = 1-based iteration, as 3DGS
@@ -8,12 +8,12 @@ checkpoints, and the caller runs, per training step (``step`` = 1-based iteratio
     loss.backward();           strategy.step_post_backward(gaussians, optimizer, state, step, out)
     optimizer.step()
 
-`DefaultStrategy` is 3DGS 2023 (methods-3dgs-2dgs-sugar.md §1.8); `AbsGradStrategy` is GOF's and
-RaDe-GS's (methods-gof-radegs-ibgs.md §1.5, with the 3D filter of §1.1); `NoStrategy` does nothing
+`DefaultStrategy` is 3DGS 2023 (docs/methods/3dgs.md §5.3); `AbsGradStrategy` is GOF's and
+RaDe-GS's (docs/methods/gof.md §5, with the 3D filter of docs/methods/gof.md §2); `NoStrategy` does nothing
 (SuGaR coarse/refinement). Densify and prune keep the Adam state in step with the rows of every
 parameter group (`append_params`, `keep_params`): new rows get zero moments, removed rows drop
 theirs. Replaced parameters have no ``.grad``, so the Adam step right after a densification skips
-them — faithful to 3DGS (§1.8 item 6).
+them — faithful to 3DGS (docs/methods/3dgs.md §5.3).
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value:
                   filter3d: torch.Tensor | None = None) -> None:
     """o ← min(o, value) stored as a logit, and zero that group's Adam moments (3DGS ``reset_opacity``).
 
-    With a 3D-filter variance ``filter3d`` (N,) the *filtered* opacity is reset (GOF §1.1): with
+    With a 3D-filter variance ``filter3d`` (N,) the *filtered* opacity is reset (docs/methods/gof.md §2.5): with
     c = `filter_coefficient`, o_eff = o·c ← min(o_eff, value), stored as o = o_eff / c (<= o).
     """
     o = gaussians.opacities.detach()
@@ -125,12 +125,12 @@ class Strategy:
 
 
 class NoStrategy(Strategy):
-    """No densification, pruning or opacity reset (SuGaR coarse and refinement stages, §3.2/§3.4)."""
+    """No densification, pruning or opacity reset (SuGaR coarse and refinement stages, docs/methods/sugar.md §3.1, §6)."""
 
 
 @dataclass(frozen=True)
 class DefaultStrategy(Strategy):
-    """3DGS 2023 clone/split/prune/opacity reset (methods-3dgs-2dgs-sugar.md §1.8, §2.8).
+    """3DGS 2023 clone/split/prune/opacity reset (docs/methods/3dgs.md §5.3; docs/methods/2dgs.md §5).
 
     While ``step < refine_stop``: accumulate, for visible Gaussians (radii > 0), ‖∂L/∂μ_ndc‖ and a
     count, and the max screen radius. When ``step > refine_start`` and ``step % refine_every == 0``:
@@ -281,7 +281,7 @@ class DefaultStrategy(Strategy):
 
 @dataclass(frozen=True)
 class AbsGradStrategy(DefaultStrategy):
-    """GOF / RaDe-GS densification (methods-gof-radegs-ibgs.md §1.5, §2.5, §2.6) with the 3D filter (§1.1).
+    """GOF / RaDe-GS densification (docs/methods/gof.md §5, docs/methods/radegs.md §2.2, docs/methods/radegs.md §2.2) with the 3D filter (docs/methods/gof.md §2.4).
 
     `DefaultStrategy` (window, interval, pruning, opacity-reset schedule, budget) with these changes:
 
@@ -357,7 +357,7 @@ class AbsGradStrategy(DefaultStrategy):
 def matched_threshold(values: torch.Tensor, ratio: float) -> float:
     """The (1 − ``ratio``) quantile of ``values`` with linear interpolation (``torch.quantile``'s rule,
     without its 16M-element limit), in float64: ``values >= it`` holds for round(ratio·N) of N distinct
-    values, and at least for the maximum (GOF §1.5)."""
+    values, and at least for the maximum (docs/methods/gof.md §5.2)."""
     if values.numel() == 0:
         return 0.0
     ordered = torch.sort(values.reshape(-1).to(torch.float64)).values

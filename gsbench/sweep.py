@@ -1,4 +1,4 @@
-"""Sweep files: a grid of runs over one pipeline (DESIGN.md §3 "Executor"), expanded and validated.
+"""Sweep files: a grid of runs over one pipeline (docs/design.md §10.1), expanded and validated.
 
 A sweep file (``configs/sweeps/*.yaml``)::
 

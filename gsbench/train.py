@@ -1,9 +1,9 @@
-"""The one training loop (DESIGN.md §3 "Method": the Trainer owns the loop, methods declare data).
+"""The one training loop (docs/design.md §4: the Trainer owns the loop, methods declare data).
 
-Per step ``t = 1 … train.iterations`` (3DGS ``train.py`` order, methods-3dgs-2dgs-sugar.md §1.8):
+Per step ``t = 1 … train.iterations`` (3DGS ``train.py`` order, docs/methods/3dgs.md §5.2):
 
 1. ``method.update_schedules(t, scale)`` — position lr decay and SH degree;
-2. next camera from a seeded shuffled stack, refilled when empty (one epoch = one pass, §0);
+2. next camera from a seeded shuffled stack, refilled when empty (one epoch = one pass, docs/methods/3dgs.md §1.4);
 3. active terms = `gsbench.losses.active_terms` of the scaled loss config with the method's term
    parameters; the render computes only their `required_outputs` (weight 0 removes a term's outputs);
 4. L = Σ weight·term; non-finite L is a `NumericalError` naming the terms and the step;
@@ -135,7 +135,7 @@ def scaled_strategy(strategy, iterations: int, scale_refine_interval: bool = Fal
 
 def split_views(n_views: int, holdout_every: int) -> tuple[list[int], list[int]]:
     """(training, held-out) view indices: every ``holdout_every``-th view (``i % k == 0``) is held out
-    when ``holdout_every > 0`` (3DGS ``--eval`` with k = 8, methods-3dgs-2dgs-sugar.md §0)."""
+    when ``holdout_every > 0`` (3DGS ``--eval`` with k = 8, docs/methods/3dgs.md §1.4)."""
     held = [i for i in range(n_views) if holdout_every > 0 and i % holdout_every == 0]
     return [i for i in range(n_views) if not (holdout_every > 0 and i % holdout_every == 0)], held
 
@@ -152,7 +152,7 @@ def set_threads(threads: int) -> int:
 
 
 def seed_everything(seed: int) -> None:
-    """One seed for python, numpy and torch (DESIGN.md §5)."""
+    """One seed for python, numpy and torch (docs/design.md §12.2)."""
     random.seed(seed)
     np.random.seed(seed)
     torch.manual_seed(seed)
@@ -178,7 +178,7 @@ def load_checkpoint(path: Path) -> dict:
 
 
 class CameraSampler:
-    """Views drawn without replacement from a shuffled stack, refilled each epoch (seeded, §0)."""
+    """Views drawn without replacement from a shuffled stack, refilled each epoch (seeded, docs/methods/3dgs.md §1.4)."""
 
     def __init__(self, indices, seed: int):
         self.indices = list(indices)

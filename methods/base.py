@@ -1,6 +1,6 @@
 """The method interface: a method declares data (config, kernel, outputs, terms), the Trainer runs the loop.
 
-`Method` implements everything the 3DGS family shares (methods-3dgs-2dgs-sugar.md §1, DESIGN.md §3
+`Method` implements everything the 3DGS family shares (docs/methods/3dgs.md, docs/design.md §3.1
 "Method"); a subclass sets ``Config`` (its paper defaults) and ``INFO`` and overrides what differs.
 
 - ``setup(scene, cfg)``: Gaussians from ``scene.points`` (SfM, all of them unless ``max_init_points``)
@@ -20,24 +20,24 @@
   - ``sphere``, and any scene without masks: ``random_init_points`` uniform in the scene sphere
     (`Gaussians.random_in_sphere`), the initialisation before the hull rule, bit for bit.
   Adam (``train.optimizer``, `gsbench.optim`) with eps 1e-15 and one group per parameter,
-  ``group["name"]`` = `Gaussians.params` key (§1.8): means ``position_lr_init·extent``, sh_dc
+  ``group["name"]`` = `Gaussians.params` key (docs/methods/3dgs.md §5.1): means ``position_lr_init·extent``, sh_dc
   ``feature_lr``, sh_rest ``feature_lr/20``, opacity ``opacity_lr``, log-scales ``scaling_lr``,
   quaternions ``rotation_lr``.
 - ``extent`` is 3DGS ``cameras_extent``: 1.1 × the largest distance of a training camera centre from
-  their mean (§0); it scales the position lr and the densification size tests.
+  their mean (docs/methods/3dgs.md §1.3); it scales the position lr and the densification size tests.
 - Schedules (`update_schedules`, called by the Trainer every step with the preset's schedule
   ``scale`` = iterations / 30000, `gsbench.train.scale_step`): position lr
-  ``exp((1−t) ln lr0 + t ln lr1)`` with t = min(step / (position_lr_max_steps·scale), 1) (§1.8, no
-  delay); SH degree ``min(raster.sh_degree, step // (sh_interval·scale))`` (§1.1: +1 every 1000 steps).
+  ``exp((1−t) ln lr0 + t ln lr1)`` with t = min(step / (position_lr_max_steps·scale), 1) (docs/methods/3dgs.md §5.1, no
+  delay); SH degree ``min(raster.sh_degree, step // (sh_interval·scale))`` (docs/methods/3dgs.md §2.4: +1 every 1000 steps).
 - ``render``: the method's kernel on `Gaussians.raster_input` with the method's `filter3d` variance
   (None here; GOF/RaDe-GS return the Mip-Splatting 3D filter) and `raster_settings`.
 - ``extract_mesh``: ``mesh.extractor`` must be in ``MESH_EXTRACTORS`` (``tsdf`` here). ``tsdf``: TSDF
-  fusion (`gsbench.mesh.tsdf.tsdf_fusion`, §1.10/§2.9) of the depth named by ``mesh.depth``
+  fusion (`gsbench.mesh.tsdf.tsdf_fusion`, docs/methods/3dgs.md §6; docs/methods/2dgs.md §6) of the depth named by ``mesh.depth``
   (``expected`` → the ``depth`` output, ``median`` → ``median_depth``) rendered from every training
   camera, alpha < 0.5 and (with ``data.use_masks``) pixels outside the mask dropped; TSDF lengths are
   relative to the scene radius; ``mesh.num_clusters`` largest components are kept. ``tets`` (GOF):
   `gsbench.mesh.tets.tetra_mesh` of the raster input over the training cameras at ``mesh.level`` with
-  ``mesh.bisection_steps`` (GOF/RaDe doc §1.7).
+  ``mesh.bisection_steps`` (docs/methods/gof.md §7).
 - ``state_dict`` / ``load_state_dict``: parameters, Adam state (moments and step counts) and the
   active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs).
 """
@@ -67,7 +67,7 @@ from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, raster
 from gsbench.strategy import DefaultStrategy, Strategy
 from gsbench.train import scale_step, split_views
 
-ADAM_EPS = 1e-15  # §1.8 / §5
+ADAM_EPS = 1e-15  # docs/methods/3dgs.md §5.1, §7
 DEPTH_OUTPUTS = {"expected": "depth", "median": "median_depth"}  # mesh.depth -> render output
 INIT_REGIONS = ("visual_hull", "sphere")  # method.random_init_region
 HULL_INIT_FLOOR = 1000  # fewest random points kept in a visual hull (min with random_init_points)
@@ -90,7 +90,7 @@ class MethodInfo:
 
 @dataclass
 class GSConfig:
-    """3DGS 2023 hyper-parameters (§1.1, §1.8); step-valued fields are for a 30 000-step run and are
+    """3DGS 2023 hyper-parameters (docs/methods/3dgs.md §2, §5); step-valued fields are for a 30 000-step run and are
     scaled by the Trainer to the configured iterations."""
 
     position_lr_init: float = 0.00016
@@ -118,13 +118,13 @@ class GSConfig:
 
 
 def cameras_extent(cameras) -> float:
-    """3DGS ``getNerfppNorm`` radius: 1.1 × max distance of a camera centre from the centres' mean (§0)."""
+    """3DGS ``getNerfppNorm`` radius: 1.1 × max distance of a camera centre from the centres' mean (docs/methods/3dgs.md §1.3)."""
     centres = np.stack([c.center for c in cameras])
     return float(1.1 * np.linalg.norm(centres - centres.mean(0), axis=1).max())
 
 
 def expon_lr(t: float, lr0: float, lr1: float) -> float:
-    """log-linear interpolation exp((1−t) ln lr0 + t ln lr1), t clamped to [0, 1] (§1.8)."""
+    """log-linear interpolation exp((1−t) ln lr0 + t ln lr1), t clamped to [0, 1] (docs/methods/3dgs.md §5.1)."""
     t = min(max(t, 0.0), 1.0)
     return math.exp((1 - t) * math.log(lr0) + t * math.log(lr1))
 
@@ -270,7 +270,7 @@ class Method:
         return np.concatenate(points)[:size], np.concatenate(colors)[:size]
 
     def learning_rates(self) -> dict[str, float]:
-        """Initial lr per parameter group (§1.8)."""
+        """Initial lr per parameter group (docs/methods/3dgs.md §5.1)."""
         p = self.params
         return {"means": p.position_lr_init * self.extent, "log_scales": p.scaling_lr, "quats": p.rotation_lr,
                 "opacity_logits": p.opacity_lr, "sh_dc": p.feature_lr, "sh_rest": p.feature_lr / p.feature_rest_divisor}
@@ -283,7 +283,7 @@ class Method:
 
     # ---- what the Trainer asks for ------------------------------------------------------------
     def strategy(self) -> Strategy:
-        """3DGS densification (§1.8) at the paper's 30k-step schedule; the Trainer scales it."""
+        """3DGS densification (docs/methods/3dgs.md §5.3) at the paper's 30k-step schedule; the Trainer scales it."""
         return DefaultStrategy(**self.densify_settings())
 
     def densify_settings(self) -> dict:

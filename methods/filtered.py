@@ -1,10 +1,10 @@
 """What GOF and RaDe-GS (and IBGS on top of RaDe-GS) share: the Mip-Splatting 3D filter and the
-abs-gradient densification (methods-gof-radegs-ibgs.md §1.1, §1.5, §2.5, §2.6).
+abs-gradient densification (docs/methods/gof.md §2, docs/methods/gof.md §5, docs/methods/radegs.md §2.1, docs/methods/radegs.md §2.2).
 
-- `FilteredConfig`: `GSConfig` (3DGS learning rates, init, schedule: §1.6 "other optimisation
-  defaults") with prune opacity 0.05 (§1.5) and ``use_filter3d`` (RaDe ``--disable_filter3D``, §2.5).
+- `FilteredConfig`: `GSConfig` (3DGS learning rates, init, schedule: docs/methods/gof.md §4.4
+  defaults") with prune opacity 0.05 (docs/methods/gof.md §5.3) and ``use_filter3d`` (RaDe ``--disable_filter3D``, docs/methods/radegs.md §2.1).
 - `FilteredMethod`: a `Filter3D` over the training cameras with the raster near plane, computed at
-  setup (§1.1 "at the start of training") and passed to every render; `AbsGradStrategy` shares it and
+  setup (docs/methods/gof.md §2.4) and passed to every render; `AbsGradStrategy` shares it and
   recomputes it after each densification and on GOF's post-densification schedule, and resets the
   filtered opacity. The variance is part of the checkpoint, so a resumed run renders identically.
 """
@@ -25,7 +25,7 @@ from gsbench.train import split_views
 
 @dataclass
 class FilteredConfig(GSConfig):
-    """`GSConfig` with GOF/RaDe-GS's prune opacity 0.05 (§1.5) and the 3D filter switch (§2.5)."""
+    """`GSConfig` with GOF/RaDe-GS's prune opacity 0.05 (docs/methods/gof.md §5.3) and the 3D filter switch (docs/methods/radegs.md §2.1)."""
 
     prune_opacity: float = 0.05
     use_filter3d: bool = True
@@ -47,7 +47,7 @@ class FilteredMethod(Method):
         return self.filter.variance
 
     def strategy(self) -> Strategy:
-        """GOF's densification (§1.5) at the paper's 30k-step schedule, sharing the 3D filter."""
+        """GOF's densification (docs/methods/gof.md §5) at the paper's 30k-step schedule, sharing the 3D filter."""
         return AbsGradStrategy(**self.densify_settings(), filter3d=self.filter)
 
     def state_dict(self) -> dict:

@@ -1,6 +1,6 @@
-"""2DGS (Huang et al., SIGGRAPH 2024), methods-3dgs-2dgs-sugar.md §2.
+"""2DGS (Huang et al., SIGGRAPH 2024), docs/methods/2dgs.md.
 
-Differences from 3DGS (§2.1, §2.7, §2.8, §2.9):
+Differences from 3DGS (docs/methods/2dgs.md §2, §4, §5, §6):
 
 - oriented planar surfels (two log-scales, ``surfel`` kernel: exact ray–splat intersection), random
   unit-quaternion init (`gsbench.gaussians.Gaussians.from_points` with ``dims=2``);
@@ -22,7 +22,7 @@ from gsbench.methods.base import GSConfig, Method, MethodInfo
 
 @dataclass
 class GS2DConfig(GSConfig):
-    """`GSConfig` with 2DGS's prune opacity 0.05 (§2.1) and ``depth_ratio`` (DTU/TnT scripts: 1)."""
+    """`GSConfig` with 2DGS's prune opacity 0.05 (docs/methods/2dgs.md §2) and ``depth_ratio`` (DTU/TnT scripts: 1)."""
 
     prune_opacity: float = 0.05
     depth_ratio: float = 1.0
@@ -37,7 +37,7 @@ class GS2D(Method):
                       outputs=("rgb", "alpha", "depth", "median_depth", "normal", "distortion"),
                       mesh_extractor="tsdf", mesh_depth="median",
                       loss_terms=("l1", "dssim", "depth_distortion", "normal_consistency"))
-    # methods-3dgs-2dgs-sugar.md §4: DTU per scan and mean as in the 2DGS README's "paper" row
+    # docs/methods/2dgs.md §9: DTU per scan and mean as in the 2DGS README's "paper" row
     # (confirmed); TnT 0.30 from the paper [UNVERIFIED]. The README's reproduction: DTU 0.74, TnT 0.32.
     REPORTED = {
         "dtu": {"metric": "chamfer", "mean": 0.80, "source": "2DGS paper, Table 1 (per scan as in the 2DGS README)",

@@ -1,9 +1,9 @@
-"""3DGS (Kerbl et al. 2023), methods-3dgs-2dgs-sugar.md §1.
+"""3DGS (Kerbl et al. 2023), docs/methods/3dgs.md.
 
-EWA splatting of 3D Gaussians (``ewa`` kernel), L = 0.8·L1 + 0.2·(1 − SSIM) (§1.7, weights in
-``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.strategy.DefaultStrategy`, §1.8)
-with prune opacity 0.005, identity rotations at init (§1.1). 3DGS has no mesh extractor of its own;
-the benchmark fuses the *expected* depth Σ wᵢzᵢ / Σ wᵢ with the 2DGS TSDF settings (§1.10, §6 item 22).
+EWA splatting of 3D Gaussians (``ewa`` kernel), L = 0.8·L1 + 0.2·(1 − SSIM) (docs/methods/3dgs.md §4.1, weights in
+``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.strategy.DefaultStrategy`, docs/methods/3dgs.md §5.3)
+with prune opacity 0.005, identity rotations at init (docs/methods/3dgs.md §2.2). 3DGS has no mesh extractor of its own;
+the benchmark fuses the *expected* depth Σ wᵢzᵢ / Σ wᵢ with the 2DGS TSDF settings (docs/methods/3dgs.md §6).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ class GS3D(Method):
     Config = GSConfig
     INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"), mesh_extractor="tsdf",
                       mesh_depth="expected", loss_terms=("l1", "dssim"))
-    # methods-3dgs-2dgs-sugar.md §4: the 2DGS paper's tables [UNVERIFIED].
+    # docs/methods/3dgs.md §9: the 2DGS paper's tables [UNVERIFIED].
     REPORTED = {
         "dtu": {"metric": "chamfer", "mean": 1.96, "source": "2DGS paper, DTU table (3DGS row)"},
         "tnt": {"metric": "f1_centroids", "mean": 0.09, "source": "2DGS paper, TnT table (3DGS row)"},

@@ -1,25 +1,25 @@
 """IBGS, "Injecting Inductive Bias to 3D Gaussian Splatting for Geometrically Accurate Radiance Fields"
-(ICLR 2025 submission), methods-gof-radegs-ibgs.md §3. What the authors confirmed is §3.1; the rest
-is the reconstruction of §3.2, every assumption a config field.
+(ICLR 2025 submission), docs/methods/ibgs.md. What the authors confirmed docs/methods/ibgs.md §1.2; the rest
+is the reconstruction of docs/methods/ibgs.md §10, every assumption a config field.
 
 `IBGSMixin` adds to a base method (its kernel, losses, filter and mesh):
 
-- orientation from the neighbourhood (§3.1 item 3, §3.2 steps 1–4): a `gsbench.neighbours.NeighbourIndex`
+- orientation from the neighbourhood (docs/methods/ibgs.md §4.1, docs/methods/ibgs.md §2, §3, §4): a `gsbench.neighbours.NeighbourIndex`
   of the ``knn_k`` nearest other means (default 5), refreshed every ``knn_refresh_every`` steps (100,
   like the refinement interval not scaled with the run length) and after every densify/prune; every
   step the local covariance of the neighbour means and its eigenvectors V (`gsbench.local_geometry`,
   gap-regularised float64 eigen-solver), kept continuous in sign and order against the previous
   step's frame (stored per Gaussian as the state tensor ``frame``, densified and checkpointed with
   the rows; ``match_frames``); the rendered rotation is V' = ΔR·V with the learnable residual ΔR
-  stored in the ``quats`` group (a unit quaternion initialised at identity, 3DGS rotation lr, §3.2
-  step 4), det V' = +1. V is detached inside the covariance (``attach_eigenvectors`` false, §3.4 (c));
+  stored in the ``quats`` group (a unit quaternion initialised at identity, 3DGS rotation lr, docs/methods/ibgs.md §4.1
+  step 4), det V' = +1. V is detached inside the covariance (``attach_eigenvectors`` false, docs/methods/ibgs.md §4.3);
   true lets the rendering gradient reach the neighbour means through V. Scales stay free; scale axis
   k follows frame column k (v3, the normal, is the third axis at init; surfels keep it there);
 - losses ``eigval`` and ``eigvec`` (`gsbench.methods.ibgs_terms`), weights in the method yaml;
 - densification: `gsbench.sparsity.SparsityAwareStrategy` — the abs-gradient criterion plus SADC
   (``sadc``, ``sadc_sparsity``, ``sadc_min_gap``).
 
-Registered variants, one per kernel (the authors' RaDe-GS, GOF and 2DGS variants, §3.1, §3.3): ``ibgs``
+Registered variants, one per kernel (the authors' RaDe-GS, GOF and 2DGS variants, docs/methods/ibgs.md §1.3, docs/methods/ibgs.md §11.2): ``ibgs``
 (RaDe-GS v1 on ``rade``: λ_d 100, L_n, TSDF of the median depth), ``ibgs-gof`` (GOF on ``raymax``) and
 ``ibgs-2dgs`` (2DGS on ``surfel``). Each variant's yaml ``extends`` its base method's, so it keeps the
 base's losses, schedule and per-dataset settings and adds only the IBGS terms.
@@ -50,7 +50,7 @@ from gsbench.strategy import Strategy
 
 @dataclass
 class IBGSFields:
-    """The IBGS hyper-parameters added to the base method's config (module docstring, §3.2)."""
+    """The IBGS hyper-parameters added to the base method's config (module docstring, docs/methods/ibgs.md §1.4)."""
 
     knn_k: int = 5
     knn_refresh_every: int = 100
@@ -126,7 +126,7 @@ class IBGSMixin:
 
     def training_phases(self) -> dict[str, float]:
         """Seconds in kNN refreshes (``knn``) and in the neighbourhood covariance + eigen-decomposition,
-        forward and backward (``local_geometry``) — the costs the authors measured (§3.3)."""
+        forward and backward (``local_geometry``) — the costs the authors measured (docs/methods/ibgs.md §11.3)."""
         return {"knn": self.neighbours.seconds, **self.timer.seconds}
 
     def state_dict(self) -> dict:
@@ -160,7 +160,7 @@ class IBGS(IBGSMixin, RaDeGS):
     name = "ibgs"
     Config = IBGSConfig
     INFO = dataclasses.replace(RaDeGS.INFO, loss_terms=RaDeGS.INFO.loss_terms + ("eigval", "eigvec"))
-    # methods-gof-radegs-ibgs.md §3.3 (OpenReview discussion): DTU 0.67 (with L_d + L_n; the K table
+    # docs/methods/ibgs.md §11.1 (OpenReview discussion): DTU 0.67 (with L_d + L_n; the K table
     # gives 0.674 at K = 5), TnT per scene, mean 0.40.
     REPORTED = {
         "dtu": {"metric": "chamfer", "mean": 0.67, "source": "IBGS OpenReview discussion, screen-space loss table"},
@@ -171,20 +171,20 @@ class IBGS(IBGSMixin, RaDeGS):
 
 
 class IBGSGOF(IBGSMixin, GOF):
-    """The IBGS additions on GOF (§3.3 "other rasterizers")."""
+    """The IBGS additions on GOF (docs/methods/ibgs.md §11.2)."""
 
     name = "ibgs-gof"
     Config = IBGSGOFConfig
     INFO = dataclasses.replace(GOF.INFO, loss_terms=GOF.INFO.loss_terms + ("eigval", "eigvec"))
-    # methods-gof-radegs-ibgs.md §3.3 "other rasterizers": GOF 0.72 -> 0.70 DTU CD.
+    # docs/methods/ibgs.md §11.1: GOF 0.72 -> 0.70 DTU CD.
     REPORTED = {"dtu": {"metric": "chamfer", "mean": 0.70, "source": "IBGS OpenReview discussion, other rasterizers"}}
 
 
 class IBGS2DGS(IBGSMixin, GS2D):
-    """The IBGS additions on 2DGS (§3.3 "other rasterizers")."""
+    """The IBGS additions on 2DGS (docs/methods/ibgs.md §11.2)."""
 
     name = "ibgs-2dgs"
     Config = IBGS2DGSConfig
     INFO = dataclasses.replace(GS2D.INFO, loss_terms=GS2D.INFO.loss_terms + ("eigval", "eigvec"))
-    # methods-gof-radegs-ibgs.md §3.3 "other rasterizers": 2DGS 0.75 -> 0.72 DTU CD.
+    # docs/methods/ibgs.md §11.1: 2DGS 0.75 -> 0.72 DTU CD.
     REPORTED = {"dtu": {"metric": "chamfer", "mean": 0.72, "source": "IBGS OpenReview discussion, other rasterizers"}}

@@ -1,16 +1,16 @@
-"""IBGS loss terms ``eigval`` and ``eigvec`` (methods-gof-radegs-ibgs.md §3.1 items 6–7, §3.2 steps 6–8),
+"""IBGS loss terms ``eigval`` and ``eigvec`` (docs/methods/ibgs.md §5.2, §5.3, docs/methods/ibgs.md §5),
 registered in `gsbench.losses` at import.
 
 Both read ``state["local_geometry"]`` (a `gsbench.local_geometry.LocalGeometry` of this step) and
 ``state["scene_radius"]``; Gaussians whose neighbourhood is a single point (``valid`` false) are skipped.
 
 - ``eigval`` (Eq. 8, confirmed): L = mean_i λ3,i / radius². λ3 has units of length², so dividing by
-  the scene radius² makes the weight scale-free (§3.2 step 5). Its gradient needs no eigenvector
+  the scene radius² makes the weight scale-free (docs/methods/ibgs.md §5.2). Its gradient needs no eigenvector
   derivative: ∂λ3/∂p = (2/n)(v3·(p − μ̄))v3 for every p in the neighbourhood, which pulls the points
   onto their best-fit plane; it is stable for repeated eigenvalues (a valid subgradient).
 - ``eigvec`` (Eq. 9, form [ASSUMED]): L = mean over i and j ∈ N(i) of γ_i (1 − |v3,i · v3,j|), with
   γ_i = (λ2 − λ3)/λ1 the detached planarity (Eq. 10), pairs with γ_i < ``min_planarity`` (1e-3)
-  masked (§3.4 (b)). |·| makes it invariant to eigenvector signs. The mean over j (the spec writes a
+  masked (docs/methods/ibgs.md §5.3). |·| makes it invariant to eigenvector signs. The mean over j (the spec writes a
   sum) keeps the weight comparable across K. v3's gradient comes through the gap-regularised
   eigen backward (`gsbench.eigen3`).
 """

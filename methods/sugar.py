@@ -1,6 +1,6 @@
-"""SuGaR coarse stage (Guédon & Lepetit, CVPR 2024), methods-3dgs-2dgs-sugar.md §3.
+"""SuGaR coarse stage (Guédon & Lepetit, CVPR 2024), docs/methods/sugar.md.
 
-Pipeline (§3.1, §3.2), one training run on the ``ewa`` (3DGS) kernel:
+Pipeline (docs/methods/sugar.md §1.1, §2, §3), one training run on the ``ewa`` (3DGS) kernel:
 
 1. **3DGS warm-up** until step ``warmup_until``: the 2023 3DGS loss 0.8·L1 + 0.2·(1 − SSIM) and its
    densification (`gsbench.strategy.DefaultStrategy`: clone/split/prune every 100 steps, opacity
@@ -17,7 +17,7 @@ Pipeline (§3.1, §3.2), one training run on the ``ewa`` (3DGS) kernel:
    0.2, ``regularizer``: ``density`` by default or ``sdf``) and the normal regulariser (``sugar_normal``,
    weight 0.2) run on ``num_samples`` samples per step (`gsbench.methods.sugar_terms`). SuGaR computes
    the kNN from step 7001 on; before the prune nothing reads it, so it starts at the prune here.
-4. **Mesh** (§3.3): ``mesh.extractor: poisson`` — points on the ``mesh.level`` (0.3) set of the
+4. **Mesh** (docs/methods/sugar.md §4): ``mesh.extractor: poisson`` — points on the ``mesh.level`` (0.3) set of the
    density field sampled along the rays of every training view, screened Poisson
    (`gsbench.mesh.levelset`). ``tsdf`` is also accepted.
 
@@ -37,10 +37,10 @@ own ratio (10⁶ samples for ~10⁶ Gaussians). Presets cannot set method fields
 the same default: SuGaR's 10⁶ over the paper preset's 12 000 regularised steps would add ≈ 50 hours per
 scene on one thread, hence the deviation; ``--set method.num_samples=1000000`` restores SuGaR's value.
 
-**Not implemented:** the refinement stage (§3.4: Gaussians bound to the coarse mesh, 2k/7k/15k steps)
-is not available; the coarse Poisson mesh is the evaluated mesh (§6 item 21), and SuGaR's optional
+**Not implemented:** the refinement stage (docs/methods/sugar.md §6: Gaussians bound to the coarse mesh, 2k/7k/15k steps)
+is not available; the coarse Poisson mesh is the evaluated mesh (docs/methods/sugar.md §6), and SuGaR's optional
 refinement, off by default in this benchmark's sense, cannot be switched on. Also not reproduced:
-SuGaR's default ``--eval`` split (§6 item 20; the benchmark trains every method on the same views,
+SuGaR's default ``--eval`` split (docs/methods/sugar.md §6; the benchmark trains every method on the same views,
 ``data.holdout_every``), the mesh decimation target being a vertex count (it is a triangle count here,
 as Open3D takes it), and the UV texture.
 """
@@ -65,7 +65,7 @@ from gsbench.train import scale_step, split_views
 @dataclass
 class SugarConfig(GSConfig):
     """SuGaR coarse-stage hyper-parameters (module docstring); step values for a 30 000-step run, i.e.
-    SuGaR's 15 000-step numbers doubled, including the 3DGS warm-up's own schedule (§3.1, §3.2)."""
+    SuGaR's 15 000-step numbers doubled, including the 3DGS warm-up's own schedule (docs/methods/sugar.md §1.2, §1.3)."""
 
     position_lr_max_steps: int = 60000
     sh_interval: int = 2000
@@ -84,7 +84,7 @@ class SugarConfig(GSConfig):
 class SuGaR(Method):
     """SuGaR's coarse stage: 3DGS warm-up, entropy, hard prune, density/normal regularisers, Poisson mesh.
 
-    ``INFO.mesh_extractor`` is the coarse mesh (§3.3); SuGaR's refinement stage (§3.4, optional in SuGaR)
+    ``INFO.mesh_extractor`` is the coarse mesh (docs/methods/sugar.md §4); SuGaR's refinement stage (docs/methods/sugar.md §6, optional in SuGaR)
     is not available, so the coarse mesh is always the one evaluated.
     """
 
@@ -94,7 +94,7 @@ class SuGaR(Method):
                       mesh_extractor="poisson", mesh_depth="median",
                       loss_terms=("l1", "dssim", "opacity_entropy", "sugar_sdf", "sugar_normal"))
     MESH_EXTRACTORS = ("poisson", "tsdf")
-    # methods-3dgs-2dgs-sugar.md §4: the 2DGS paper's tables [UNVERIFIED].
+    # docs/methods/sugar.md §8: the 2DGS paper's tables [UNVERIFIED].
     REPORTED = {
         "dtu": {"metric": "chamfer", "mean": 1.33, "source": "2DGS paper, DTU table (SuGaR row)"},
         "tnt": {"metric": "f1_centroids", "mean": 0.19, "source": "2DGS paper, TnT table (SuGaR row)"},
@@ -119,13 +119,14 @@ class SuGaR(Method):
         self.knn: torch.Tensor | None = None
 
     def strategy(self) -> Strategy:
-        """3DGS densification (§1.8) during the warm-up only (§3.2: none in the coarse stage)."""
+        """3DGS densification (docs/methods/3dgs.md §5.3) during the warm-up only (docs/methods/sugar.md §3.1: none in
+        the coarse stage)."""
         settings = self.densify_settings()
         settings["refine_stop"] = min(self.params.densify_until, self.params.warmup_until)
         return DefaultStrategy(**settings)
 
     def term_params(self) -> dict[str, dict]:
-        """The regulariser mode and sample count; the sdf mode's extent normaliser and znear (§3.2)."""
+        """The regulariser mode and sample count; the sdf mode's extent normaliser and znear (docs/methods/sugar.md §3.7)."""
         p = self.params
         params = {"sugar_sdf": {"mode": p.regularizer, "num_samples": p.num_samples, "extent": self.extent,
                                 "near": self.raster_settings().near},
@@ -141,7 +142,7 @@ class SuGaR(Method):
         coarse_from = scale_step(p.warmup_until, scale)
         prune_at = scale_step(p.hard_prune_at, scale)
         if step == coarse_from:
-            self.optimizer.state.clear()  # fresh Adam moments and step counts (§3.2)
+            self.optimizer.state.clear()  # fresh Adam moments and step counts (docs/methods/sugar.md §3.1)
         super().update_schedules(step, scale)
         if step >= coarse_from:
             self.sh_degree = self.cfg.raster.sh_degree
@@ -151,7 +152,7 @@ class SuGaR(Method):
             self.knn = sugar_terms.knn_indices(self.gaussians.means, p.knn_k)
 
     def hard_prune(self, step: int) -> None:
-        """Keep the Gaussians with opacity >= ``hard_prune_opacity``, in parameters and Adam state (§3.2)."""
+        """Keep the Gaussians with opacity >= ``hard_prune_opacity``, in parameters and Adam state (docs/methods/sugar.md §3.3)."""
         keep = self.gaussians.opacities.detach() >= self.params.hard_prune_opacity
         if not bool(keep.any()):
             raise NumericalError(f"step {step}: the SuGaR hard prune (opacity < {self.params.hard_prune_opacity}) "
@@ -161,7 +162,7 @@ class SuGaR(Method):
 
     @torch.no_grad()
     def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
-        """``poisson``: SuGaR's level-set points + screened Poisson (§3.3); other extractors as `Method`."""
+        """``poisson``: SuGaR's level-set points + screened Poisson (docs/methods/sugar.md §4); other extractors as `Method`."""
         if cfg.mesh.extractor != "poisson":
             return super().extract_mesh(scene, cfg, out_path)
         from gsbench.mesh.levelset import levelset_mesh  # noqa: PLC0415  (open3d only when used)

@@ -1,7 +1,7 @@
 """`gsbench.eigen3.sym3_eigh`: the C++ closed form vs the torch.linalg.eigh reference vs numpy.linalg.eigh,
-and the gap-regularised backward (methods-gof-radegs-ibgs.md §3.4 (a)).
+and the gap-regularised backward (docs/methods/ibgs.md §3.2, §3.3).
 
-Degenerate inputs are the ones IBGS meets (§3.4 item 1): coplanar, collinear and duplicated neighbour
+Degenerate inputs are the ones IBGS meets (docs/methods/ibgs.md §7): coplanar, collinear and duplicated neighbour
 points, K = 2 (rank 1), isotropic covariances; scenes in mm or km give the 1e±9 and 1e±18 scales.
 """
 
@@ -288,7 +288,7 @@ def test_finite_gradients_on_degenerate_input(case, impl):
 @pytest.mark.parametrize("points", POINT_SETS)
 @pytest.mark.parametrize("impl", IMPLS)
 def test_smallest_eigenvalue_gradient_wrt_points(points, impl):
-    """Acceptance criterion: ∂λ3/∂p = (2/n)(v3·(p − μ̄)) v3 for C = (1/n) Σ (p − μ̄)(p − μ̄)ᵀ (§3.2 step 6)."""
+    """Acceptance criterion: ∂λ3/∂p = (2/n)(v3·(p − μ̄)) v3 for C = (1/n) Σ (p − μ̄)(p − μ̄)ᵀ (docs/methods/ibgs.md §5.2)."""
     P = POINT_SETS[points]().requires_grad_(True)
     lam, V = sym3_eigh(_covariance(P), impl=impl)
     (grad,) = torch.autograd.grad(lam[..., 2].sum(), P)

@@ -1,4 +1,4 @@
-"""2DGS mask culling on CPU: dilation, pixel convention, keep rules (evaluation.md §1.3)."""
+"""2DGS mask culling on CPU: dilation, pixel convention, keep rules (docs/evaluation.md §2.3)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""dtu_chamfer on an analytic DTU-layout fixture: a 20 mm sphere sampled at 0.2 mm (evaluation.md §1)."""
+"""dtu_chamfer on an analytic DTU-layout fixture: a 20 mm sphere sampled at 0.2 mm (docs/evaluation.md §2)."""
 
 import numpy as np
 import pytest
@@ -142,7 +142,7 @@ def test_missing_gt_file_is_named(tmp_path, label):
 
 
 def _sequential_reference(mesh_mm, root, seed=0):
-    """evaluation.md §1.2 written as plain loops (per triangle, per point), with a seeded shuffle."""
+    """docs/evaluation.md §2.2 written as plain loops (per triangle, per point), with a seeded shuffle."""
     import scipy.io
     from scipy.spatial import cKDTree
 

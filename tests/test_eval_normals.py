@@ -1,4 +1,4 @@
-"""normal_similarity (mesh NC, evaluation.md §3 B) and rendered_normal_similarity (§3 A)."""
+"""normal_similarity (mesh NC, docs/evaluation.md §4.1) and rendered_normal_similarity (docs/evaluation.md §4.3)."""
 
 import numpy as np
 import pytest

@@ -9,7 +9,7 @@ from gsbench.evaluators import pointsets
 
 
 def _grid_samples_loop(vertices, faces, density):
-    """Per-triangle loop written straight from evaluation.md §1.2 step 1."""
+    """Per-triangle loop written straight from docs/evaluation.md §2.2."""
     out = []
     for f in faces:
         a, b, c = vertices[f]

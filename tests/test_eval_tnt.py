@@ -1,4 +1,4 @@
-"""tnt_f1 on an analytic TnT-layout fixture: a sphere, a known trans.txt, a ring trajectory (evaluation.md §2)."""
+"""tnt_f1 on an analytic TnT-layout fixture: a sphere, a known trans.txt, a ring trajectory (docs/evaluation.md §3)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The Mip-Splatting 3D filter (gsbench.filter3d, GOF/RaDe doc §1.1) and the filtered opacity reset."""
+"""The Mip-Splatting 3D filter (gsbench.filter3d, docs/methods/gof.md §2) and the filtered opacity reset."""
 
 from __future__ import annotations
 

@@ -111,7 +111,7 @@ def test_coplanar_neighbourhoods_have_the_plane_normal_and_tiny_lambda3():
 
 
 def test_eigval_gradient_is_the_analytic_plane_pull():
-    """∂λ3/∂p = (2/n)(v3·(p − μ̄))v3 for each of the n points of one neighbourhood (§3.2 step 6)."""
+    """∂λ3/∂p = (2/n)(v3·(p − μ̄))v3 for each of the n points of one neighbourhood (docs/methods/ibgs.md §5.2)."""
     means = plane_points(n=7, noise=0.05).requires_grad_(True)
     index = torch.tensor([[j for j in range(7) if j != i] for i in range(7)])  # each with the other six
     geometry = local_geometry(means, index, radius=1.0)

@@ -1,4 +1,4 @@
-"""GOF tetrahedra mesh extraction (gsbench.mesh.tets, methods-gof-radegs-ibgs.md §1.7)."""
+"""GOF tetrahedra mesh extraction (gsbench.mesh.tets, docs/methods/gof.md §7)."""
 
 from __future__ import annotations
 

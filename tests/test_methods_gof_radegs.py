@@ -24,7 +24,7 @@ from tests.method_setup import quick_run, setup_method, straight_and_resumed
 from tests.raster_scenes import make_camera
 
 METHOD_NAMES = ("gof", "radegs")
-TERM_PARAMS = {  # GOF §1.3/§1.6: median-depth L_n, alpha²-normalised L_d; RaDe-GS §2.6: 0.4/0.6 normal mix, v1 L_d
+TERM_PARAMS = {  # docs/methods/gof.md §4.3docs/methods/gof.md §4.2: median-depth L_n, alpha²-normalised L_d; docs/methods/radegs.md §4.2, §4.3: 0.4/0.6 normal mix, v1 L_d
     "gof": {"normal_consistency": {"depth_ratio": 1.0, "normalize": True, "mix": "depth"},
             "depth_distortion": {"normalize": True}},
     "radegs": {"normal_consistency": {"depth_ratio": 0.6, "normalize": True, "mix": "normal"},

@@ -129,7 +129,7 @@ def test_absgrad_matches_reference(kernel):
 
 
 def test_raymax_densification_proxy_is_gofs_conic_formula():
-    """GOF §1.4: dL/dmeans2d = Σ_p dL/dα_p · ∂(o·G_ewa)/∂m with the EWA conic; absgrad = Σ_p |g_x|W/2 + |g_y|H/2.
+    """docs/methods/gof.md §3.6: dL/dmeans2d = Σ_p dL/dα_p · ∂(o·G_ewa)/∂m with the EWA conic; absgrad = Σ_p |g_x|W/2 + |g_y|H/2.
 
     One Gaussian and loss = Σ alpha make dL/dα_p = 1 wherever the pixel blends it (α_p >= 1/255), so
     the proxy is Σ_p o·G_ewa(p)·C(p − m) over those pixels, computed here from the reference projection.

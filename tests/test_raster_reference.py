@@ -126,7 +126,7 @@ def test_gradcheck_filters_sh3_all_outputs(kernel):
 
 
 def test_detached_distortion_weights():
-    """With detached weights the ewa distortion (z = μz) has no gradient w.r.t. opacity (GOF §1.4)."""
+    """With detached weights the ewa distortion (z = μz) has no gradient w.r.t. opacity (docs/methods/gof.md §3.5)."""
     g = with_grad(grad_scene("ewa"))
     for detach, expect_zero in ((True, True), (False, False)):
         settings = RasterSettings(detach_distortion_weights=detach, far_plane=20.0)
@@ -221,7 +221,7 @@ def test_pixel_centre_convention(kernel):
 
 
 def test_surfel_means2d_is_box_centre():
-    """2DGS §2.3: means2d is the centre of the 3σ screen box (not the projected centre when tilted)."""
+    """docs/methods/2dgs.md §3.3: means2d is the centre of the 3σ screen box (not the projected centre when tilted)."""
     cam = make_camera(32, 32)
     ang = math.radians(60.0)
     g = single_gaussian((0.3, 0.2, 2.0), kernel="surfel", quat=(math.cos(ang / 2), math.sin(ang / 2), 0.0, 0.0), scales=(0.3, 0.3))
@@ -247,7 +247,7 @@ def test_rade_plane_closed_form_agrees():
 
 
 def test_rade_depth_matches_gof_tstar_to_first_order():
-    """RaDe z = t/‖r‖ and GOF t* agree at the centre and differ by O(δ²) off it (RaDe §2.2)."""
+    """RaDe z = t/‖r‖ and GOF t* agree at the centre and differ by O(δ²) off it (docs/methods/radegs.md §3.3)."""
     cam = make_camera(32, 32)
     settings = RasterSettings()
     g = random_gaussians(4, "rade", 2, D, camera=cam, scale_range=(0.1, 0.4))
@@ -267,7 +267,7 @@ def test_rade_depth_matches_gof_tstar_to_first_order():
 
 
 def test_sh_basis_orthonormal():
-    """Real SH of degree ≤ 3 with the 3DGS constants are orthonormal on the sphere (3DGS §1.5)."""
+    """Real SH of degree ≤ 3 with the 3DGS constants are orthonormal on the sphere (docs/methods/3dgs.md §2.4)."""
     n = 20000
     k = torch.arange(n, dtype=D) + 0.5
     zc = 1 - 2 * k / n

@@ -1,4 +1,4 @@
-"""GOF / RaDe-GS abs-gradient densification (gsbench.strategy.AbsGradStrategy, GOF/RaDe doc §1.5)."""
+"""GOF / RaDe-GS abs-gradient densification (gsbench.strategy.AbsGradStrategy, docs/methods/gof.md §5)."""
 
 from __future__ import annotations
 

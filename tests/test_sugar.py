@@ -1,4 +1,4 @@
-"""SuGaR (methods-3dgs-2dgs-sugar.md §3): level-set sampling on analytic Gaussian fields, the Poisson
+"""SuGaR (docs/methods/sugar.md): level-set sampling on analytic Gaussian fields, the Poisson
 extractor, the density/sdf/normal regularisers, the schedule and hard prune, and a quick end-to-end run."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Camera and Scene containers shared by loaders, rasterizer, methods and evaluators.
 
-Conventions (DESIGN.md §3):
+Conventions (docs/design.md §2.1):
 - OpenCV camera: x right, y down, z forward. ``R`` and ``t`` map world to camera: ``x_c = R x_w + t``.
 - ``K`` is the 3x3 pinhole matrix in pixels. Pixel (i, j) (column i, row j) has its centre at
   ``(i + 0.5, j + 0.5)`` in the coordinates K maps to, so a principal point ``cx = W/2`` is the

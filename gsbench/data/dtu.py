@@ -1,12 +1,12 @@
 """DTU scenes: the IDR/NeuS layout (``cameras.npz``) and the 2DGS DTU+COLMAP variant.
 
-IDR layout (evaluation.md §4.1)::
+IDR layout (docs/design.md §2.2)::
 
     scan{id}/image/*.png            RGB, sorted by name = camera index i
     scan{id}/mask/*.png             object = 255, sorted by name
     scan{id}/cameras.npz            world_mat_i (4x4, rows 0-2 = P = K[R|t] in DTU mm world), scale_mat_i
 
-2DGS variant (§4.2): ``images/``, ``mask/``, ``sparse/0`` (COLMAP, cameras already in the normalised
+2DGS variant (docs/design.md §2.3): ``images/``, ``mask/``, ``sparse/0`` (COLMAP, cameras already in the normalised
 frame) and optionally ``cameras.npz`` for the way back to millimetres.
 
 Cameras: ``P = (world_mat @ scale_mat)[:3]`` is decomposed into K, R, t as in IDR's

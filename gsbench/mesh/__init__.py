@@ -1,4 +1,4 @@
-"""Mesh extractors (DESIGN.md "Mesh extractors"): `tsdf` (open3d fusion of rendered depth), `tets`,
+"""Mesh extractors (docs/design.md §6): `tsdf` (open3d fusion of rendered depth), `tets`,
 `poisson`; shared clean-up in `gsbench.mesh.cleanup`.
 
 An empty or degenerate mesh is a `MeshError`, never a silent file; its message names the parameters

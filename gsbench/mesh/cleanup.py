@@ -1,4 +1,4 @@
-"""Mesh clean-up shared by the extractors (2DGS ``post_process_mesh``, methods-3dgs-2dgs-sugar.md §2.9).
+"""Mesh clean-up shared by the extractors (2DGS ``post_process_mesh``, docs/methods/2dgs.md §6.3).
 
 - `keep_largest_clusters`: keep the triangles of the ``n`` largest connected components; the size
   cut-off is max(size of the n-th largest, ``min_triangles`` = 50), as 2DGS. ``n <= 0`` keeps all.

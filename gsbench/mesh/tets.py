@@ -1,17 +1,17 @@
-"""GOF tetrahedra mesh extraction (methods-gof-radegs-ibgs.md §1.7; Yu, Sattler, Geiger, GOF 2024).
+"""GOF tetrahedra mesh extraction (docs/methods/gof.md §7; Yu, Sattler, Geiger, GOF 2024).
 
 Pipeline of `tetra_mesh`:
 
 1. `tetra_points`: per Gaussian its centre and the 8 corners of the box ``±3·s_eff`` along its principal
    axes, ``x = μ + R(q)·(3·s_eff ⊙ c)``, ``c ∈ {−1, 1}³`` (GOF ``get_tetra_points``: a unit cube scaled
    by 2, then by ``3·s_eff``, then rotated), with the Mip-Splatting filtered scale
-   ``s_eff = sqrt(s² + σ_f²)`` (§1.1; ``RasterGaussians.filter3d`` is the variance σ_f²).
+   ``s_eff = sqrt(s² + σ_f²)`` (docs/methods/gof.md §2.3; ``RasterGaussians.filter3d`` is the variance σ_f²).
 2. `frustum_mask`: keep a point if at least one camera sees it: camera z in ``(near, far)`` and its
    projection inside the image, ``u ∈ [0, W)``, ``v ∈ [0, H)``. ``near``/``far`` are
    ``settings.near``/``settings.far`` (GOF: 0.02 and 1e6 absolute); ``near`` is the one
    `gsbench.raster.integrate` uses, so every kept point is seen by the opacity field.
 3. Budget: when more than ``max_points`` points remain, the Gaussians with the highest filtered
-   opacity ``o_eff`` (§1.1) are kept, the rest dropped (logged warning).
+   opacity ``o_eff`` (docs/methods/gof.md §2.3) are kept, the rest dropped (logged warning).
 4. Opacity field ``O(x) = min_v (1 − Π_k (1 − α_k))`` (`gsbench.raster.opacity_field.OpacityField`,
    kernel ``raymax``; every view projected and binned once for all queries). The marched value is
    GOF's "SDF" ``level − O(x)`` (positive = free space), zero level; marching and bisection only use
@@ -72,7 +72,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-BOX_SIGMAS = 3.0  # half-size of the box in units of s_eff (§1.7: ±3·s_eff)
+BOX_SIGMAS = 3.0  # half-size of the box in units of s_eff (docs/methods/gof.md §7.2)
 MAX_POINTS = 2_000_000  # tet points (9 per Gaussian) kept at most; ≈ 5.5 GB for the Delaunay
 CHUNK = 1 << 18  # points per `OpacityField.below` call (32 B per point)
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
@@ -80,7 +80,7 @@ BOX_CORNERS = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for 
 
 
 def filtered_scales(g: RasterGaussians) -> torch.Tensor:
-    """(N,3) ``s_eff = sqrt(s² + σ_f²)`` (§1.1 ``get_scaling_with_3D_filter``); ``s`` without a filter."""
+    """(N,3) ``s_eff = sqrt(s² + σ_f²)`` (docs/methods/gof.md §2.3); ``s`` without a filter."""
     s = g.scales[:, :3].detach()
     if g.filter3d is None:
         return s
@@ -88,7 +88,7 @@ def filtered_scales(g: RasterGaussians) -> torch.Tensor:
 
 
 def filtered_opacities(g: RasterGaussians) -> torch.Tensor:
-    """(N,) ``o_eff = o · sqrt(Π s² / Π (s² + σ_f²))`` (§1.1 ``get_opacity_with_3D_filter``)."""
+    """(N,) ``o_eff = o · sqrt(Π s² / Π (s² + σ_f²))`` (docs/methods/gof.md §2.3)."""
     o = g.opacities.detach().reshape(-1)
     if g.filter3d is None:
         return o
@@ -98,7 +98,7 @@ def filtered_opacities(g: RasterGaussians) -> torch.Tensor:
 
 def tetra_points(g: RasterGaussians) -> torch.Tensor:
     """(N, 9, 3) tet points per Gaussian: index 0 the centre μ, 1..8 the box corners
-    ``μ + R(q)·(3·s_eff ⊙ c)``, ``c ∈ {−1, 1}³`` in `BOX_CORNERS` order (§1.7 ``get_tetra_points``)."""
+    ``μ + R(q)·(3·s_eff ⊙ c)``, ``c ∈ {−1, 1}³`` in `BOX_CORNERS` order (docs/methods/gof.md §7.2)."""
     means = g.means.detach()
     rot = quat_to_rotmat(F.normalize(g.quats.detach(), dim=-1))  # (N,3,3), columns = principal axes
     corners = torch.as_tensor(BOX_CORNERS, dtype=means.dtype)  # (8,3)
@@ -109,7 +109,7 @@ def tetra_points(g: RasterGaussians) -> torch.Tensor:
 
 def frustum_mask(points: np.ndarray, cameras: Sequence[Camera], near: float, far: float) -> np.ndarray:
     """(P,) bool: seen by at least one camera, i.e. ``near < z < far`` and ``u ∈ [0, W)``, ``v ∈ [0, H)``
-    with ``(u, v) = (fx·x/z + cx, fy·y/z + cy)`` in camera space (§1.7 frustum mask)."""
+    with ``(u, v) = (fx·x/z + cx, fy·y/z + cy)`` in camera space (docs/methods/gof.md §7.2)."""
     pts = np.asarray(points, dtype=np.float64)
     seen = np.zeros(len(pts), dtype=bool)
     for cam in cameras:
@@ -231,7 +231,7 @@ def marching_tetrahedra(
     as above when ``value > level``; a tet with both kinds is active and gives 1 or 2 triangles whose
     vertices lie on its crossing edges, one vertex per edge shared by all tets around it. Vertex on the
     crossing edge (a above, b below): with ``field_fn`` (maps (E,3) points to (E,) values) the midpoint of
-    the interval left after ``bisection_steps`` bisections (GOF §1.7, 8 steps); without it, the linear
+    the interval left after ``bisection_steps`` bisections (docs/methods/gof.md §7.4, 8 steps); without it, the linear
     interpolation ``a + (level − f_a)/(f_b − f_a)·(b − a)`` (classic marching tetrahedra). Face normals
     point to the above side (for an SDF: outwards).
     """
@@ -263,7 +263,7 @@ def tetra_mesh(
     max_points: int = MAX_POINTS,
     chunk: int = CHUNK,
 ):
-    """GOF's tetrahedra mesh (module docstring, §1.7) of the opacity level set ``O(x) = level`` as a
+    """GOF's tetrahedra mesh (module docstring, docs/methods/gof.md §7) of the opacity level set ``O(x) = level`` as a
     ``trimesh.Trimesh`` (normals point to free space). Raises `MeshError` naming the parameters when
     there is nothing to triangulate or the mesh is empty or non-finite."""
     import trimesh  # noqa: PLC0415

@@ -1,4 +1,4 @@
-"""TSDF fusion of rendered depth maps with open3d (2DGS bounded TSDF, methods-3dgs-2dgs-sugar.md §2.9).
+"""TSDF fusion of rendered depth maps with open3d (2DGS bounded TSDF, docs/methods/2dgs.md §6).
 
 For each view: depth (camera z) is set to 0 — i.e. not integrated — where it is not finite, where
 ``alpha < alpha_threshold`` and outside the mask (2DGS: mask < 0.5). Views are integrated into a
@@ -13,7 +13,7 @@ images are now scaled by ``depth_scale`` in ``CreateFromDepthImage``), so metric
 integrates nothing — a plane at z = 2 gives an empty mesh. ``VoxelBlockGrid`` is the same sparse
 TSDF with an explicit ``depth_scale`` (1 here).
 
-Units (DESIGN.md §5, `gsbench.config.MeshConfig`): ``voxel_size``, ``sdf_trunc`` and ``depth_trunc``
+Units (docs/design.md §12.1, `gsbench.config.MeshConfig`): ``voxel_size``, ``sdf_trunc`` and ``depth_trunc``
 are multiplied by ``scene_radius`` unless ``absolute`` is true, so a scene in millimetres or
 kilometres gives the same mesh up to scale. The MeshConfig defaults (0.004, 0.016, 3.0) are the
 2DGS DTU/TnT-object values, which 2DGS applies in its normalised (radius ≈ 1) frame.

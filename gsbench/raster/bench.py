@@ -1,4 +1,4 @@
-"""Rasterizer benchmark: the standard workloads of docs/performance.md for each kernel.
+"""Rasterizer benchmark: the standard workloads of docs/rasterizer.md §12.1 for each kernel.
 
 ``run_raster_benchmark(kernels, workloads, repeats=5, threads=None) -> dict`` (JSON-able) and
 ``format_table(result) -> str``. Per kernel × workload: median fwd and fwd+bwd ms over ``repeats``
@@ -24,7 +24,7 @@ from gsbench.data.camera import Camera
 from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
-FLOOR_FWD = 1.45e9  # pairs/s, 2 threads (performance.md)
+FLOOR_FWD = 1.45e9  # pairs/s, 2 threads (docs/rasterizer.md §12.1)
 FLOOR_BWD = 0.75e9
 
 STANDARD_WORKLOADS = {
@@ -36,7 +36,7 @@ STANDARD_WORKLOADS = {
 
 
 def standard_scene(n: int, width: int, height: int, kernel: str = "ewa", opacity: float | None = None, seed: int = 0):
-    """The performance.md workload: N random anisotropic Gaussians in front of an identity camera."""
+    """The docs/rasterizer.md §12.1 workload: N random anisotropic Gaussians in front of an identity camera."""
     gen = torch.Generator().manual_seed(seed)
     means = torch.rand(n, 3, generator=gen)
     means[:, :2] -= 0.5

@@ -1,6 +1,6 @@
 """GOF opacity field at 3D points, `OpacityField` (behind `gsbench.raster.integrate`): C++, all views in one call.
 
-Same rule as `gsbench.raster.reference.integrate_reference` (GOF doc §1.7): per view, a point in front
+Same rule as `gsbench.raster.reference.integrate_reference` (docs/methods/gof.md §7.1): per view, a point in front
 of the near plane that projects inside the image sees the Gaussians binned to its pixel's tile (3σ
 tile rectangle), each evaluated on the point's own ray at ``t = min(t*, z_point)``; the view's opacity
 is ``O_v = 1 − Π(1 − α)``; the field is ``O(x) = min_v O_v(x)`` over the views that see ``x`` (1
@@ -13,7 +13,7 @@ kernel (csrc/integrate.cpp) only stops work whose outcome is already decided (a 
 ``1 − T`` reaches the running minimum, which it can then no longer lower; `below` stops at the first
 view with ``O_v < level``), and it skips a Gaussian before the exp only when ``α < 1/255`` is certain.
 GOF's point pass has no transmittance cut either (``forward.cu::integrateCUDA``: its
-``test_T < 0.0001`` stop is commented out; doc §1.7 "no early termination in this pass"), so there is
+``test_T < 0.0001`` stop is commented out; docs/methods/gof.md §7.1 "no early termination in this pass"), so there is
 no approximation to state. (GOF visits only the Gaussians that contributed to the pixel's 5 sub-rays;
 gsbench's rule, like `integrate_reference`, uses the tile list.)
 
@@ -60,7 +60,7 @@ class GsIntArgs(ctypes.Structure):
 
 
 class OpacityField:
-    """GOF opacity field ``O(x) = min_v (1 − Π_k (1 − α_k))`` of ``gaussians`` over ``cameras`` (§1.7),
+    """GOF opacity field ``O(x) = min_v (1 − Π_k (1 − α_k))`` of ``gaussians`` over ``cameras`` (docs/methods/gof.md §7.1),
     with every view projected and binned once (module docstring: rule, exactness, memory)."""
 
     @torch.no_grad()

@@ -132,7 +132,7 @@ def _ewa_cov2d(M: torch.Tensor, mu: torch.Tensor, zs: torch.Tensor, camera: Came
 
 
 def _tile_rect(lo_x, hi_x, lo_y, hi_y, tile: int, gx: int, gy: int) -> torch.Tensor:
-    """Tiles [x0, x1) × [y0, y1): floor(lo/T) .. floor((hi + T − 1)/T), clamped (3DGS §1.2 step 7, +0.5 pixels)."""
+    """Tiles [x0, x1) × [y0, y1): floor(lo/T) .. floor((hi + T − 1)/T), clamped (docs/methods/3dgs.md §3.2, +0.5 pixels)."""
     x0 = torch.clamp(torch.floor(lo_x / tile), 0, gx)
     x1 = torch.clamp(torch.floor((hi_x + tile - 1) / tile), 0, gx)
     y0 = torch.clamp(torch.floor(lo_y / tile), 0, gy)
@@ -436,7 +436,7 @@ def project_torch(
             -1,
         )
     else:
-        # plane n·x = d through μ; local coordinates u = (x − μ)·t_u/s_u, v likewise (2DGS §2.4, same math as
+        # plane n·x = d through μ; local coordinates u = (x − μ)·t_u/s_u, v likewise (docs/methods/2dgs.md §3.1, §3.2, same math as
         # the homogeneous form, better conditioned in float32)
         dpl = _dot(normal, mu)
         au = tu / s[:, 0:1]

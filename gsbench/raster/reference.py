@@ -4,29 +4,28 @@ Written for clarity, not speed: every (pixel, Gaussian) pair is evaluated as a (
 (P = H·W pixels in row-major order, N Gaussians), Gaussians are sorted once globally by centre
 camera z (stable, ties by index), and compositing uses cumulative products over the sorted axis.
 Gradients come from autograd; the dtype follows ``gaussians.means`` (float64 for gradchecks).
-The contract is the docstring of `gsbench.raster.types`; doc references below are to the project's
-method specs ``methods-3dgs-2dgs-sugar.md`` ("3DGS §", "2DGS §") and ``methods-gof-radegs-ibgs.md``
-("GOF §", "RaDe §").
+The contract is the docstring of `gsbench.raster.types` and docs/rasterizer.md; the method documents
+under docs/methods/ give each kernel's formulation.
 
 Decisions (where the contract leaves room; the fast path must match these):
 
  1. Pixel (i, j) is evaluated at p = (i + 0.5, j + 0.5); its tile is (i // T, j // T), T = tile_size.
- 2. Tile rectangle (3DGS §1.2 step 7) from the *pixel-unit* ``means2d`` m (the +0.5 convention, not
+ 2. Tile rectangle (docs/methods/3dgs.md §3.2) from the *pixel-unit* ``means2d`` m (the +0.5 convention, not
     DGR's integer-centre one) and the integer radius r:
     ``rect_min = clamp(floor((m − r)/T), 0, grid)``, ``rect_max = clamp(floor((m + r + T − 1)/T), 0, grid)``.
     A pair contributes only if the pixel's tile lies in [rect_min, rect_max). An empty rectangle culls
     the Gaussian (radius 0, not visible). ``visible = radius > 0``.
  3. Culling (radius 0, contributes nothing): centre z <= near (all kernels); EWA-conic determinant
     <= 0 after eps2d and antialias (ewa, rade, raymax); surfel: box denominator d == 0 or
-    μ·n == 0 (edge-on, 2DGS §2.2–2.3). Culled Gaussians have ``means2d = 0``.
+    μ·n == 0 (edge-on, docs/methods/2dgs.md §3.1, §3.3). Culled Gaussians have ``means2d = 0``.
  4. ``means2d``: ewa/rade/raymax the projected centre ``(fx μx/μz + cx, fy μy/μz + cy)`` (unclamped);
-    surfel the centre of the exact 3σ screen box (2DGS §2.3, cutoff 3), radius
+    surfel the centre of the exact 3σ screen box (docs/methods/2dgs.md §3.3, cutoff 3), radius
     ``ceil(max(extent_x, extent_y, 3/√k))`` (k = ``surfel_filter``, 2DGS: 3·0.707106) with ``extent = sqrt(max(1e-4, h))``.
     ``means2d.grad`` is the exact partial derivative of the loss w.r.t. this tensor (other
     per-Gaussian quantities held fixed): zero for raymax (α does not depend on it), only the
     low-pass-filter branch for surfel. ``extras["absgrad"]`` is Σ_pixels |g_x|+|g_y| of the same
-    exact per-pixel gradient, NDC units. The GOF conic proxy (GOF §1.4) and the 2DGS H-row hack
-    (2DGS §2.5) are densification heuristics of the fast path and are NOT reproduced here.
+    exact per-pixel gradient, NDC units. The GOF conic proxy (docs/methods/gof.md §3.6) and the 2DGS H-row hack
+    (docs/methods/2dgs.md §3.6) are densification heuristics of the fast path and are NOT reproduced here.
  5. Antialias (``antialias2d`` = k): factor ``sqrt(det Σ2D / det(Σ2D + kI))`` (Σ2D already includes
     eps2d) multiplies the opacity of ewa, rade and raymax (GOF's ``coef``); surfel ignores both
     ``antialias2d`` and ``eps2d``. The 3D filter is applied to the scales actually used (3 columns for
@@ -39,19 +38,19 @@ Decisions (where the contract leaves room; the fast path must match these):
  8. ``raymax``: A = Σ⁻¹ is built directly as ``R_cw R S⁻² Rᵀ R_cwᵀ`` (exact 1/s², no +1e-7);
     q is evaluated in the mathematically identical, cancellation-free form
     ``q = (μ − t* r)ᵀ A (μ − t* r)`` (= c − (b·r)²/(rᵀAr) ≥ 0). Skip if t* <= near.
- 9. ``rade`` plane (RaDe §2.1): ray-space Jacobian J_r built at the Jacobian-clamped centre
-    ``μ_c = (u_c μz, v_c μz, μz)`` (u_c, v_c clamped as in 3DGS §1.2 step 3), ``Q = J_r⁻ᵀ Σ⁻¹ J_r⁻¹``
+ 9. ``rade`` plane (docs/methods/radegs.md §3.2): ray-space Jacobian J_r built at the Jacobian-clamped centre
+    ``μ_c = (u_c μz, v_c μz, μz)`` (u_c, v_c clamped as in docs/methods/3dgs.md §3.1), ``Q = J_r⁻ᵀ Σ⁻¹ J_r⁻¹``
     (= (J_r Σ J_rᵀ)⁻¹ without inverting Σ), ``p = −(Q20, Q21)/Q22``. The plane base is the true
     distance ``l = ‖μ‖``. ``δ = (pixel − means2d) / (fx, fy)`` (pixel minus centre, normalised
     coordinates), ``t = l + p·δ``, depth ``z = t/‖r‖`` with the pixel ray r (r_z = 1).
-    This equals the closed form of RaDe §2.2 (`rade_plane_closed_form`, verified in the tests) and
+    This equals the closed form of docs/methods/radegs.md §3.3 (`rade_plane_closed_form`, verified in the tests) and
     agrees with GOF's exact t* to first order in δ. No per-pixel near test for rade.
 10. Distortion: ``m = far/(far−near)·(1 − near/z)`` for blended pairs with z > 0; a blended pair with
     z <= 0 (possible only for rade's linear depth far from its centre) gets m = 0. Not normalised
     by alpha (GOF's ``/((1−T)²+1e-7)`` is left to the method).
 11. Median depth: z of the last *blended* Gaussian whose transmittance before it is > 0.5.
 12. SH colour is evaluated in world space at ``normalize(μ_w − camera_centre)`` with degree
-    ``settings.sh_degree`` (3DGS §1.5), + 0.5, clamped at >= 0 (zero gradient where clamped).
+    ``settings.sh_degree`` (docs/methods/3dgs.md §2.4), + 0.5, clamped at >= 0 (zero gradient where clamped).
 13. Early stop: with T_i the transmittance before i (over blended Gaussians only), pair i is the
     stop pair if it is not skipped and ``T_i·(1−α_i) < 1e-4``; it and every later pair of that
     pixel are not blended.
@@ -76,11 +75,11 @@ from gsbench.raster.sh import C2 as SH_C2
 from gsbench.raster.sh import C3 as SH_C3
 from gsbench.raster.types import KERNELS, OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
 
-ALPHA_MAX = 0.99  # 3DGS §1.4
-ALPHA_MIN = 1.0 / 255.0  # 3DGS §1.4
-T_STOP = 1e-4  # 3DGS §1.4
-JACOBIAN_CLAMP = 1.3  # 3DGS §1.2 step 3
-SURFEL_CUTOFF = 3.0  # 2DGS §2.3
+ALPHA_MAX = 0.99  # docs/methods/3dgs.md §3.3
+ALPHA_MIN = 1.0 / 255.0  # docs/methods/3dgs.md §3.3
+T_STOP = 1e-4  # docs/methods/3dgs.md §3.3
+JACOBIAN_CLAMP = 1.3  # docs/methods/3dgs.md §3.1
+SURFEL_CUTOFF = 3.0  # docs/methods/2dgs.md §3.3
 
 
 # --------------------------------------------------------------------------------------------------
@@ -113,7 +112,7 @@ def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """(N,4) quaternions (w, x, y, z), normalised with F.normalize, to (N,3,3) rotations (3DGS §1.1)."""
+    """(N,4) quaternions (w, x, y, z), normalised with F.normalize, to (N,3,3) rotations (docs/methods/3dgs.md §2.1)."""
     w, x, y, z = F.normalize(quats, dim=-1).unbind(-1)
     return torch.stack(
         [
@@ -126,7 +125,7 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
 
 
 def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
-    """Σ_k basis_k(dir)·sh_k for k < (degree+1)² (3DGS §1.5 table; real SH, 3DGS sign convention).
+    """Σ_k basis_k(dir)·sh_k for k < (degree+1)² (docs/methods/3dgs.md §2.4; real SH, 3DGS sign convention).
 
     ``sh`` (N, K, 3), ``dirs`` (N, 3) unit vectors; returns (N, 3) without the +0.5 offset.
     """
@@ -163,7 +162,7 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
 
 
 def rade_plane_closed_form(mu: torch.Tensor, cov_inv: torch.Tensor) -> torch.Tensor:
-    """RaDe §2.2 closed form of the depth-plane slope p (normalised-coordinate units), (N,2).
+    """docs/methods/radegs.md §3.3 closed form of the depth-plane slope p (normalised-coordinate units), (N,2).
 
     d = (u, v, 1), m = Σ⁻¹d, w = m/(m·d), P = M w with rows (v²+1, −uv, −u), (−uv, u²+1, −v),
     p = −P·l/(u²+v²+1), l = ‖μ‖. Used by the tests to cross-check `project`'s −(Q20, Q21)/Q22.
@@ -202,7 +201,7 @@ class Projected:
     cov_inv: torch.Tensor | None = None  # (N,3,3) camera-space Σ⁻¹ (raymax, rade)
     rade_l: torch.Tensor | None = None  # (N,) ‖μ‖
     rade_p: torch.Tensor | None = None  # (N,2) −(Q20, Q21)/Q22
-    surfel_H: torch.Tensor | None = None  # (N,3,3) rows Tu, Tv, Tw (2DGS §2.2)
+    surfel_H: torch.Tensor | None = None  # (N,3,3) rows Tu, Tv, Tw (docs/methods/2dgs.md §3.1)
 
 
 def _camera_tensors(camera: Camera, dtype: torch.dtype):
@@ -216,7 +215,7 @@ def _half_trace(a: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
 
 
 def _ewa_conic(mu, z_safe, cov, K, camera: Camera, kernel: str, settings: RasterSettings):
-    """EWA 2D covariance, conic, antialias factor and radius (3DGS §1.2 steps 3–6, contract).
+    """EWA 2D covariance, conic, antialias factor and radius (docs/methods/3dgs.md §3.1, §3.2, contract).
 
     Σ2D = J Σ Jᵀ + eps2d·I with J at the clamped centre; factor = sqrt(det Σ2D / det(Σ2D + kI)),
     Σ2D += kI; conic = Σ2D⁻¹; radius = ceil(3·sqrt(mid + sqrt(max(0.1, mid² − det)))).
@@ -261,7 +260,7 @@ def _ewa_conic(mu, z_safe, cov, K, camera: Camera, kernel: str, settings: Raster
 
 
 def _surfel_setup(mu, rot_cam, scales, K, filter_k: float):
-    """2DGS homography rows, box centre, radius and normal (2DGS §2.2–2.3).
+    """2DGS homography rows, box centre, radius and normal (docs/methods/2dgs.md §3.1, §3.3).
 
     H = K·[s_u R_cw t_u | s_v R_cw t_v | μ] (rows Tu, Tv, Tw); box with f = (9, 9, −1)/d,
     d = 9(Tw.x² + Tw.y²) − Tw.z²: centre = (Σ f Tu Tw, Σ f Tv Tw), h = centre² − Σ f T², extent
@@ -298,7 +297,7 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
     n = len(gaussians)
     near = settings.near
 
-    # 3D filter (GOF §1.1) on the scales the kernel uses.
+    # 3D filter (docs/methods/gof.md §2.3) on the scales the kernel uses.
     ncols = 2 if kernel == "surfel" else 3
     scales = gaussians.scales[:, :ncols]
     opacity = gaussians.opacities
@@ -313,7 +312,7 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
     z_safe = torch.where(culled, torch.ones_like(mu[:, 2]), mu[:, 2])
     rot_cam = R_cw @ quat_to_rotmat(gaussians.quats)  # columns: Gaussian axes in camera space
 
-    # SH colour (3DGS §1.5), world-space direction from the camera centre.
+    # SH colour (docs/methods/3dgs.md §2.4), world-space direction from the camera centre.
     dirs = _safe_normalize(gaussians.means - cam_centre)
     color = torch.clamp(eval_sh(gaussians.sh, dirs, settings.sh_degree) + 0.5, min=0.0)
 
@@ -369,7 +368,7 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
 
 
 def _rade_plane(mu, z_safe, cov_inv, camera: Camera) -> dict:
-    """RaDe §2.1 depth plane: l = ‖μ‖, p = −(Q20, Q21)/Q22 with Q = J_r⁻ᵀ Σ⁻¹ J_r⁻¹ (Decision 9).
+    """docs/methods/radegs.md §3.2 depth plane: l = ‖μ‖, p = −(Q20, Q21)/Q22 with Q = J_r⁻ᵀ Σ⁻¹ J_r⁻¹ (Decision 9).
 
     J_r = [[1/z, 0, −u/z], [0, 1/z, −v/z], [u z/l_c, v z/l_c, z/l_c]] at the clamped centre
     (u, v clamped to ±1.3·(W/2)/fx, ±1.3·(H/2)/fy), l_c = z·sqrt(u² + v² + 1).
@@ -406,7 +405,7 @@ def pixel_rays(pix: torch.Tensor, camera: Camera) -> torch.Tensor:
 
 
 def _raymax_q(mu, cov_inv, rays, t):
-    """q(t) = (μ − t r)ᵀ A (μ − t r) for rays (P,3) and t (P,N) (GOF §1.2, Decision 8)."""
+    """q(t) = (μ − t r)ᵀ A (μ − t r) for rays (P,3) and t (P,N) (docs/methods/gof.md §3.2, Decision 8)."""
     e = mu[None, :, :] - t[..., None] * rays[:, None, :]
     return torch.einsum("pni,nij,pnj->pn", e, cov_inv, e)
 
@@ -453,7 +452,7 @@ def pair_terms(
         out["depth"] = tstar
         out["normal"] = -_safe_normalize(torch.einsum("nij,pj->pni", A, rays))
         out["tstar"] = tstar
-    else:  # surfel, 2DGS §2.4
+    else:  # surfel, docs/methods/2dgs.md §3.2, §3.4
         H = proj.surfel_H
         Tu, Tv, Tw = H[:, 0, :], H[:, 1, :], H[:, 2, :]
         k = pix[:, 0, None, None] * Tw[None] - Tu[None]  # (P,N,3)
@@ -498,7 +497,7 @@ def render(
     outputs=OUTPUTS,
     settings: RasterSettings = RasterSettings(),
 ) -> RenderOutput:
-    """Dense reference render (contract: `gsbench.raster.types`; compositing 3DGS §1.4, 2DGS §2.4).
+    """Dense reference render (contract: `gsbench.raster.types`; compositing docs/methods/3dgs.md §3.3; docs/methods/2dgs.md §3.5).
 
     For each pixel, with Gaussians in global centre-z order (stable):
     α_i = min(0.99, o_eff·G_i); skipped (α_i := 0) if α_i < 1/255, outside the tile rectangle,
@@ -614,7 +613,7 @@ def integrate_reference(
     settings: RasterSettings = RasterSettings(),
     chunk: int = 4096,
 ) -> torch.Tensor:
-    """GOF opacity field O(x) = min over views of O_v(x) at (P,3) world points (GOF §1.7). No gradient.
+    """GOF opacity field O(x) = min over views of O_v(x) at (P,3) world points (docs/methods/gof.md §7.1). No gradient.
 
     Per view: x is used only if its camera z > near and its projection (u, v) lies in
     [0, W) × [0, H); its pixel is (floor(u), floor(v)) and it sees every non-culled Gaussian whose

@@ -1,4 +1,4 @@
-"""Real spherical harmonics up to degree 3 (3DGS convention, doc methods-3dgs-2dgs-sugar.md §1.5).
+"""Real spherical harmonics up to degree 3 (3DGS convention, docs/methods/3dgs.md §2.4).
 
 ``sh_to_rgb(sh, dirs, degree)`` evaluates ``Σ_k basis_k(dir) · sh_k + 0.5`` clamped at >= 0 for unit
 directions ``dirs`` (N, 3) pointing from the camera to the Gaussian (world frame).

@@ -7,26 +7,26 @@ Camera (see `gsbench.data.camera`): world-to-camera ``x_c = R x_w + t``; pixel (
 row j) is evaluated at ``p = (i + 0.5, j + 0.5)``; its ray is ``r = ((p_x-cx)/fx, (p_y-cy)/fy, 1)``.
 
 Per-Gaussian quantities (camera space, μ = camera-space mean, Σ = R_cw R S² Rᵀ R_cwᵀ):
-- Scales and opacity after the optional Mip-Splatting 3D filter (variance ``filter3d`` σ_f², GOF §1.1):
+- Scales and opacity after the optional Mip-Splatting 3D filter (variance ``filter3d`` σ_f², docs/methods/gof.md §2.3):
   ``s_eff = sqrt(s² + σ_f²)``, ``o_eff = o · sqrt(Π s² / Π (s² + σ_f²))``.
 - Culled: ``μz <= near`` with ``near = settings.near_plane · settings.scene_radius``.
-- EWA 2D covariance (3DGS §1.2): ``Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I`` with the Jacobian clamped at
+- EWA 2D covariance (docs/methods/3dgs.md §3.1): ``Σ2D = J W Σ Wᵀ Jᵀ + eps2d·I`` with the Jacobian clamped at
   ``|x/z| <= 1.3·(W/2)/fx``, ``|y/z| <= 1.3·(H/2)/fy``. Mip 2D anti-aliasing (``antialias2d`` = k):
   opacity factor ``sqrt(det(Σ2D) / det(Σ2D + k I))`` and Σ2D += k I (k = 0 → factor 1).
   Conic = Σ2D⁻¹; radius = ceil(3·sqrt(λ_max)), λ_max = mid + sqrt(max(0.1, mid² − det)).
-  ``means2d`` = projected centre in pixels (surfel: the centre of its exact 3σ screen box, 2DGS §2.3).
-- SH colour (3DGS §1.5) at direction ``normalize(μ_w − camera_centre)``, + 0.5, clamped at >= 0.
+  ``means2d`` = projected centre in pixels (surfel: the centre of its exact 3σ screen box, docs/methods/2dgs.md §3.3).
+- SH colour (docs/methods/3dgs.md §2.4) at direction ``normalize(μ_w − camera_centre)``, + 0.5, clamped at >= 0.
 
 Per pixel, per Gaussian i (front to back, sorted per 16x16 tile by centre camera z, ties by index):
 - ``ewa``:    G = exp(−½ dᵀ conic d), d = p − means2d (skip if the exponent > 0); depth z_i = μz;
               normal n_i = the shortest scale axis in camera space, flipped so that n·μ < 0.
 - ``rade``:   α as ``ewa`` with eps2d = 0 by default; ray distance ``t = l + pᵀδ`` (l = ‖μ‖,
               p = −(Q20, Q21)/Q22, Q = (J_r Σ J_rᵀ)⁻¹, δ = normalised offset of p from the centre,
-              GOF/RaDe doc §2.1) and depth ``z_i = t / ‖r‖``; normal ``n_i = −normalize(Σ⁻¹ μ)``.
+              docs/methods/radegs.md §3.2) and depth ``z_i = t / ‖r‖``; normal ``n_i = −normalize(Σ⁻¹ μ)``.
 - ``raymax``: A = Σ⁻¹, b = Σ⁻¹μ, c = μᵀΣ⁻¹μ; ``t* = (b·r)/(rᵀAr)``, ``q = max(0, c − (b·r)²/(rᵀAr))``,
               G = exp(−q/2); skip if t* <= near; z_i = t*; normal ``n_i = −normalize(A r)``.
               The EWA conic (eps2d = 0) is used only for radius/binning and the densification proxy.
-- ``surfel``: 2DGS ray–splat intersection (2DGS §2.2–2.4) with H = K[R_cw s_u t_u | R_cw s_v t_v | μ]
+- ``surfel``: 2DGS ray–splat intersection (docs/methods/2dgs.md §3.1–§3.4) with H = K[R_cw s_u t_u | R_cw s_v t_v | μ]
               evaluated at p; ρ = min(u²+v², k·|centre − p|²) with k = ``surfel_filter`` (the 2DGS
               paper's low-pass filter of σ = 1/√k px; 2DGS uses k = 2, σ = √2/2; k = 0: ρ = u²+v²); G = exp(−ρ/2); z_i = the intersection
               depth (skip if z_i < near); n_i = R_cw t_w flipped to face the camera (sign is a constant).
@@ -51,7 +51,7 @@ Binning and culling (pinned with the reference, `gsbench.raster.reference` "Deci
 - Culled: centre z <= near (every kernel); EWA determinant <= 0 after eps2d/antialias (ewa, rade,
   raymax); surfel box denominator == 0 or exactly edge-on (μ·n == 0).
 - Densification proxies: for ``raymax`` the mean-2D gradient is GOF's proxy (conic-based ∂α/∂means2d
-  times the per-pixel dL/dα, GOF §1.4) and for ``surfel`` the 2DGS shortcut; the reference gives the
+  times the per-pixel dL/dα, docs/methods/gof.md §3.6) and for ``surfel`` the 2DGS shortcut; the reference gives the
   true partial derivative instead, so those two are tested against their own formulas.
 
 Also: ``means2d`` (N,2 pixels; its ``.grad`` after backward is dL/dmeans2d), ``radii`` (N,) int,

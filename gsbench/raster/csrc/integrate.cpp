@@ -1,4 +1,4 @@
-// GOF opacity field at 3D points, all views in one call (no gradient). GOF doc §1.7; reference:
+// GOF opacity field at 3D points, all views in one call (no gradient). docs/methods/gof.md §7.1; reference:
 // `integrate_reference`. In view v a point x (world) with camera coordinates x_c = R x + t sees every
 // Gaussian binned to the tile of its pixel (floor(u), floor(v)), u = fx·x_c/z + cx, v = fy·y_c/z + cy,
 // if near < z and (u, v) ∈ [0, W) × [0, H). Each Gaussian is evaluated on the point's exact ray
