@@ -30,12 +30,13 @@ proportions (7/15 warm-up, entropy to 9/15); ``--set train.iterations=15000`` re
 numbers exactly. The densification interval stays 100 Adam steps (`gsbench.train.scaled_strategy`).
 
 **Samples per step** (``num_samples``, default 10 000; SuGaR: 1 000 000). The two regularisers cost
-≈ 11-16 µs per sample (16 neighbours, forward + backward, 1 thread: 0.11 s for 10 000 samples, 1.6 s
-for 100 000, 15 s and 2.5 GB for 1 000 000). 10 000 keeps a regularised step at about twice a warm-up
-step at the cpu preset and is of the order of one sample per Gaussian there (≈ 10⁴ Gaussians), SuGaR's
-own ratio (10⁶ samples for ~10⁶ Gaussians). Presets cannot set method fields, so the paper preset uses
-the same default: SuGaR's 10⁶ over the paper preset's 12 000 regularised steps would add ≈ 50 hours per
-scene on one thread, hence the deviation; ``--set method.num_samples=1000000`` restores SuGaR's value.
+≈ 1.8 µs per sample with the fused field kernels (16 neighbours, forward + backward: 18 ms for 10 000
+samples on 1 thread, `gsbench bench train --workloads sugar`, AMD EPYC VM; the cost grows linearly with
+the sample count, and the kernels' scratch memory by ≈ 0.8 KB per sample). 10 000 is of the order of
+one sample per Gaussian at the cpu preset (≈ 10⁴ Gaussians), SuGaR's own ratio (10⁶ samples for ~10⁶
+Gaussians). Presets cannot set method fields, so the paper preset uses the same default: SuGaR's 10⁶
+over the paper preset's 12 000 regularised steps would add ≈ 6 hours per scene on one thread (by the
+linear estimate), hence the deviation; ``--set method.num_samples=1000000`` restores SuGaR's value.
 
 **Not implemented:** the refinement stage (docs/methods/sugar.md §6: Gaussians bound to the coarse mesh, 2k/7k/15k steps)
 is not available; the coarse Poisson mesh is the evaluated mesh (docs/methods/sugar.md §6), and SuGaR's optional
@@ -148,7 +149,8 @@ class SuGaR(Method):
             self.sh_degree = self.cfg.raster.sh_degree
         if step == prune_at:
             self.hard_prune(step)
-        if step == prune_at or (step > prune_at and step % scale_step(p.knn_every, scale) == 0):
+        refresh = step == prune_at or (step > prune_at and step % scale_step(p.knn_every, scale) == 0)
+        if refresh or (step > prune_at and self.knn is None):  # the latter: a start past the prune (bench train)
             self.knn = sugar_terms.knn_indices(self.gaussians.means, p.knn_k)
 
     def hard_prune(self, step: int) -> None:

@@ -1,4 +1,4 @@
-"""SuGaR's coarse-stage regularisers as registered loss terms (methods-3dgs-2dgs-sugar.md §3.2, §5).
+"""SuGaR's coarse-stage regularisers as registered loss terms (docs/methods/sugar.md §3, §5).
 
 Importing this module registers two terms in `gsbench.losses`:
 
@@ -18,7 +18,7 @@ the unit direction from μ to the camera), and x = μ_g + R_g (1.5·s_g ⊙ ε),
 global RNG; x carries gradients to μ_g, R_g, s_g.
 
 **Density at x** over the neighbours j of g: d(x) = Σ_j κ·o_j·exp(−½‖diag(1/s_j) R_jᵀ (x − μ_j)‖²),
-the squared norm clamped to [0, 1e8] and s_j to >= 1e-8 (§5); κ = 1 in ``density`` mode, 1/K in
+the squared norm clamped to [0, 1e8] and s_j to >= 1e-8 (docs/methods/sugar.md §3.5, §5); κ = 1 in ``density`` mode, 1/K in
 ``sdf`` mode. β(x) = mean_j min(s_j). n_g = the axis of g's smallest scale.
 
 - ``density`` mode: f̂ = ⟨x − μ_g, n_g⟩, target d* = exp(−½ f̂²/β²) (exponent clamped at 1e8 like the
@@ -37,6 +37,13 @@ w_j = stopgrad(κ·o_j·G_j(x)) · stopgrad|⟨x − μ_j, n_j⟩| / max(stopgra
 normals do (SuGaR ``sdf_better_normal_gradient_through_normal_only``).
 
 With no visible (or, in ``sdf`` mode, no close-to-surface / in-front) sample a term is 0.
+
+**Implementation**: the per-pair work, the M×K neighbour terms o_j·G_j(x) and the normal loss's
+Σ_j ŵ_j n_j, runs in the fused C++/OpenMP kernels of `gsbench.methods.sugar_field` (``neighbour_field``,
+``neighbour_normals``: float64 arithmetic, gradients bitwise the same for any thread count);
+``GSBENCH_SUGAR_FIELD=reference`` selects its PyTorch reference, the same formulas with autograd. Rows of
+per-Gaussian tensors are gathered with ``index_select`` (`rows`), whose backward (an index_add) is much
+cheaper on the CPU than advanced indexing's index_put.
 """
 
 from __future__ import annotations
@@ -50,22 +57,23 @@ import torch.nn.functional as F
 
 from gsbench.errors import ConfigError
 from gsbench.losses import Batch, register_term
+from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
 from gsbench.neighbours import nearest_other
 from gsbench.raster.projection import quat_to_rotmat
 from gsbench.raster.types import RenderOutput
 
 MODES = ("density", "sdf")
-KNN_K = 16  # SuGaR regularity_knn, itself included (§3.2)
+KNN_K = 16  # SuGaR regularity_knn, itself included (docs/methods/sugar.md §3.3)
 NUM_SAMPLES = 10_000  # samples per step (SuGaR: 1 000 000; why fewer: gsbench.methods.sugar)
-SAMPLE_SCALE = 1.5  # sdf_sampling_scale_factor (§3.2)
-SURFACE_SIGMAS = 2.0  # close_gaussian_threshold, sdf mode (§3.2)
-MAHALANOBIS_MAX = 1e8  # §5
-SCALE_MIN = 1e-8  # §5: 1/s with s >= 1e-8
-DENSITY_MIN = 1e-16  # §5: log(max(d, 1e-16))
+SAMPLE_SCALE = 1.5  # sdf_sampling_scale_factor (docs/methods/sugar.md §3.4)
+SURFACE_SIGMAS = 2.0  # close_gaussian_threshold, sdf mode (docs/methods/sugar.md §3.4)
+MAHALANOBIS_MAX = 1e8  # docs/methods/sugar.md §5
+SCALE_MIN = 1e-8  # docs/methods/sugar.md §5: 1/s with s >= 1e-8
+DENSITY_MIN = 1e-16  # docs/methods/sugar.md §5: log(max(d, 1e-16))
 SQRT_MIN = 1e-12  # ours: sqrt(max(−2 log d̄, 1e-12)) keeps the SDF gradient finite at d̄ = 1
-NORMAL_SCALE_MIN = 1e-6  # §5: min-scale clamp in the normal weights
-WEIGHT_SUM_MIN = 1e-6  # §5: weight-sum clamp in the normal weights
-SDF_NORMALISER = 10.0  # |f − |f̂|| / (extent / 10), clamped at 10·extent (§3.2)
+NORMAL_SCALE_MIN = 1e-6  # docs/methods/sugar.md §5: min-scale clamp in the normal weights
+WEIGHT_SUM_MIN = 1e-6  # docs/methods/sugar.md §5: weight-sum clamp in the normal weights
+SDF_NORMALISER = 10.0  # |f − |f̂|| / (extent / 10), clamped at 10·extent (docs/methods/sugar.md §3.7)
 
 
 def knn_indices(means: torch.Tensor, k: int = KNN_K) -> torch.Tensor:
@@ -95,14 +103,13 @@ def check_samples(num_samples) -> int:
 @dataclass
 class GaussianFrames:
     """Activated parameters the field needs: means (N,3), rotations R (N,3,3), scales s (N,3) clamped
-    at >= 1e-8, opacities (N,), normals n (N,3) = the smallest-scale axis, R/s (N,3,3) (columns / s)."""
+    at >= 1e-8, opacities (N,), normals n (N,3) = the smallest-scale axis."""
 
     means: torch.Tensor
     rotations: torch.Tensor
     scales: torch.Tensor
     opacities: torch.Tensor
     normals: torch.Tensor
-    inv_scaled: torch.Tensor
 
     @classmethod
     def of(cls, gaussians) -> GaussianFrames:
@@ -113,37 +120,45 @@ class GaussianFrames:
         rotations = quat_to_rotmat(gaussians.quats)
         axis = scales.detach().argmin(-1)
         normals = rotations.gather(2, axis[:, None, None].expand(-1, 3, 1)).squeeze(-1)
-        return cls(gaussians.means, rotations, scales, gaussians.opacities, normals, rotations / scales[:, None, :])
+        return cls(gaussians.means, rotations, scales, gaussians.opacities, normals)
 
     def view_sigma(self, ids: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
         """‖s ⊙ (Rᵀ v)‖: the standard deviation of Gaussians ``ids`` along unit ``directions`` (…,3)."""
         local = torch.einsum("...ji,...j->...i", self.rotations[ids], directions)
         return (self.scales[ids] * local).norm(dim=-1)
 
+    def min_scales(self) -> torch.Tensor:
+        """(N,) the smallest scale of every Gaussian."""
+        return self.scales.min(-1).values
+
+
+def rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``values[index]`` for an integer ``index`` of any shape, by ``index_select`` on the flattened index
+    (its backward is an index_add, much cheaper on the CPU than the index_put of advanced indexing)."""
+    return values.index_select(0, index.reshape(-1)).reshape(*index.shape, *values.shape[1:])
+
 
 @dataclass
 class SampleField:
-    """Samples x (M,3) drawn in Gaussians g (M,), their neighbours idx = kNN[g] (M,K), the offsets
-    x − μ_j (M,K,3) and the neighbour terms o_j·G_j(x) (M,K) (module docstring, without κ)."""
+    """Samples x (M,3) drawn in Gaussians g (M,), their neighbours idx = kNN[g] (M,K) and the neighbour
+    terms o_j·G_j(x) (M,K) (module docstring, without κ; `gsbench.methods.sugar_field.neighbour_field`)."""
 
     frames: GaussianFrames
     points: torch.Tensor
     source: torch.Tensor
     neighbours: torch.Tensor
-    offsets: torch.Tensor
     contributions: torch.Tensor
 
     @classmethod
     def at(cls, frames: GaussianFrames, points: torch.Tensor, source: torch.Tensor, knn: torch.Tensor) -> SampleField:
-        idx = knn[source]
-        offsets = points[:, None, :] - frames.means[idx]
-        local = torch.einsum("mkc,mkcd->mkd", offsets, frames.inv_scaled[idx])
-        mahalanobis = (local * local).sum(-1).clamp(0.0, MAHALANOBIS_MAX)
-        return cls(frames, points, source, idx, offsets, frames.opacities[idx] * torch.exp(-0.5 * mahalanobis))
+        idx = rows(knn, source)
+        contributions = neighbour_field(points, frames.means, frames.rotations, frames.scales, frames.opacities, idx,
+                                        MAHALANOBIS_MAX)
+        return cls(frames, points, source, idx, contributions)
 
     def beta(self) -> torch.Tensor:
         """β (M,) = mean over the neighbours of their smallest scale (``beta_mode = 'average'``)."""
-        return self.frames.scales.min(-1).values[self.neighbours].mean(-1)
+        return rows(self.frames.min_scales(), self.neighbours).mean(-1)
 
 
 def _gaussians(state: Mapping, term: str):
@@ -218,8 +233,9 @@ def draw_samples(frames: GaussianFrames, mask: torch.Tensor, num_samples: int):
         return None
     source = candidates[torch.randint(len(candidates), (num_samples,))]
     eps = torch.randn(num_samples, 3, dtype=frames.means.dtype)
-    offsets = torch.einsum("mij,mj->mi", frames.rotations[source], SAMPLE_SCALE * frames.scales[source] * eps)
-    return frames.means[source] + offsets, source
+    scaled = SAMPLE_SCALE * rows(frames.scales, source) * eps
+    offsets = torch.einsum("mij,mj->mi", rows(frames.rotations, source), scaled)
+    return rows(frames.means, source) + offsets, source
 
 
 def step_samples(render: RenderOutput, batch: Batch, state: dict, mode: str, num_samples: int,
@@ -250,7 +266,7 @@ def density_factor(mode: str, k: int) -> float:
 def density_loss(field: SampleField) -> torch.Tensor:
     """``density`` mode: mean |d(x) − exp(−½ f̂²/β²)|, f̂ = ⟨x − μ_g, n_g⟩, κ = 1 (module docstring)."""
     frames = field.frames
-    estimate = ((field.points - frames.means[field.source]) * frames.normals[field.source]).sum(-1)
+    estimate = ((field.points - rows(frames.means, field.source)) * rows(frames.normals, field.source)).sum(-1)
     exponent = (estimate**2 / field.beta() ** 2).clamp(max=MAHALANOBIS_MAX)
     return (field.contributions.sum(-1) - torch.exp(-0.5 * exponent)).abs().mean()
 
@@ -273,15 +289,9 @@ def sdf_loss(field: SampleField, depth: torch.Tensor, camera, extent: float, nea
 def normal_loss(field: SampleField, kappa: float) -> torch.Tensor:
     """mean ‖n_g − Σ_j ŵ_j n_j‖² with SuGaR's detached weights ŵ (module docstring, "Normal loss")."""
     frames = field.frames
-    own = frames.normals[field.source]
-    others = frames.normals[field.neighbours]
-    others = others * torch.sign((others * own[:, None, :]).sum(-1, keepdim=True)).detach()
-    with torch.no_grad():
-        distance = (field.offsets * others).sum(-1).abs()
-        min_scale = frames.scales.min(-1).values[field.neighbours].clamp(min=NORMAL_SCALE_MIN)
-        weights = kappa * field.contributions * distance / min_scale**2
-        weights = weights / weights.sum(-1, keepdim=True).clamp(min=WEIGHT_SUM_MIN)
-    return ((own - (weights[..., None] * others).sum(1)) ** 2).sum(-1).mean()
+    average = neighbour_normals(frames.normals, field.points, frames.means, frames.min_scales(), field.contributions,
+                                field.source, field.neighbours, kappa, NORMAL_SCALE_MIN, WEIGHT_SUM_MIN)
+    return ((rows(frames.normals, field.source) - average) ** 2).sum(-1).mean()
 
 
 def sdf_term(render: RenderOutput, batch: Batch, state: dict, mode: str = "density", num_samples: int = NUM_SAMPLES,

@@ -2,7 +2,8 @@
 
 The extension has a plain C ABI (raster.cpp: binning and compositing; integrate.cpp; project.cpp: the
 fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.eigen3`;
-ssim.cpp: the fused SSIM map and its backward of `gsbench.ssim`), compiled with
+ssim.cpp: the fused SSIM map and its backward of `gsbench.ssim`; sugar_field.cpp: SuGaR's neighbour field
+and normal average and their backwards of `gsbench.methods.sugar_field`), compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)
 and called through ctypes. The library name carries a hash of the sources, the flags and the CPU, so
 an edit or another machine triggers a rebuild. The first build prints one line.
@@ -22,7 +23,7 @@ from pathlib import Path
 from gsbench.errors import BuildError
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp", "ssim.cpp"]
+SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp", "ssim.cpp", "sugar_field.cpp"]
 CFLAGS = [
     "-O3",
     "-march=native",
