@@ -28,7 +28,7 @@ class VisibleAdam(torch.optim.Adam):
     """Adam on visible rows only (module docstring); set ``visible`` (bool (N,)) before each `step`.
 
     The state keeps Adam's layout (``step``, ``exp_avg``, ``exp_avg_sq`` per parameter), so
-    densification's row surgery (`gsbench.strategy`) and checkpoints work unchanged. ``visible`` None:
+    densification's row surgery (`gsbench.strategies`) and checkpoints work unchanged. ``visible`` None:
     the plain Adam step.
     """
 

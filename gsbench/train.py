@@ -82,7 +82,7 @@ from gsbench.errors import ConfigError, NumericalError
 from gsbench.losses import Batch, active_terms, required_outputs, total_loss
 from gsbench.optim import VisibleAdam
 from gsbench.progress import DEFAULT_INTERVAL, ProgressLines
-from gsbench.strategy import REFERENCE_ITERATIONS
+from gsbench.strategies.base import REFERENCE_ITERATIONS
 
 CHECKPOINT = "checkpoint.pt"
 FINAL_CHECKPOINT = "checkpoint-final.pt"

@@ -64,7 +64,8 @@ from gsbench.mesh.cleanup import canonical_order
 from gsbench.mesh.tsdf import tsdf_fusion
 from gsbench.optim import make_adam
 from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, rasterize
-from gsbench.strategy import DefaultStrategy, Strategy
+from gsbench.strategies.default import DefaultStrategy
+from gsbench.strategies.base import Strategy
 from gsbench.train import scale_step, split_views
 
 ADAM_EPS = 1e-15  # docs/methods/3dgs.md §5.1, §7

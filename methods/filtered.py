@@ -17,9 +17,10 @@ import torch
 
 from gsbench.config import RunConfig
 from gsbench.data.camera import Scene
-from gsbench.filter3d import Filter3D
+from gsbench.geometry.filter3d import Filter3D
 from gsbench.methods.base import GSConfig, Method
-from gsbench.strategy import AbsGradStrategy, Strategy
+from gsbench.strategies.absgrad import AbsGradStrategy
+from gsbench.strategies.base import Strategy
 from gsbench.train import split_views
 
 

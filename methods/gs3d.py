@@ -1,7 +1,7 @@
 """3DGS (Kerbl et al. 2023), docs/methods/3dgs.md.
 
 EWA splatting of 3D Gaussians (``ewa`` kernel), L = 0.8·L1 + 0.2·(1 − SSIM) (docs/methods/3dgs.md §4.1, weights in
-``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.strategy.DefaultStrategy`, docs/methods/3dgs.md §5.3)
+``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.strategies.default.DefaultStrategy`, docs/methods/3dgs.md §5.3)
 with prune opacity 0.005, identity rotations at init (docs/methods/3dgs.md §2.2). 3DGS has no mesh extractor of its own;
 the benchmark fuses the *expected* depth Σ wᵢzᵢ / Σ wᵢ with the 2DGS TSDF settings (docs/methods/3dgs.md §6).
 """

@@ -4,10 +4,10 @@ is the reconstruction of docs/methods/ibgs.md §10, every assumption a config fi
 
 `IBGSMixin` adds to a base method (its kernel, losses, filter and mesh):
 
-- orientation from the neighbourhood (docs/methods/ibgs.md §4.1, docs/methods/ibgs.md §2, §3, §4): a `gsbench.neighbours.NeighbourIndex`
+- orientation from the neighbourhood (docs/methods/ibgs.md §4.1, docs/methods/ibgs.md §2, §3, §4): a `gsbench.geometry.neighbours.NeighbourIndex`
   of the ``knn_k`` nearest other means (default 5), refreshed every ``knn_refresh_every`` steps (100,
   like the refinement interval not scaled with the run length) and after every densify/prune; every
-  step the local covariance of the neighbour means and its eigenvectors V (`gsbench.local_geometry`,
+  step the local covariance of the neighbour means and its eigenvectors V (`gsbench.geometry.local_geometry`,
   gap-regularised float64 eigen-solver), kept continuous in sign and order against the previous
   step's frame (stored per Gaussian as the state tensor ``frame``, densified and checkpointed with
   the rows; ``match_frames``); the rendered rotation is V' = ΔR·V with the learnable residual ΔR
@@ -16,7 +16,7 @@ is the reconstruction of docs/methods/ibgs.md §10, every assumption a config fi
   true lets the rendering gradient reach the neighbour means through V. Scales stay free; scale axis
   k follows frame column k (v3, the normal, is the third axis at init; surfels keep it there);
 - losses ``eigval`` and ``eigvec`` (`gsbench.methods.ibgs_terms`), weights in the method yaml;
-- densification: `gsbench.sparsity.SparsityAwareStrategy` — the abs-gradient criterion plus SADC
+- densification: `gsbench.strategies.sparsity.SparsityAwareStrategy` — the abs-gradient criterion plus SADC
   (``sadc``, ``sadc_sparsity``, ``sadc_min_gap``).
 
 Registered variants, one per kernel (the authors' RaDe-GS, GOF and 2DGS variants, docs/methods/ibgs.md §1.3, docs/methods/ibgs.md §11.2): ``ibgs``
@@ -36,16 +36,16 @@ import gsbench.methods.ibgs_terms  # noqa: F401  (registers eigval and eigvec)
 from gsbench.config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError
-from gsbench.local_geometry import LocalGeometry, apply_alignment, frame_alignment, local_geometry
+from gsbench.geometry.local_geometry import LocalGeometry, apply_alignment, frame_alignment, local_geometry
 from gsbench.methods.gof import GOF, GOFConfig
 from gsbench.methods.gs2d import GS2D, GS2DConfig
 from gsbench.methods.radegs import RaDeGS, RaDeGSConfig
-from gsbench.neighbours import NeighbourIndex
+from gsbench.geometry.neighbours import NeighbourIndex
 from gsbench.phase_timer import PhaseTimer
 from gsbench.raster import RasterGaussians
-from gsbench.rotations import quat_multiply, rotmat_to_quat
-from gsbench.sparsity import SparsityAwareStrategy
-from gsbench.strategy import Strategy
+from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
+from gsbench.strategies.sparsity import SparsityAwareStrategy
+from gsbench.strategies.base import Strategy
 
 
 @dataclass

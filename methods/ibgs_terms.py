@@ -1,7 +1,7 @@
 """IBGS loss terms ``eigval`` and ``eigvec`` (docs/methods/ibgs.md §5.2, §5.3, docs/methods/ibgs.md §5),
 registered in `gsbench.losses` at import.
 
-Both read ``state["local_geometry"]`` (a `gsbench.local_geometry.LocalGeometry` of this step) and
+Both read ``state["local_geometry"]`` (a `gsbench.geometry.local_geometry.LocalGeometry` of this step) and
 ``state["scene_radius"]``; Gaussians whose neighbourhood is a single point (``valid`` false) are skipped.
 
 - ``eigval`` (Eq. 8, confirmed): L = mean_i λ3,i / radius². λ3 has units of length², so dividing by
@@ -12,7 +12,7 @@ Both read ``state["local_geometry"]`` (a `gsbench.local_geometry.LocalGeometry` 
   γ_i = (λ2 − λ3)/λ1 the detached planarity (Eq. 10), pairs with γ_i < ``min_planarity`` (1e-3)
   masked (docs/methods/ibgs.md §5.3). |·| makes it invariant to eigenvector signs. The mean over j (the spec writes a
   sum) keeps the weight comparable across K. v3's gradient comes through the gap-regularised
-  eigen backward (`gsbench.eigen3`).
+  eigen backward (`gsbench.geometry.eigen3`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 
 from gsbench.errors import ConfigError
-from gsbench.local_geometry import LocalGeometry
+from gsbench.geometry.local_geometry import LocalGeometry
 from gsbench.losses import Batch, register_term
 from gsbench.raster.types import RenderOutput
 

@@ -3,7 +3,7 @@
 Pipeline (docs/methods/sugar.md §1.1, §2, §3), one training run on the ``ewa`` (3DGS) kernel:
 
 1. **3DGS warm-up** until step ``warmup_until``: the 2023 3DGS loss 0.8·L1 + 0.2·(1 − SSIM) and its
-   densification (`gsbench.strategy.DefaultStrategy`: clone/split/prune every 100 steps, opacity
+   densification (`gsbench.strategies.default.DefaultStrategy`: clone/split/prune every 100 steps, opacity
    resets), stopped at the end of the warm-up whatever ``densify_until`` says (SuGaR's 3DGS stops at
    7000 < 15000).
 2. **Coarse stage** from step ``warmup_until``: a fresh Adam state (SuGaR builds a new optimizer from
@@ -11,7 +11,7 @@ Pipeline (docs/methods/sugar.md §1.1, §2, §3), one training run on the ``ewa`
    no densification and no opacity reset; the opacity entropy term (``opacity_entropy``, weight 0.1)
    until ``hard_prune_at``.
 3. At the start of step ``hard_prune_at``: **hard prune** of the Gaussians with opacity <
-   ``hard_prune_opacity`` (0.5), optimizer-aware (`gsbench.strategy.keep_params`); then the kNN graph
+   ``hard_prune_opacity`` (0.5), optimizer-aware (`gsbench.strategies.base.keep_params`); then the kNN graph
    (``knn_k`` = 16 nearest centres, itself included, scipy cKDTree) is computed, and recomputed every
    ``knn_every`` steps after that. From that step the SDF-estimation regulariser (``sugar_sdf``, weight
    0.2, ``regularizer``: ``density`` by default or ``sdf``) and the normal regulariser (``sugar_normal``,
@@ -59,7 +59,8 @@ from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.methods import sugar_terms
 from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo, _export_atomic
-from gsbench.strategy import DefaultStrategy, Strategy, keep_params
+from gsbench.strategies.default import DefaultStrategy
+from gsbench.strategies.base import Strategy, keep_params
 from gsbench.train import scale_step, split_views
 
 

@@ -58,7 +58,7 @@ import torch.nn.functional as F
 from gsbench.errors import ConfigError
 from gsbench.losses import Batch, register_term
 from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
-from gsbench.neighbours import nearest_other
+from gsbench.geometry.neighbours import nearest_other
 from gsbench.raster.projection import quat_to_rotmat
 from gsbench.raster.types import RenderOutput
 
@@ -78,7 +78,7 @@ SDF_NORMALISER = 10.0  # |f − |f̂|| / (extent / 10), clamped at 10·extent (d
 
 def knn_indices(means: torch.Tensor, k: int = KNN_K) -> torch.Tensor:
     """(N, min(k, N)) int64 indices of each centre's nearest centres, itself first, as SuGaR's pytorch3d
-    ``knn_points`` of the points against themselves (`gsbench.neighbours.nearest_other` for the others)."""
+    ``knn_points`` of the points against themselves (`gsbench.geometry.neighbours.nearest_other` for the others)."""
     points = means.detach().cpu().numpy().astype(np.float64)
     if int(k) < 1 or len(points) == 0:
         return torch.zeros((len(points), 0), dtype=torch.int64)

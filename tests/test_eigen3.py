@@ -1,4 +1,4 @@
-"""`gsbench.eigen3.sym3_eigh`: the C++ closed form vs the torch.linalg.eigh reference vs numpy.linalg.eigh,
+"""`gsbench.geometry.eigen3.sym3_eigh`: the C++ closed form vs the torch.linalg.eigh reference vs numpy.linalg.eigh,
 and the gap-regularised backward (docs/methods/ibgs.md §3.2, §3.3).
 
 Degenerate inputs are the ones IBGS meets (docs/methods/ibgs.md §7): coplanar, collinear and duplicated neighbour
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from gsbench.eigen3 import EIGEN_ENV, _ReferenceSym3Eigh, sym3_eigh, sym3_eigh_reference
+from gsbench.geometry.eigen3 import EIGEN_ENV, _ReferenceSym3Eigh, sym3_eigh, sym3_eigh_reference
 from gsbench.errors import ConfigError, NumericalError
 
 IMPLS = ("fast", "reference")

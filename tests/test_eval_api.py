@@ -8,7 +8,7 @@ from gsbench.errors import EvaluationError, RegistryError
 from gsbench.evaluators import api
 from gsbench.registry import EVALUATORS
 from gsbench.evaluators.base import MetricInfo
-from gsbench.evaluators.bench import latlong_sphere, run_eval_benchmark, run_tnt_benchmark
+from gsbench.bench.eval import latlong_sphere, run_eval_benchmark, run_tnt_benchmark
 
 
 def test_versions_of_changed_headlines():

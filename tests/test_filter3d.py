@@ -1,4 +1,4 @@
-"""The Mip-Splatting 3D filter (gsbench.filter3d, docs/methods/gof.md §2) and the filtered opacity reset."""
+"""The Mip-Splatting 3D filter (gsbench.geometry.filter3d, docs/methods/gof.md §2) and the filtered opacity reset."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import torch
 
 from gsbench.data.camera import Camera
 from gsbench.errors import NumericalError
-from gsbench.filter3d import Filter3D, filter3d_variance, filter_coefficient
+from gsbench.geometry.filter3d import Filter3D, filter3d_variance, filter_coefficient
 from gsbench.gaussians import Gaussians
-from gsbench.strategy import reset_opacity
+from gsbench.strategies.base import reset_opacity
 
 
 def camera(f: float, tz: float) -> Camera:

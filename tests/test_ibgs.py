@@ -12,15 +12,15 @@ import torch
 import gsbench.config as config
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.gaussians import Gaussians
-from gsbench.local_geometry import PERMUTATIONS_3D, LocalGeometry, apply_alignment, frame_alignment, local_geometry
+from gsbench.geometry.local_geometry import PERMUTATIONS_3D, LocalGeometry, apply_alignment, frame_alignment, local_geometry
 from gsbench.methods.ibgs_terms import eigval_term, eigvec_term
-from gsbench.neighbours import NeighbourIndex, nearest_other
+from gsbench.geometry.neighbours import NeighbourIndex, nearest_other
 from gsbench.raster.reference import quat_to_rotmat
 from gsbench.registry import METHODS
-from gsbench.rotations import quat_multiply, rotmat_to_quat
+from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
 from gsbench.runner import resolve_run
-from gsbench.sparsity import SparsityAwareStrategy
-from gsbench.strategy import append_params
+from gsbench.strategies.sparsity import SparsityAwareStrategy
+from gsbench.strategies.base import append_params
 from gsbench.train import Trainer
 from tests.method_setup import quick_run, setup_method, straight_and_resumed
 

@@ -18,7 +18,7 @@ from gsbench.losses import Batch, active_terms, depth_to_normal, edge_weights
 from gsbench.raster.types import RenderOutput
 from gsbench.registry import METHODS
 from gsbench.runner import resolve_run
-from gsbench.strategy import AbsGradStrategy
+from gsbench.strategies.absgrad import AbsGradStrategy
 from gsbench.train import load_checkpoint, split_views
 from tests.method_setup import quick_run, setup_method, straight_and_resumed
 from tests.raster_scenes import make_camera

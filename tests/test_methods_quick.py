@@ -13,7 +13,7 @@ import trimesh
 from gsbench.data.loader import load_scene, make_scene
 from gsbench.registry import METHODS
 from gsbench.runner import resolve_run
-from gsbench.strategy import DefaultStrategy
+from gsbench.strategies.default import DefaultStrategy
 from gsbench.train import Trainer
 
 # Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection.

@@ -274,7 +274,7 @@ def _bench(sizes=(50_000, 200_000), repeats=5, threads=2):
     """Projection forward+backward (loss = a fixed linear functional of the payload), fused vs torch."""
     import time  # noqa: PLC0415
 
-    from gsbench.raster.bench import standard_scene  # noqa: PLC0415
+    from gsbench.bench.raster import standard_scene  # noqa: PLC0415
 
     torch.set_num_threads(threads)
     settings = RasterSettings(sh_degree=0)

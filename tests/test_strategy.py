@@ -1,4 +1,4 @@
-"""Densification strategies and optimizer-aware parameter surgery (gsbench.strategy)."""
+"""Densification strategies and optimizer-aware parameter surgery (gsbench.strategies)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ import torch
 from gsbench.errors import ConfigError
 from gsbench.gaussians import PARAMETER_NAMES, Gaussians
 from gsbench.raster.types import RenderOutput
-from gsbench.strategy import DefaultStrategy, NoStrategy, append_params, keep_params
+from gsbench.strategies.default import DefaultStrategy
+from gsbench.strategies.base import append_params, keep_params
 
 SMALL, LARGE = math.log(0.002), math.log(0.2)  # max scale below / above percent_dense·extent = 0.01
 HIGH, LOW = 1e-3, 1e-5  # NDC gradient norms above / below the 0.0002 threshold
@@ -191,11 +192,8 @@ def test_schedule_bounds_and_scaling():
         DefaultStrategy(split_n=1)
 
 
-def test_no_strategy_and_helpers():
+def test_parameter_surgery_helpers():
     g, opt = make_setup([(SMALL, OPAQUE)] * 3)
-    assert NoStrategy().init_state(3) == {}
-    info = NoStrategy().step_post_backward(g, opt, {}, 600, fake_render([HIGH] * 3))
-    assert info["cloned"] == 0 and len(g) == 3
     append_params(g, opt, {k: v.detach()[:1] * 0 + 7 for k, v in g.params.items()})
     assert len(g) == 4 and g.means.detach()[3, 0] == 7
     keep_params(g, opt, torch.tensor([False, True, True, True]))

@@ -1,4 +1,4 @@
-"""GOF / RaDe-GS abs-gradient densification (gsbench.strategy.AbsGradStrategy, docs/methods/gof.md §5)."""
+"""GOF / RaDe-GS abs-gradient densification (gsbench.strategies.absgrad.AbsGradStrategy, docs/methods/gof.md §5)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import pytest
 import torch
 
 from gsbench.data.camera import Camera
-from gsbench.filter3d import Filter3D, filter_coefficient
+from gsbench.geometry.filter3d import Filter3D, filter_coefficient
 from gsbench.gaussians import Gaussians
 from gsbench.raster.types import RenderOutput
-from gsbench.strategy import AbsGradStrategy, DefaultStrategy, matched_threshold
+from gsbench.strategies.absgrad import AbsGradStrategy, matched_threshold
+from gsbench.strategies.default import DefaultStrategy
 from gsbench.train import scaled_strategy
 
 SMALL, LARGE = math.log(0.002), math.log(0.2)  # max scale below / above percent_dense·extent = 0.01

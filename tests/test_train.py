@@ -17,7 +17,7 @@ from gsbench.data.loader import load_scene
 from gsbench.errors import NumericalError
 from gsbench.registry import METHODS
 from gsbench.runner import resolve_run
-from gsbench.strategy import DefaultStrategy
+from gsbench.strategies.default import DefaultStrategy
 from gsbench.train import (CHECKPOINT, FINAL_CHECKPOINT, METRICS, CameraSampler, Trainer, _target_images,
                            load_checkpoint, scale_step, scaled_losses, scaled_strategy)
 

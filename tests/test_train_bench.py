@@ -1,4 +1,4 @@
-"""`gsbench bench train` (gsbench/train_bench.py): the timers nest inside the training step and every
+"""`gsbench bench train` (gsbench/bench/train.py): the timers nest inside the training step and every
 loss term is timed forward and backward. Times are not asserted here (bench numbers come from the
 command, written down with the machine)."""
 
@@ -9,7 +9,7 @@ import math
 import pytest
 
 from gsbench.errors import ConfigError
-from gsbench.train_bench import RASTER_PHASES, WORKLOADS, bench_workload, format_table, run_train_benchmark
+from gsbench.bench.train import RASTER_PHASES, WORKLOADS, bench_workload, format_table, run_train_benchmark
 
 
 @pytest.mark.parametrize("name, terms", [("2dgs", {"l1", "dssim", "normal_consistency", "depth_distortion"}),

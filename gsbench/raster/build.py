@@ -1,7 +1,7 @@
 """Compile (on first use) and load the C++/OpenMP rasterizer.
 
 The extension has a plain C ABI (raster.cpp: binning and compositing; integrate.cpp; project.cpp: the
-fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.eigen3`;
+fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.geometry.eigen3`;
 ssim.cpp: the fused SSIM map and its backward of `gsbench.ssim`; sugar_field.cpp: SuGaR's neighbour field
 and normal average and their backwards of `gsbench.methods.sugar_field`), compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)

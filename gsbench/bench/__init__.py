@@ -19,22 +19,22 @@ def run_benchmark(args) -> int:
 
     threads = args.threads or torch.get_num_threads()
     if args.target == "raster":
-        from gsbench.raster.bench import format_table, run_raster_benchmark  # noqa: PLC0415
+        from gsbench.bench.raster import format_table, run_raster_benchmark  # noqa: PLC0415
 
         result = run_raster_benchmark(kernels=args.kernels, workloads=args.workloads, repeats=args.repeats, threads=threads)
         print(format_table(result))
     elif args.target == "train":
-        from gsbench.train_bench import format_table, run_train_benchmark  # noqa: PLC0415
+        from gsbench.bench.train import format_table, run_train_benchmark  # noqa: PLC0415
 
         result = run_train_benchmark(args.workloads, steps=args.steps, warmup=args.warmup, threads=threads)
         print(format_table(result))
     elif args.target == "ibgs":
-        from gsbench.local_geometry_bench import DEFAULT_SIZES, format_table, run_ibgs_benchmark  # noqa: PLC0415
+        from gsbench.bench.ibgs import DEFAULT_SIZES, format_table, run_ibgs_benchmark  # noqa: PLC0415
 
         result = run_ibgs_benchmark(sizes=args.sizes or DEFAULT_SIZES, repeats=args.repeats)
         print(format_table(result))
     else:
-        from gsbench.evaluators.bench import run_eval_benchmark, run_tnt_benchmark  # noqa: PLC0415
+        from gsbench.bench.eval import run_eval_benchmark, run_tnt_benchmark  # noqa: PLC0415
 
         result = {"dtu": run_eval_benchmark(n_vertices=args.vertices, n_gt=args.gt_points),
                   "tnt": run_tnt_benchmark(n_vertices=args.vertices, n_gt=args.gt_points)}

@@ -1,7 +1,7 @@
 """IBGS densification: the abs-gradient criterion plus sparsity-aware densification (SADC)
 (docs/methods/ibgs.md §6, docs/methods/ibgs.md §6; the SADC form is [ASSUMED], switchable).
 
-`SparsityAwareStrategy` is `gsbench.strategy.AbsGradStrategy` (GOF/RaDe clone/split/prune, the paper's
+`SparsityAwareStrategy` is `gsbench.strategies.absgrad.AbsGradStrategy` (GOF/RaDe clone/split/prune, the paper's
 "improved densification criterion, Eq. (2)" [ASSUMED]) with, at every refinement step:
 
 1. the usual clone / split / prune, then a kNN refresh (the rows changed);
@@ -14,7 +14,7 @@
    residual rotation the identity and its frame i's. The Gaussian budget caps the count (the widest
    gaps are kept first). Then the kNN index and the 3D filter are refreshed again.
 
-The strategy shares the method's `gsbench.neighbours.NeighbourIndex` (as AbsGradStrategy shares the
+The strategy shares the method's `gsbench.geometry.neighbours.NeighbourIndex` (as AbsGradStrategy shares the
 3D filter) and orients split/clone offsets with the IBGS rotation ΔR·V (`_orientations`).
 """
 
@@ -28,10 +28,11 @@ from dataclasses import dataclass
 import torch
 
 from gsbench.gaussians import Gaussians
-from gsbench.local_geometry import local_geometry, neighbourhood_points
-from gsbench.neighbours import NeighbourIndex
-from gsbench.rotations import quat_multiply, rotmat_to_quat
-from gsbench.strategy import AbsGradStrategy, append_params
+from gsbench.geometry.local_geometry import local_geometry, neighbourhood_points
+from gsbench.geometry.neighbours import NeighbourIndex
+from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
+from gsbench.strategies.absgrad import AbsGradStrategy
+from gsbench.strategies.base import append_params
 
 
 def ibgs_orientations(rows: Mapping[str, torch.Tensor]) -> torch.Tensor:

@@ -1,8 +1,8 @@
 """IBGS overhead benchmark (`gsbench bench ibgs`): what IBGS adds to a training step, per size N.
 
 Workload: N means sampled on a unit sphere with 1% radial noise (a surface, as trained Gaussians are),
-K = 5. Timed (median of ``repeats`` after a warm-up): the kNN refresh (`gsbench.neighbours`), the
-neighbourhood covariance + eigen-decomposition forward (`gsbench.local_geometry`), forward + backward
+K = 5. Timed (median of ``repeats`` after a warm-up): the kNN refresh (`gsbench.geometry.neighbours`), the
+neighbourhood covariance + eigen-decomposition forward (`gsbench.geometry.local_geometry`), forward + backward
 of eigval + eigvec (`gsbench.methods.ibgs_terms`), the frame alignment, and for comparison
 ``torch.linalg.eigh`` on the same covariances, forward and forward + backward of the same losses.
 """
@@ -14,9 +14,9 @@ import time
 
 import torch
 
-from gsbench.local_geometry import LocalGeometry, apply_alignment, frame_alignment, local_covariance, local_geometry
+from gsbench.geometry.local_geometry import LocalGeometry, apply_alignment, frame_alignment, local_covariance, local_geometry
 from gsbench.methods.ibgs_terms import eigval_term, eigvec_term
-from gsbench.neighbours import NeighbourIndex
+from gsbench.geometry.neighbours import NeighbourIndex
 
 DEFAULT_SIZES = (10_000, 100_000)
 

@@ -2,7 +2,7 @@
 
 ``N(i)`` = the K nearest *other* means of Gaussian i, by a scipy KD-tree (``cKDTree``, all cores),
 held fixed (no gradient) between refreshes. IBGS refreshes it every 100 steps and after every
-densification or pruning, because the rows change (`gsbench.methods.ibgs`, `gsbench.sparsity`).
+densification or pruning, because the rows change (`gsbench.methods.ibgs`, `gsbench.strategies.sparsity`).
 
 Coincident means (clones at one position, a duplicated SfM point) make "self" tie with its twins at
 distance 0, so the tree does not always return i first: the query asks for K + 1 and drops i where it

@@ -4,7 +4,7 @@ docs/methods/ibgs.md §3, §4, docs/methods/ibgs.md §7.
 - Covariance (paper Eq. 4): with P_i = {μ_i} ∪ {μ_j : j ∈ N(i)} (n = K + 1 points; without μ_i when
   ``include_self`` is false), μ̄_i = mean(P_i), ``C_i = (1/n) Σ_{p∈P_i} (p − μ̄_i)(p − μ̄_i)ᵀ + δI`` with
   δ = 1e-10·radius² (docs/methods/ibgs.md §3.4), in float64 from the *current* means, so gradients reach all n means.
-- Eigen-decomposition (Eq. 5) by `gsbench.eigen3.sym3_eigh` of C / radius² (then λ × radius², so the
+- Eigen-decomposition (Eq. 5) by `gsbench.geometry.eigen3.sym3_eigh` of C / radius² (then λ × radius², so the
   solver's absolute floors are scale-free): λ1 ≥ λ2 ≥ λ3, columns v1, v2, v3, det V = +1,
   gap-regularised backward (docs/methods/ibgs.md §3.3). ``valid`` is false where λ1 <= 2δ, i.e. the neighbours' own
   spread is below the jitter (coincident points, docs/methods/ibgs.md §3.4); those rows use V = I and the IBGS losses
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from gsbench.eigen3 import sym3_eigh
+from gsbench.geometry.eigen3 import sym3_eigh
 from gsbench.phase_timer import PhaseTimer
 
 COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.md §3.4); λ1 <= 2δ: coincident points
