@@ -6,8 +6,8 @@ sweep`` for every expanded run (``--dry-run`` too) and by ``gsbench config``. It
 views, points, masks, ground truth) stay where the scene is read (`gsbench.evaluators.resolve`,
 the loaders).
 
-- ``threads`` >= 0 (0: every core); ``train.iterations`` >= 1; ``train.checkpoint_every`` >= 0
-  (0: only the final checkpoint); ``train.log_every`` >= 0; ``train.max_gaussians`` >= 0;
+- ``threads`` >= 0 (0: every core); ``train.iterations`` >= 1; ``train.log_every`` >= 1;
+  ``train.checkpoint_every`` >= 0 (0: only the final checkpoint); ``train.max_gaussians`` >= 0;
 - the method's own parameters, mesh and raster options (`gsbench.methods.base.Method.check_config`,
   when the plugin has it), and every configured loss term: its name and the parameters the method
   binds to it.
@@ -18,8 +18,7 @@ from __future__ import annotations
 from gsbench.config import RunConfig
 from gsbench.errors import ConfigError
 
-NON_NEGATIVE = {"train.checkpoint_every": "0: only the final checkpoint", "train.log_every": "0: no metric lines",
-                "train.max_gaussians": "0: no cap"}
+NON_NEGATIVE = {"train.checkpoint_every": "0: only the final checkpoint", "train.max_gaussians": "0: no cap"}
 
 
 def check_run_config(cfg: RunConfig) -> None:
@@ -30,6 +29,8 @@ def check_run_config(cfg: RunConfig) -> None:
         raise ConfigError(f"threads must be >= 0 (0: every core), got {cfg.threads} (--threads or threads:)")
     if cfg.train.iterations < 1:
         raise ConfigError(f"train.iterations must be >= 1, got {cfg.train.iterations}")
+    if cfg.train.log_every < 1:
+        raise ConfigError(f"train.log_every must be >= 1 (a metric line every so many steps), got {cfg.train.log_every}")
     for key, meaning in NON_NEGATIVE.items():
         value = getattr(cfg.train, key.split(".")[1])
         if value < 0:

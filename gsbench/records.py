@@ -32,7 +32,7 @@ from pathlib import Path
 import gsbench
 
 SCHEMA_VERSION = 1
-STATUSES = ("ok", "failed", "interrupted", "oom", "timeout", "running", "suspect_alignment")
+STATUSES = ("ok", "failed", "interrupted", "running")  # running: a record in memory until the run ends
 TRACKED_PACKAGES = ("torch", "numpy", "scipy", "open3d", "pymeshlab", "trimesh", "scikit-image", "pycolmap")
 
 

@@ -383,7 +383,7 @@ class Trainer:
                 bar.update(1)
                 n = len(self.method.gaussians)
                 lines.update(self.step, values.get("total"), n)
-                if self.step % max(1, t_cfg.log_every) == 0 or self.step == self.iterations:
+                if self.step % t_cfg.log_every == 0 or self.step == self.iterations:
                     rate = window_steps / max(time.perf_counter() - window_start, 1e-9)
                     log.write(json.dumps({"step": self.step, **values, "num_gaussians": n, "it_per_s": rate}) + "\n")
                     log.flush()

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from gsbench.report.collect import Manifest, Run
 from gsbench.report.metrics import DATASET_TITLES, MetricSpec, Reported
 
-STATUS_ORDER = ("ok", "no metric", "failed", "interrupted", "oom", "timeout", "suspect_alignment", "running", "missing")
+STATUS_ORDER = ("ok", "no metric", "failed", "interrupted", "running", "missing")
 SPEED = {  # key -> how to read it from a run
     "train": lambda r: r.timings.get("train"),
     "total": lambda r: r.timings.get("total"),
