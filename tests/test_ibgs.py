@@ -212,6 +212,24 @@ def test_sadc_places_new_gaussians_on_the_local_plane_between_sparse_neighbours(
     assert len(g) == before + 1 and g.params["frame"].shape[0] == before + 1
 
 
+def test_sadc_takes_the_sparse_gaussian_of_a_pair_even_when_its_neighbour_comes_first():
+    xy = torch.cartesian_prod(torch.arange(6.0), torch.arange(6.0)) * 0.1
+    xy = torch.cat([xy, xy[:4] + torch.tensor([1.5, 0.0])])  # the sparse cluster has the higher indices
+    means = torch.cat([xy, torch.zeros(len(xy), 1)], 1)
+    g = Gaussians.from_points(means.numpy(), None)
+    with torch.no_grad():
+        g.params["log_scales"][:] = math.log(0.01)
+        g.params["log_scales"][36:] = math.log(0.3)  # the cluster's own scales
+    neighbours = NeighbourIndex(5)
+    neighbours.refresh(g.means)
+    g.add_state("frame", local_geometry(g.means, neighbours.index, 1.0).eigenvectors.float())
+    optimizer = torch.optim.Adam([{"params": [p], "name": k} for k, p in g.params.items() if p.requires_grad])
+    strategy = SparsityAwareStrategy(neighbours=neighbours, percent_dense=1.0, scene_extent=1.0)
+    added = strategy._densify_sparse(g, optimizer)
+    assert added > 0
+    assert (g.scales[-added:].detach().max(-1).values > 0.1).all()  # the sparse parent's scales, not the grid's
+
+
 def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threads):
     """24 steps straight vs 12 + crash + resume + 12, densifying and refreshing the kNN every 4 steps."""
     overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",

@@ -86,7 +86,10 @@ class SparsityAwareStrategy(AbsGradStrategy):
         wide = sparse[:, None] & (gaps > self.min_gap * typical)
         i, k = torch.nonzero(wide, as_tuple=True)
         j = index[i, k]
-        pairs = torch.unique(torch.stack([torch.minimum(i, j), torch.maximum(i, j)], 1), dim=0)
+        # (i, j) and (j, i) count once; the sparse Gaussian comes first (its plane takes the new one),
+        # the lower index when both are sparse
+        swap = sparse[j] & (j < i)
+        pairs = torch.unique(torch.stack([torch.where(swap, j, i), torch.where(swap, i, j)], 1), dim=0)
         if len(pairs) == 0:
             return 0
         pairs = self._fit_budget(pairs, means, n)
