@@ -223,6 +223,56 @@ def area_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: 
     return sample_surface(vertices, faces, n, seed)[0]
 
 
+def voxel_area_samples(vertices: np.ndarray, faces: np.ndarray, voxel: float, seed: int, oversample: float = 2.0,
+                       max_points: int | None = None, chunk: int = 2_000_000) -> np.ndarray:
+    """Area-uniform samples of a mesh reduced to one point per occupied voxel (the tessellation-independent
+    TnT set): the centroid of the samples in each cube of side ``voxel`` (grid anchored at the origin).
+
+    Each face f gets ``floor(e_f) + Bernoulli(e_f − floor(e_f))`` samples, ``e_f = oversample · A_f /
+    voxel²`` (so the expected density is uniform by area, as `area_samples`), drawn uniformly inside the
+    face (seeded); the samples are generated ``chunk`` at a time and summed per voxel on the fly, so memory
+    grows with the number of occupied voxels, not of samples. EvaluationError before sampling when the
+    sample count exceeds ``max_points``. Returns (V, 3) centroids in voxel-key order.
+    """
+    if faces is None or len(faces) == 0:
+        return np.zeros((0, 3))
+    area = face_normals(vertices, faces)[1]
+    rng = np.random.default_rng(seed)
+    expected = oversample * area / voxel**2
+    counts = np.floor(expected).astype(np.int64) + (rng.random(len(faces)) < expected % 1.0)
+    total = int(counts.sum())
+    if max_points is not None and total > max_points:
+        raise EvaluationError(
+            f"the mesh would give {total:,} area samples at voxel {voxel:.4g} (limit {max_points:,}): its surface "
+            f"area is {area.sum():.4g} squared units, implausible for the GT; wrong units or frame?"
+        )
+    if total == 0:
+        return np.zeros((0, 3))
+    tri = vertices[faces]
+    origin = np.floor(vertices.min(0) / voxel).astype(np.int64)
+    span = np.floor(vertices.max(0) / voxel).astype(np.int64) - origin + 1
+    ends = np.cumsum(counts)
+    parts = []
+    for start in range(0, total, chunk):
+        lo, hi = np.searchsorted(ends, [start, min(total, start + chunk)], side="right")
+        face = np.repeat(np.arange(lo, min(hi + 1, len(faces))), counts[lo:min(hi + 1, len(faces))])
+        face = face[max(0, start - (ends[lo - 1] if lo else 0)):][: min(chunk, total - start)]
+        uv = rng.random((len(face), 2))
+        fold = uv.sum(1) > 1
+        uv[fold] = 1 - uv[fold]
+        t = tri[face]
+        pts = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
+        cell = np.clip(np.floor(pts / voxel).astype(np.int64) - origin, 0, span - 1)
+        key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+        keys, inverse = np.unique(key, return_inverse=True)
+        sums = np.stack([np.bincount(inverse, pts[:, d], len(keys)) for d in range(3)], 1)
+        parts.append((keys, sums, np.bincount(inverse, minlength=len(keys))))
+    keys, inverse = np.unique(np.concatenate([k for k, _, _ in parts]), return_inverse=True)
+    sums = np.concatenate([s for _, s, _ in parts])
+    n = np.bincount(inverse, np.concatenate([c for _, _, c in parts]).astype(np.float64), len(keys))
+    return np.stack([np.bincount(inverse, sums[:, d], len(keys)) for d in range(3)], 1) / n[:, None]
+
+
 def pca_normals(reference: np.ndarray, queries: np.ndarray, k: int = 20, workers: int = -1) -> np.ndarray:
     """Unoriented PCA normals at ``queries`` from their ``k`` nearest ``reference`` points.
 

@@ -11,8 +11,11 @@ Three point sets of one mesh, each scored after the same alignment (steps 2-4, d
   of the toolbox and so of the numbers those papers (and IBGS) report; here scored after the official
   alignment, where those copies also align with this set;
 - ``*_sampled`` — the tessellation-independent protocol: ``sample_oversample`` area-uniform samples
-  per (tau/2)² of the surface (`pointsets.area_samples`, seeded; faces with a vertex in the crop's
-  bounding box, padded by tau), then step 5 as for the others.
+  per (tau/2)² of the surface (faces with a vertex in the crop's bounding box, padded by tau), reduced
+  on the fly to one centroid per occupied tau/2 voxel (`pointsets.voxel_area_samples`, seeded; the
+  toolbox's voxel step, done while sampling so memory follows the voxels), then cropped and scored as
+  in step 5. The reduction comes before the crop here (after it in the toolbox): it changes only
+  voxels cut by the crop's boundary.
 
 Protocol v1 (before 2026-11-24) ranked by vertices plus centroids; v2 headlines are not comparable with it.
 
@@ -78,7 +81,7 @@ class TnTOptions:
     tau: float | None = None  # default: scene.gt.tau
     suspect_fitness: float = 0.5  # final ICP fitness below this sets diagnostics.suspect_alignment
     sample_oversample: float = 2.0  # area samples per (tau/2)² of surface (the sampled set)
-    max_sample_points: int = 50_000_000  # refuse meshes whose area sampling would exceed this (memory guard)
+    max_sample_points: int = 500_000_000  # refuse meshes whose area sampling would exceed this (units guard)
 
 
 def tnt_gt_files(scene: Scene) -> dict[str, Path]:
@@ -245,10 +248,11 @@ class TnTF1(Evaluator):
         t_tree = cKDTree(t) if len(t) else None
         moved_vertices = vertices @ T[:3, :3].T + T[:3, 3]
 
-        def score(points: np.ndarray) -> tuple[tuple[float, float, float], int, float]:
-            """(P, R, F), the scored points and the share inside the crop, for points already moved by T."""
+        def score(points: np.ndarray, downsample: bool = True) -> tuple[tuple[float, float, float], int, float]:
+            """(P, R, F), the scored points and the share inside the crop, for points already moved by T
+            (``downsample``: voxel tau/2 after the crop, as the toolbox; the area samples come reduced)."""
             cropped = volume.crop_point_cloud(_pcd(o3d, points))
-            down = np.asarray(cropped.voxel_down_sample(tau / 2).points)
+            down = np.asarray((cropped.voxel_down_sample(tau / 2) if downsample else cropped).points)
             return precision_recall(down, t, tau, t_tree), len(down), len(cropped.points) / max(1, len(points))
 
         metrics, counts = {}, {}
@@ -262,9 +266,9 @@ class TnTF1(Evaluator):
         with diag.phase("score_sampled"):
             faces = geo.faces if geo.is_mesh else np.zeros((0, 3), np.int64)
             near = faces_in_box(moved_vertices, faces, crop_box(volume, tau))
-            area = pointsets.area_samples(moved_vertices, near, tau / 2, opts.seed, opts.sample_oversample,
-                                          opts.max_sample_points)
-            scored = score(area) if len(area) else ((0.0, 0.0, 0.0), 0, 0.0)
+            area = pointsets.voxel_area_samples(moved_vertices, near, tau / 2, opts.seed, opts.sample_oversample,
+                                                opts.max_sample_points)
+            scored = score(area, downsample=False) if len(area) else ((0.0, 0.0, 0.0), 0, 0.0)
             (metrics["precision_sampled"], metrics["recall_sampled"], metrics["f1_sampled"]) = scored[0]
             counts["_sampled"] = scored[1]
             diag["area_samples"] = len(area)

@@ -77,3 +77,17 @@ def test_pca_normals_of_a_plane_and_sample_surface():
     p2, _ = pointsets.sample_surface(m.vertices, m.faces, 500, seed=4)
     np.testing.assert_array_equal(p1, p2)
     assert np.allclose(np.abs(p1).max(axis=1), 0.5) and np.allclose(np.linalg.norm(n1, axis=1), 1)
+
+
+def test_voxel_area_samples_are_one_centroid_per_voxel_whatever_the_chunking():
+    import trimesh
+
+    from gsbench.evaluators.pointsets import voxel_area_samples
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    whole = voxel_area_samples(v, f, 0.05, seed=3, chunk=10**9)
+    assert np.allclose(whole, voxel_area_samples(v, f, 0.05, seed=3, chunk=7), rtol=0, atol=1e-12)  # sums in another order
+    cells = np.floor(whole / 0.05).astype(int)
+    assert len(np.unique(cells, axis=0)) == len(whole)  # one point per occupied voxel, inside it
+    assert np.abs(np.linalg.norm(whole, axis=1) - 1).max() < 0.05  # on the (faceted) surface
