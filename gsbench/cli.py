@@ -38,12 +38,18 @@ def _set_threads(threads: int | None) -> None:
 def cmd_list(args) -> int:
     from gsbench.data.builtin import BUILTIN_SCENES
     from gsbench.registry import EVALUATORS, METHODS
+    from gsbench.suites import load_suite, suite_names
 
     print("methods:    " + (", ".join(METHODS.names()) or "(none registered yet)"))
     print("evaluators: " + ", ".join(EVALUATORS.names()))
     print("scenes:")
     for scene in BUILTIN_SCENES.values():
         print(f"  {scene.name:<24} {scene.format:<4} {scene.description}")
+    print("suites (gsbench sweep FILE --suite NAME):")
+    for name in suite_names():
+        suite = load_suite(name)
+        print(f"  {name:<24} {len(suite.scenes)} scenes × seeds {', '.join(map(str, suite.seeds))}: "
+              f"{', '.join(suite.scenes)}")
     return 0
 
 
@@ -119,9 +125,9 @@ def cmd_run(args) -> int:
 
 def cmd_sweep(args) -> int:
     from gsbench.executors import make_executor, threads_per_run
-    from gsbench.sweep import expand, format_runs, load_sweep, run_sweep
+    from gsbench.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
 
-    sweep = load_sweep(args.config)
+    sweep = with_suite(load_sweep(args.config), args.suite, args.seeds)
     runs = expand(sweep, overrides=args.set or ())
     print(f"# sweep {sweep['name']}: {len(runs)} runs")
     if args.dry_run:
@@ -226,8 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="train a method on a scene, extract its mesh, evaluate it, write the record")
     run.add_argument("--method", required=True, help="e.g. 2dgs (see `gsbench list`)")
-    run.add_argument("--scene", required=True, help="built-in name (synthetic/spot) or a scene folder")
-    run.add_argument("--preset", default="cpu", help="budget: quick, cpu (default) or paper")
+    run.add_argument("--scene", required=True, help="built-in name (synthetic/spot) or a scene folder "
+                                                    "(a suite of scenes runs as a sweep: gsbench sweep FILE --suite NAME)")
+    run.add_argument("--preset", default="cpu", help="budget: quick, cpu (default), bench or paper")
     run.add_argument("--config", action="append", help="user YAML file (repeatable)")
     run.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. train.iterations=500")
     run.add_argument("--out", default=None, help="runs folder (default: the config's out, runs/)")
@@ -239,6 +246,11 @@ def build_parser() -> argparse.ArgumentParser:
     sweep = sub.add_parser("sweep", help="expand a sweep file (configs/sweeps/) and run its runs, skipping finished ones")
     sweep.add_argument("config", help="sweep YAML file")
     sweep.add_argument("--dry-run", action="store_true", help="validate and print the runs and their ids only")
+    sweep.add_argument("--suite", default=None, metavar="NAME",
+                       help="run over this suite's scenes (configs/suites/, see `gsbench list`) instead of the "
+                            "file's; seeds: the file's, else the suite's")
+    sweep.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
+                       help="seeds of every run, replacing the file's and the suite's")
     sweep.add_argument("--set", action="append", metavar="KEY=VALUE", help="override for every run, e.g. train.iterations=1000")
     sweep.add_argument("--out", default=None, help="runs folder (default: each run's config out, runs/)")
     sweep.add_argument("--threads", type=threads_count, default=argparse.SUPPRESS,

@@ -336,6 +336,9 @@ def resolve(
     when None the method section is taken as given (used before a method is registered). ``gt`` is
     the ground-truth folder (``--gt``). ``data.holdout_every = -1`` is resolved here (`DataConfig`).
     """
+    from gsbench.suites import reject_suite_scene  # noqa: PLC0415  (imports this module)
+
+    reject_suite_scene(scene)  # ``suite:<name>`` is several runs: a sweep, not one run
     root = config_root()
     merged: dict = {"method": {"name": method}, "scene": scene, "preset": preset}
     dataset = dataset_of(scene)

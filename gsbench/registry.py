@@ -80,6 +80,7 @@ METHODS = Registry(
         "ibgs": "gsbench.methods.ibgs:IBGS",
         "ibgs-gof": "gsbench.methods.ibgs:IBGSGOF",
         "ibgs-2dgs": "gsbench.methods.ibgs:IBGS2DGS",
+        "pgsr": "gsbench.methods.pgsr:PGSR",
     },
     "gsbench.methods",
 )

@@ -11,12 +11,15 @@ A sweep file (``configs/sweeps/*.yaml``)::
     grid: {method.knn_k: [2, 3, 4]}  # optional, cartesian product
     zip: {a.b: [1, 2], c.d: [3, 4]}  # optional, lists of one length, taken together
     scenes: [synthetic/spot]         # optional; default: base.scene
-    seeds: [0]                       # optional; default: [base seed or 0]
+    suite: dtu-like                  # optional, instead of scenes: configs/suites/dtu-like.yaml
+    seeds: [0]                       # optional; default: the suite's seeds, else [base seed or 0]
     executor: {kind: local, workers: 1, threads: 2, address: null}  # optional defaults of the CLI options
 
 Every key other than ``method``, ``scene``, ``preset`` and ``seed`` is a config path (dotted, or
 nested mappings that are flattened to dotted paths) applied as a ``--set`` override after the
 method/dataset/preset layers. The runs are variants × grid × zip × scenes × seeds, in that order.
+A ``suite`` (`gsbench.suites`) gives the scenes and, unless the sweep has ``seeds``, the seeds; it
+excludes ``scenes``. `with_suite` applies the command line's ``--suite`` / ``--seeds`` to a loaded sweep.
 `expand` resolves every run (`gsbench.runner.resolve_run`: unknown keys and bad types fail with the
 run's label) and checks its loss-term names against the registry, so a sweep fails before it
 starts. Each run's id is its resolved config's (`gsbench.config.run_id`), so re-running a sweep
@@ -42,8 +45,9 @@ from tqdm import tqdm
 
 from gsbench.config import RunConfig, load_yaml
 from gsbench.errors import ConfigError
+from gsbench.suites import SUITE_PREFIX, load_suite
 
-SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "seeds", "executor")
+SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "suite", "seeds", "executor")
 IDENTITY_KEYS = ("method", "scene", "preset", "seed")
 EXECUTOR_KEYS = ("kind", "workers", "threads", "address")
 # The sweep waits for runs in slices of this many seconds: a SIGINT the kernel delivers to another
@@ -98,8 +102,39 @@ def load_sweep(path) -> dict:
     for key in ("scenes", "seeds"):
         if key in data and (not isinstance(data[key], list) or not data[key]):
             raise ConfigError(f"{path}: '{key}' must be a non-empty list")
+    if "suite" in data:
+        if "scenes" in data:
+            raise ConfigError(f"{path}: give 'suite' (its scenes and seeds) or 'scenes', not both")
+        if not isinstance(data["suite"], str):
+            raise ConfigError(f"{path}: 'suite' must be the name of one suite (configs/suites/<name>.yaml)")
+        try:
+            load_suite(data["suite"])
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from exc
     data.setdefault("name", path.stem)
     return data
+
+
+def with_suite(sweep: dict, suite: str | None = None, seeds=None) -> dict:
+    """``sweep`` with its scenes replaced by ``suite``'s (``--suite``; seeds from the suite unless the sweep
+    has its own) and its seeds by ``seeds`` (``--seeds``); unchanged when both are None."""
+    sweep = dict(sweep)
+    if suite is not None:
+        load_suite(suite)  # unknown names fail here, with the list of suites
+        sweep.pop("scenes", None)
+        sweep["suite"] = str(suite).removeprefix(SUITE_PREFIX)
+    if seeds:
+        sweep["seeds"] = [int(s) for s in seeds]
+    return sweep
+
+
+def scenes_and_seeds(sweep: dict) -> tuple[list | None, list | None]:
+    """(scenes, seeds) of a sweep: its own, or its suite's (the sweep's ``seeds`` win); None: not given."""
+    scenes, seeds = sweep.get("scenes"), sweep.get("seeds")
+    if sweep.get("suite"):
+        suite = load_suite(sweep["suite"])
+        scenes, seeds = list(suite.scenes), seeds or list(suite.seeds)
+    return scenes, seeds
 
 
 def _rows(section: dict) -> list[dict]:
@@ -131,12 +166,13 @@ def expand(sweep: dict, overrides=()) -> list[SweepRun]:
     grid = _rows(sweep.get("grid", {}))
     zipped = sweep.get("zip", {})
     zip_rows = [dict(zip(zipped, values)) for values in zip(*zipped.values())] if zipped else [{}]
+    scenes, seeds = scenes_and_seeds(sweep)
     runs = []
     for (variant, changes), point, paired in itertools.product(variants.items(), grid, zip_rows):
         settings = {**base, **changes, **point, **paired, **extra}
         label = _label(variant, {**point, **paired})
-        for scene in sweep.get("scenes") or [settings.get("scene")]:
-            for seed in sweep.get("seeds") or [settings.get("seed", 0)]:
+        for scene in scenes or [settings.get("scene")]:
+            for seed in seeds or [settings.get("seed", 0)]:
                 runs.append(SweepRun(label, _resolve(settings, scene, seed, label, resolve_run, check_run_config)))
     return runs
 

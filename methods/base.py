@@ -152,6 +152,7 @@ class Method:
     Config = GSConfig
     INFO: MethodInfo
     MESH_EXTRACTORS: tuple[str, ...] = ("tsdf",)
+    MESH_DEPTHS: tuple[str, ...] = tuple(DEPTH_OUTPUTS)  # accepted mesh.depth values (PGSR adds "unbiased")
     # What the papers report on the real DTU / TnT (GPU, full schedule), shown by `gsbench report` beside
     # measured numbers and never comparable with synthetic scenes or CPU budgets: {dataset: {"metric",
     # "mean", "source", optional "scenes"}}. Read from each class itself (a variant does not inherit it).
@@ -181,8 +182,8 @@ class Method:
         """ConfigError for a method, mesh or raster setting out of range (what needs no scene); methods
         with parameters of their own extend it."""
         cfg, p = self.cfg, self.params
-        if cfg.mesh.depth not in DEPTH_OUTPUTS:
-            raise ConfigError(f"mesh.depth must be one of {sorted(DEPTH_OUTPUTS)}, got '{cfg.mesh.depth}'")
+        if cfg.mesh.depth not in self.MESH_DEPTHS:
+            raise ConfigError(f"mesh.depth must be one of {sorted(self.MESH_DEPTHS)}, got '{cfg.mesh.depth}'")
         self.check_extractor(cfg)
         if p.random_init_region not in INIT_REGIONS:
             raise ConfigError(f"method.random_init_region must be one of {', '.join(INIT_REGIONS)}, "

@@ -92,3 +92,11 @@ def test_seed_argument_and_method_change_guard(tmp_path):
     bad.write_text("method: other\n")
     with pytest.raises(ConfigError, match="changed the method"):
         resolve("toy", "synthetic/spot", user_files=[bad])
+
+
+def test_bench_preset_doubles_the_cpu_resolution_and_keeps_its_mesh():
+    cpu, bench = (resolve("toy", "synthetic/dtu-spot", preset=name, method_config_cls=ToyConfig)
+                  for name in ("cpu", "bench"))
+    assert bench.data.max_size == [2 * v for v in cpu.data.max_size] == [480, 300]
+    assert bench.train.iterations > cpu.train.iterations and bench.mesh == cpu.mesh
+    assert cpu.data.max_size == [240, 150] and cpu.train.iterations == 3000  # the cpu preset is unchanged

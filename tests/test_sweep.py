@@ -91,13 +91,19 @@ def test_shipped_sweeps_are_the_issue_grids():
     assert {r.config.method["name"] for r in by_name["ibgs_rasterizers"]} == \
         {"2dgs", "ibgs-2dgs", "gof", "ibgs-gof", "radegs", "ibgs"}
     assert {(r.config.method["name"], r.config.scene) for r in by_name["all_methods"]} == {
-        (m, s) for m in ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs")
+        (m, s) for m in ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs", "pgsr")
         for s in ("synthetic/spot", "synthetic/spot-tnt")}
     losses = {r.label: r.config for r in by_name["ibgs_losses"]}
     assert losses["ibgs_without_Ld_Ln"].losses["normal_consistency"]["weight"] == 0.0
     assert losses["ibgs_Ls_instead_of_eigval"].losses["flatten"]["weight"] > 0
     assert losses["ibgs_Ls_instead_of_eigval"].losses["eigval"]["weight"] == 0.0
     assert losses["ibgs_attached_V"].method["attach_eigenvectors"] is True
+    pgsr = {r.label: r.config for r in by_name["pgsr_ablation"]}
+    assert set(pgsr) == {"pgsr", "pgsr_without_mv_geo", "pgsr_without_mv_ncc", "pgsr_without_exposure"}
+    assert pgsr["pgsr"].method["exposure_compensation"] is True
+    assert pgsr["pgsr_without_exposure"].method["exposure_compensation"] is False
+    assert pgsr["pgsr_without_mv_geo"].losses["pgsr_geo"]["weight"] == 0.0
+    assert pgsr["pgsr_without_mv_ncc"].losses["pgsr_ncc"]["weight"] == 0.0
 
 
 def test_cli_dry_run_prints_every_run_id(capsys):

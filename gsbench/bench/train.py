@@ -20,6 +20,9 @@ Phases, milliseconds per step (mean over the timed steps):
 - ``bwd.<term>``: each term's own backward, from its value to the render outputs (made leaves) and
   the parameters it reads, measured in a separate pass of ``probe_steps`` steps (``torch.autograd.grad`` with the graph
   kept) so the timed steps are untouched;
+- PGSR's multi-view terms render a neighbouring view themselves (docs/methods/pgsr.md §4.3): that render and its
+  backward are in ``fwd.pgsr_geo`` and ``bwd.pgsr_geo`` (the first of the two terms) and kept out of the
+  rasterizer timers above, which time the step's own render;
 - ``backward_rest`` = Trainer ``backward`` − raster_bwd − Σ bwd.<term>: the autograd glue and the
   projection's backward (not timed on its own: the fused projections run inside autograd);
 - ``optimizer``, ``densify``, ``checks``: the Trainer's phases; ``other``: the step's wall time minus
@@ -57,6 +60,7 @@ WORKLOADS = {
     "radegs": Workload("radegs"),
     "ibgs": Workload("ibgs"),
     "sugar": Workload("sugar"),
+    "pgsr": Workload("pgsr"),
     "3dgs-random-100k": Workload("3dgs", ("method.random_init_region=sphere",), start=0.0),
     "3dgs-visible-adam": Workload("3dgs", ("train.optimizer=visible_adam",)),
 }

@@ -125,11 +125,12 @@ class _State:
         self.saved = {}
         self.pairs_fwd = 0
         self.pairs_bwd = 0
+        self.profiled = profile is not None
 
 
 class _RasterFn(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, params, state):  # noqa: D401
+    def forward(ctx, params, plane_d, state):  # noqa: D401
         a = state.args
         H, W, dt = state.height, state.width, state.dtype
         want = state.want
@@ -140,6 +141,8 @@ class _RasterFn(torch.autograd.Function):
         med = torch.empty(H, W, dtype=dt) if want["median_depth"] else e
         nrm = torch.empty(H, W, 3, dtype=dt) if want["normal"] else e
         dist = torch.empty(H, W, dtype=dt) if want["distortion"] else e
+        plane = torch.empty(H, W, dtype=dt) if want["plane_distance"] else e
+        plane_c = plane_d.detach().contiguous() if want["plane_distance"] else None
         T_final = torch.empty(H, W, dtype=dt)
         last = torch.empty(H, W, dtype=torch.int32)
         medi = torch.empty(H, W, dtype=torch.int32) if want["median_depth"] else None
@@ -153,6 +156,8 @@ class _RasterFn(torch.autograd.Function):
         a.out_median = med.data_ptr() if want["median_depth"] else None
         a.out_normal = nrm.data_ptr() if want["normal"] else None
         a.out_dist = dist.data_ptr() if want["distortion"] else None
+        a.plane_d = None if plane_c is None else plane_c.data_ptr()
+        a.out_plane = plane.data_ptr() if want["plane_distance"] else None
         a.T_final = T_final.data_ptr()
         a.last = last.data_ptr()
         a.median_idx = None if medi is None else medi.data_ptr()
@@ -164,13 +169,14 @@ class _RasterFn(torch.autograd.Function):
         if rc != 0:
             raise RuntimeError(f"gsbench rasterizer forward failed (code {rc})")
         state.pairs_fwd = int(a.pairs)
-        state.saved = {"T": T_final, "last": last, "medi": medi, "M1": M1, "M2": M2, "params": params_c}
+        state.saved = {"T": T_final, "last": last, "medi": medi, "M1": M1, "M2": M2, "params": params_c,
+                       "plane_d": plane_c}
         ctx.state = state
         ctx.set_materialize_grads(False)
-        return rgb, alpha, depth, med, nrm, dist
+        return rgb, alpha, depth, med, nrm, dist, plane
 
     @staticmethod
-    def backward(ctx, g_rgb, g_alpha, g_depth, g_med, g_nrm, g_dist):
+    def backward(ctx, g_rgb, g_alpha, g_depth, g_med, g_nrm, g_dist, g_plane):
         state = ctx.state
         a = state.args
         dt = state.dtype
@@ -188,6 +194,7 @@ class _RasterFn(torch.autograd.Function):
             "g_median": prep(g_med, "median_depth"),
             "g_normal": prep(g_nrm, "normal"),
             "g_dist": prep(g_dist, "distortion"),
+            "g_plane": prep(g_plane, "plane_distance"),
         }
         for k, v in grads.items():
             setattr(a, k, None if v is None else v.data_ptr())
@@ -198,8 +205,11 @@ class _RasterFn(torch.autograd.Function):
         a.median_idx = None if s["medi"] is None else s["medi"].data_ptr()
         a.M1 = None if s["M1"] is None else s["M1"].data_ptr()
         a.M2 = None if s["M2"] is None else s["M2"].data_ptr()
+        a.plane_d = None if s["plane_d"] is None else s["plane_d"].data_ptr()
         n, npar = state.n, int(a.n_params)
         gp = torch.zeros(n, npar, dtype=dt)
+        g_plane_d = torch.zeros(n, dtype=dt) if want["plane_distance"] else None
+        a.grad_plane = None if g_plane_d is None else g_plane_d.data_ptr()
         absg = torch.zeros(n, dtype=dt)
         proxy = torch.zeros(n, 2, dtype=dt) if state.kernel == "raymax" else torch.zeros(1, 2, dtype=dt)  # raymax only
         a.grad_params = gp.data_ptr()
@@ -211,14 +221,15 @@ class _RasterFn(torch.autograd.Function):
             if rc != 0:
                 raise RuntimeError(f"gsbench rasterizer backward failed (code {rc})")
             state.pairs_bwd = int(a.pairs)
-        _prof("raster_bwd", time.perf_counter() - t0)
+        if state.profiled:  # a render made while the timers were off (PGSR's neighbour view) stays out of them
+            _prof("raster_bwd", time.perf_counter() - t0)
         # densification statistics
         m2g = proxy if state.kernel == "raymax" else gp[:, :2]
         leaf = state.m2d_leaf
         m2g = m2g.to(leaf.dtype)
         leaf.grad = m2g.clone() if leaf.grad is None else leaf.grad + m2g
         state.absgrad += absg.to(state.absgrad.dtype)
-        return gp, None
+        return gp, g_plane_d, None
 
 
 def _background(background, settings: RasterSettings, dtype) -> torch.Tensor:
@@ -377,10 +388,16 @@ def rasterize(
 
     m2d_leaf = proj.means2d.detach().clone().requires_grad_(True)
     absgrad = torch.zeros(n, dtype=dtype)
+    native_plane = hasattr(lib, "gs_plane_distance_abi")
+    plane_d = _plane_distances(proj.params, gaussians.means, camera, kernel) if want["plane_distance"] else None
+    a.want_plane = int(want["plane_distance"] and native_plane)
     state = _State(lib, a, kernel, n, m2d_leaf, absgrad, H, W, dtype, (bounds, depth_key, offsets, tile_list, rect))
-    state.want = want
+    state.want = {**want, "plane_distance": bool(a.want_plane)}
 
-    rgb, alpha, dacc, med, nrm, dist = _RasterFn.apply(proj.params, state)
+    empty = torch.empty(0, dtype=dtype)
+    rgb, alpha, dacc, med, nrm, dist, plane = _RasterFn.apply(proj.params, plane_d if a.want_plane else empty, state)
+    if want["plane_distance"] and not native_plane:  # interim: a library without the output (see _plane_pass)
+        plane = _plane_pass(proj.params, plane_d, a, state)
 
     res = RenderOutput(width=W, height=H)
     if want["rgb"]:
@@ -397,11 +414,51 @@ def rasterize(
         res.normal = nrm
     if want["distortion"]:
         res.distortion = dist
+    if want["plane_distance"]:
+        res.plane_distance = plane
     res.means2d = m2d_leaf
     res.radii = proj.radii
     res.visible = proj.visible
     res.extras = {"absgrad": absgrad, "pairs": state.pairs_fwd, "tile_pairs": capacity, "state": state}
     return res
+
+
+# payload column of the first normal component per kernel (gsbench.raster.projection); raymax: b' = Σ⁻¹μ/c
+_NORMAL_COLUMN = {"ewa": 10, "rade": 12, "surfel": 9, "raymax": 15}
+
+
+def _plane_distances(params: torch.Tensor, means: torch.Tensor, camera: Camera, kernel: str) -> torch.Tensor:
+    """d_i = −n_i·μ_i (N,), differentiable (contract ``plane_distance``, docs/methods/pgsr.md §3.1): n_i from
+    the payload (raymax: −normalize(b'), its normal on the central ray), μ_i the camera-space centre.
+    Culled rows are never binned, so their value is unused."""
+    from gsbench.raster.projection import camera_tensors  # noqa: PLC0415
+
+    R, t, _ = camera_tensors(camera, params.dtype)
+    mu = means.to(params.dtype) @ R.T + t
+    c = _NORMAL_COLUMN[kernel]
+    normal = params[:, c:c + 3]
+    if kernel == "raymax":
+        normal = -torch.nn.functional.normalize(normal, dim=-1)
+    return -(normal * mu).sum(-1)
+
+
+def _plane_pass(params: torch.Tensor, plane_d: torch.Tensor, args, state: _State) -> torch.Tensor:
+    """Σ w_i d_i by a second colour-only compositing pass with d in the red channel (exact, same gradients
+    w.r.t. the payload and means2d; absgrad sums the two passes' abs-gradients). Used only with a
+    compiled library that predates the native ``plane_distance`` output."""
+    import ctypes as _ct  # noqa: PLC0415
+
+    from gsbench.raster.build import GsArgs  # noqa: PLC0415
+
+    b = GsArgs()
+    _ct.memmove(_ct.byref(b), _ct.byref(args), _ct.sizeof(GsArgs))
+    b.want_rgb, b.want_depth, b.want_median, b.want_normal, b.want_dist = 1, 0, 0, 0, 0
+    second = _State(state.lib, b, state.kernel, state.n, state.m2d_leaf, state.absgrad, state.height, state.width,
+                    state.dtype, state.bufs)
+    second.want = {o: o == "rgb" for o in OUTPUTS}
+    n = params.shape[0]
+    payload = torch.cat([params[:, :6], plane_d[:, None], params.new_zeros(n, 2), params[:, 9:]], 1)
+    return _RasterFn.apply(payload, torch.empty(0, dtype=params.dtype), second)[0][..., 0]
 
 
 def _with_bg(settings: RasterSettings, background) -> RasterSettings:

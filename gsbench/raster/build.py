@@ -59,7 +59,11 @@ class GsArgs(ctypes.Structure):
             "g_rgb", "g_alpha", "g_depth", "g_median", "g_normal", "g_dist",
             "grad_params", "absgrad", "proxy",
         )
-    ] + [("pairs", ctypes.c_int64)]
+    ] + [("pairs", ctypes.c_int64)] + [
+        # plane_distance (PGSR, docs/methods/pgsr.md §3.1): appended so the older fields keep their offsets
+        ("want_plane", ctypes.c_int64), ("plane_d", ctypes.c_void_p), ("out_plane", ctypes.c_void_p),
+        ("g_plane", ctypes.c_void_p), ("grad_plane", ctypes.c_void_p),
+    ]
 
 
 class ProjArgs(ctypes.Structure):

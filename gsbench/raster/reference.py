@@ -54,6 +54,9 @@ Decisions (where the contract leaves room; the fast path must match these):
 13. Early stop: with T_i the transmittance before i (over blended Gaussians only), pair i is the
     stop pair if it is not skipped and ``T_i·(1−α_i) < 1e-4``; it and every later pair of that
     pixel are not blended.
+14. Plane distance (PGSR, docs/methods/pgsr.md §3.1): d_i = −n_i·μ_i with the kernel's per-Gaussian normal
+    (ewa, rade, surfel); raymax, whose normal varies per pixel, uses its normal on the central ray
+    −normalize(Σ⁻¹μ) (= rade's), so d_i = μᵀΣ⁻¹μ / ‖Σ⁻¹μ‖. d_i >= 0 by the normals' orientation.
 
 Public functions: `render`, `integrate_reference`, `project` (per-Gaussian quantities),
 `pair_terms` (per-(pixel, Gaussian) kernel evaluation at arbitrary pixel positions),
@@ -589,6 +592,11 @@ def render(
         out.median_depth = torch.where(onehot, depth, torch.zeros_like(depth)).sum(-1).reshape(H, W)
     if "normal" in outputs:
         out.normal = (w[..., None] * normal).sum(1).reshape(H, W, 3)
+    if "plane_distance" in outputs:
+        # d_i = −n_i·μ (contract); raymax's per-pixel normal is replaced by its normal on the central ray
+        n_plane = -_safe_normalize((proj.cov_inv @ proj.mu[..., None])[..., 0]) if kernel == "raymax" else proj.normal
+        plane_d = -(n_plane * proj.mu).sum(-1)[order]
+        out.plane_distance = (w * plane_d[None, :]).sum(-1).reshape(H, W)
     if "distortion" in outputs:
         near, far = settings.near, settings.far
         pos_z = blended & (depth > 0)

@@ -42,6 +42,11 @@ Outputs (only the requested ones are computed and stored):
 - ``distortion``   (H,W)   Σ_i Σ_{j<i} w_i w_j (m_i − m_j)², m = far/(far−near)·(1 − near/z),
                            far = settings.far_plane · settings.scene_radius; with
                            ``detach_distortion_weights`` the w's get no gradient (GOF).
+- ``plane_distance`` (H,W) Σ w_i d_i, not normalised (PGSR, docs/methods/pgsr.md §3.1): d_i = −n_i·μ >= 0, the
+                           distance from the camera centre of the plane through the centre μ with the
+                           Gaussian's normal n_i (ewa, rade, surfel: the kernel's per-Gaussian normal; raymax:
+                           its normal on the central ray, −normalize(Σ⁻¹μ)). With the ``normal`` output N
+                           the unbiased depth of a pixel is −plane_distance / (N·r).
 Binning and culling (pinned with the reference, `gsbench.raster.reference` "Decisions"):
 - Pixel (i, j) lies in tile (i // T, j // T). A Gaussian's tile rectangle is the half-open
   ``[clamp(floor((m − r)/T), 0, grid), clamp(floor((m + r + T − 1)/T), 0, grid))`` with m = means2d
@@ -66,7 +71,7 @@ from dataclasses import dataclass, field
 import torch
 
 KERNELS = ("ewa", "surfel", "raymax", "rade")
-OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
+OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion", "plane_distance")
 
 
 @dataclass
@@ -134,6 +139,7 @@ class RenderOutput:
     median_depth: torch.Tensor | None = None
     normal: torch.Tensor | None = None
     distortion: torch.Tensor | None = None
+    plane_distance: torch.Tensor | None = None
     means2d: torch.Tensor | None = None
     radii: torch.Tensor | None = None
     visible: torch.Tensor | None = None

@@ -1,8 +1,10 @@
-"""Group runs into the rows and cells of the report and summarise them (mean ± std over seeds).
+"""Group runs into the rows and cells of the report and summarise them (mean, std and 95% interval
+over seeds).
 
 A `Board` is one table: rows (a configuration of a method, or a sweep label) × scenes of one dataset,
 ranked by one metric. A `Cell` holds the runs of one row on one scene; its value is the mean over its
-``ok`` runs that have the metric, with the sample standard deviation when there are several. The row
+``ok`` runs that have the metric, with the sample standard deviation and the half-width of the 95%
+Student t-interval of the mean (`gsbench.report.stats.t_half_width`) when there are several. The row
 mean is the mean of its scene means (each scene weighs the same, as in the papers); it is ranked only
 when the row has a value on every scene of the board. Missing runs are counted: for the leaderboard,
 the (scene, seed) pairs a row lacks among its seeds; for a sweep, the manifest entries without a record.
@@ -21,6 +23,7 @@ from dataclasses import dataclass, field
 
 from gsbench.report.collect import Manifest, Run
 from gsbench.report.metrics import DATASET_TITLES, MetricSpec, Reported
+from gsbench.report.stats import t_half_width
 
 STATUS_ORDER = ("ok", "no metric", "failed", "interrupted", "running", "missing")
 SPEED = {  # key -> how to read it from a run
@@ -37,13 +40,20 @@ class Stat:
     n: int
     mean: float
     std: float | None  # sample standard deviation; None for a single value
+    ci: float | None = None  # half-width of the 95% Student t-interval of the mean; None for a single value
+
+    @property
+    def interval(self) -> tuple[float, float] | None:
+        return None if self.ci is None else (self.mean - self.ci, self.mean + self.ci)
 
 
 def stat(values) -> Stat | None:
     values = [float(v) for v in values if v is not None]
     if not values:
         return None
-    return Stat(len(values), statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None)
+    several = len(values) > 1
+    return Stat(len(values), statistics.fmean(values), statistics.stdev(values) if several else None,
+                t_half_width(values) if several else None)
 
 
 @dataclass

@@ -1,6 +1,11 @@
 """`write_report`: a runs folder -> ``leaderboard.md``, ``leaderboard.csv``, ``index.html`` and
 ``plots/*.png`` in the output folder (``gsbench report RUNS_DIR --out DIR``).
 
+Sections: the leaderboards (cells: mean ± 95% t-interval over seeds); ranks and paired comparisons per
+leaderboard (`gsbench.report.stats`); the papers' orderings tested (`gsbench.report.claims`); speed
+against error; captures without ground truth; sweeps (ablations, with paired tests against the first
+row); failed runs; protocols; environment.
+
 Runs with measures that need no ground truth (held-out PSNR/SSIM, mask IoU, the surface outside the
 masks' visual hull, mesh statistics) or with skipped evaluators get the section "Captures without
 ground truth"; it is left out when no run has either. A scene that cannot feed a dataset's ranking
@@ -19,13 +24,15 @@ from pathlib import Path
 
 from gsbench.report import plots as figures
 from gsbench.report.aggregate import Board, ablations, leaderboard
+from gsbench.report.claims import evaluate_claims
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.html import document_html
-from gsbench.report.metrics import COMPANIONS, metric_specs, primary_metric, reported
+from gsbench.report.metrics import COMPANIONS, PAPERS_METRIC, metric_specs, primary_metric, reported
 from gsbench.report.tables import Plot, Section, document_markdown
-from gsbench.report.views import (ablation_table, environment_table, failed_table, leaderboard_csv,
-                                  leaderboard_table, nogt_table, protocol_table, runs_table, skipped_table,
-                                  speed_table)
+from gsbench.report.stats import comparisons
+from gsbench.report.views import (PAIRED_NOTE, ablation_table, claims_tables, environment_table, failed_table, leaderboard_csv,
+                                  leaderboard_table, nogt_table, paired_table, protocol_table, ranks_table,
+                                  runs_table, skipped_table, speed_table)
 
 TITLE = "gsbench report"
 PROTOCOLS_NOTE = ("Each dataset is ranked by its official protocol (DTU: the DTUeval script's Chamfer; TnT: the "
@@ -33,6 +40,24 @@ PROTOCOLS_NOTE = ("Each dataset is ranked by its official protocol (DTU: the DTU
                   "the mesh (independent of how the surface is triangulated) and, for TnT, F1 on vertices plus face "
                   "centroids, the point set of the 2DGS / GOF / RaDe-GS scripts that produced those papers' TnT "
                   "numbers, so their reported values sit beside that board.")
+RANKS_NOTE = ("Which differences between rows the seeds and scenes can tell apart, for each dataset's ranking "
+              "leaderboard and the one in the papers' own metric: the rank of each row on each scene and on "
+              "average, a rank shared by rows whose paired differences are not significant, and every row "
+              "against every other, paired on the same scene and seed (`gsbench.report.stats` states the "
+              "formulas).")
+CLAIMS_NOTES = [
+    "The orderings the papers report (`gsbench.report.claims`, each with its source), split into claims between "
+    "two methods, or two rows of the sweep that repeats an ablation, and tested on these runs in the metric "
+    "the paper used: DTU the official script's Chamfer, TnT the F1 on vertices + face centroids (the 2DGS / "
+    "GOF / RaDe-GS scripts). The papers' numbers are on the real datasets (GPU, full schedules); here only "
+    "their order is checked.",
+    "Verdict, from the paired test of the claimed better side against the other: agrees (the claimed side "
+    "significantly better, p < 0.05); disagrees (the other side significantly better; for ≈ any significant "
+    "difference); not separable (p ≥ 0.05; for ≥ and ≈ that agrees with the claim: 'agrees (not "
+    "separable)'); not measured (a side has no runs with the metric, or the two share no (scene, seed) "
+    "pair). Not separable with few pairs is no evidence of equality. A method with several configurations "
+    "on a leaderboard is represented by the one with the most runs (named under rows compared).",
+]
 ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
              "between its runs on one scene (so different configs are never averaged as if they were seeds).")
 
@@ -118,7 +143,7 @@ def _without_gt(runs) -> Section | None:
 
 def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict[str, list[str]]]:
     """(the ablation section, run id -> its ``sweep: label`` names)."""
-    section = Section("sweeps", "Sweeps (ablations)", [], [])
+    section = Section("sweeps", "Sweeps (ablations)", [PAIRED_NOTE] if manifests else [], [])
     if not manifests:
         section.paragraphs.append("No sweep manifests (`<out>/sweeps/<name>.json`, written by `gsbench sweep`) found.")
     by_id = {r.run_id: r for r in runs}
@@ -162,8 +187,17 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
                                  figures.speed_figure, board)
     sweeps, sweep_labels = _sweeps(manifests, runs, primary, made)
     without_gt = _without_gt(runs)
-    ranked = [leaderboard_table(b) for b in sorted([*boards, *companions], key=lambda b: b.dataset)]
-    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked),
+    ordered = sorted([*boards, *companions], key=lambda b: b.dataset)
+    ranked = [leaderboard_table(b) for b in ordered]
+    significance = Section("ranks", "Ranks and paired comparisons", [RANKS_NOTE, PAIRED_NOTE], [])
+    for board in ordered:
+        if board.spec.name in (primary[board.dataset].name, PAPERS_METRIC.get(board.dataset)):
+            tests = comparisons(board)
+            significance.blocks += [ranks_table(board, tests), paired_table(board, tests)]
+    specs = metric_specs()
+    claims = Section("papers-orderings", "The papers' orderings, tested", [*CLAIMS_NOTES, PAIRED_NOTE],
+                     claims_tables(evaluate_claims(runs, manifests, specs), specs))
+    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked), significance, claims,
                 speed, *([without_gt] if without_gt else []), sweeps,
                 Section("failed", "Failed and unfinished runs", [], [failed_table(runs)]),
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),

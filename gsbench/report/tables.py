@@ -44,9 +44,10 @@ def mib(value: float | None) -> str:
 
 
 def stat_text(value: Stat | None, digits: int = 3) -> str:
+    """``mean ± h``, h the half-width of the 95% t-interval over the values (n ≥ 2); ``mean`` for one value."""
     if value is None:
         return MISSING
-    spread = f" ± {value.std:.{digits}f}" if value.std is not None else ""
+    spread = f" ± {value.ci:.{digits}f}" if value.ci is not None else ""
     return f"{value.mean:.{digits}f}{spread}"
 
 
@@ -56,7 +57,7 @@ def status_text(statuses: dict[str, int]) -> str:
 
 
 def metric_cell(cell: Cell | None, best: bool = False) -> TCell:
-    """``mean ± std`` over the cell's ok runs, with the other statuses in brackets; ``–`` for no run."""
+    """``mean ± 95% half-width`` over the cell's ok runs (`stat_text`), with the other statuses in brackets; ``–`` for no run."""
     if cell is None or not cell.runs:  # nothing ran: the runs column counts what is missing
         return TCell(MISSING, None, "bad")
     value = cell.stat
@@ -75,7 +76,7 @@ def to_markdown(table: Table, level: int = 3) -> str:
     """The table as a Markdown section: heading, pipe table (best values bold), notes as a list."""
 
     def show(cell: TCell) -> str:
-        text = cell.text.replace("|", "\\|")
+        text = cell.text.replace("|", "\\|").replace("*", "\\*")  # a literal * (a significance mark)
         if cell.style == "best" and text != MISSING:
             return f"**{text}**"
         return f"*{text}*" if cell.style == "reported" and text != MISSING else text

@@ -16,10 +16,20 @@ from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
 from gsbench.report.collect import Run
 from gsbench.report.metrics import COMPANIONS, NO_GT, REAL_DATASETS, MetricSpec
 from gsbench.report.pareto import COSTS, cost_points
+from gsbench.report.stats import ALPHA, PairedTest, comparisons, compare_rows, mean_ranks, scene_ranks, \
+    significance_ranks
 from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
               "the same thread count on an equally loaded machine of the same kind (see Environment).")
+INTERVAL_NOTE = ("± h: the 95% Student t-interval of the mean over a cell's ok runs (seeds), mean ± h with "
+                 "h = t(0.975, n−1)·s/√n (s the sample standard deviation), for n ≥ 2; a cell of one run shows "
+                 "no interval.")
+PAIRED_NOTE = (f"Paired test: over the (scene, seed) pairs on which both rows have an ok run with the metric; "
+               f"two-sided Wilcoxon signed-rank test of the differences (scipy.stats.wilcoxon: zero differences "
+               f"dropped, exact for up to 50 pairs without ties), or the exact sign test when all differences "
+               f"are zero or fewer than 6 are non-zero (then no test can reach p < {ALPHA}); significant: "
+               f"p < {ALPHA}, no correction for multiple comparisons.")
 MEMORY_NOTE = ("Memory: the process's peak RSS through training (the record's train stage); mesh extraction and "
                "evaluation are left out, they are the same protocol for every method.")
 
@@ -70,9 +80,10 @@ def leaderboard_table(board: Board) -> Table:
         cells.append(plain(status_text(row.counts)))
         rows.append(cells)
     notes = [
-        f"{board.spec.label}, {board.spec.direction}; mean ± sample std over a cell's ok runs (seeds) when it "
-        f"has several; **bold**: best in its column; the mean is over scenes and ranked only for rows with "
-        f"every scene ('k/n scenes' otherwise).",
+        f"{board.spec.label}, {board.spec.direction}; a cell: mean over its ok runs (seeds); **bold**: best in "
+        f"its column; the mean is over scenes and ranked only for rows with every scene ('k/n scenes' "
+        f"otherwise). Ranks and paired comparisons: the next section.",
+        INTERVAL_NOTE,
         "Runs: ok, failed and other statuses, and missing (scene, seed) pairs among the seeds a row has.",
         protocol_note(board),
     ]
@@ -89,6 +100,117 @@ def leaderboard_table(board: Board) -> Table:
     companion = board.spec.name in COMPANIONS.get(board.dataset, ())
     anchor = f"leaderboard-{_slug(board.dataset)}" + (f"-{_slug(board.spec.name)}" if companion else "")
     return Table(anchor, board.title, header, rows, notes)
+
+
+def p_text(p: float) -> str:
+    """A p-value to 3 decimals; ``<0.001`` below that."""
+    return "<0.001" if p < 0.001 else f"{p:.3f}"
+
+
+def _rank_text(rank: float | None) -> str:
+    return MISSING if rank is None else (str(int(rank)) if rank == int(rank) else f"{rank:.1f}")
+
+
+def _board_anchor(board: Board, kind: str) -> str:
+    companion = board.spec.name in COMPANIONS.get(board.dataset, ())
+    return f"{kind}-{_slug(board.dataset)}" + (f"-{_slug(board.spec.name)}" if companion else "")
+
+
+def ranks_table(board: Board, tests: dict[tuple[str, str], PairedTest] | None = None) -> Table:
+    """Per-scene ranks of the rows' cell means, the mean rank, and the significance rank (shared when the
+    paired tests cannot separate the rows), with the mean over scenes for reference."""
+    tests = comparisons(board) if tests is None else tests
+    per_scene = scene_ranks(board)
+    mean = mean_ranks(board, per_scene)
+    shared = significance_ranks(board, tests)
+    header = ["method", *board.scenes, "mean rank", "rank (paired tests)", f"mean {board.spec.label}"]
+    best_mean = min((v for v in mean.values() if v is not None), default=None)
+    rows = []
+    for row in sorted(board.rows, key=lambda r: (shared.get(r.name, len(board.rows) + 1),
+                                                 mean[r.name] if mean[r.name] is not None else float("inf"))):
+        cells = [plain(row.name)]
+        cells += [TCell(_rank_text(per_scene[row.name].get(scene)), per_scene[row.name].get(scene),
+                        "best" if per_scene[row.name].get(scene) == 1 else "") for scene in board.scenes]
+        value = mean[row.name]
+        cells.append(TCell(number(value, 2) if value is not None else MISSING, value,
+                           "best" if value is not None and value == best_mean else ""))
+        rank = shared.get(row.name)
+        cells.append(TCell(str(rank) if rank is not None else MISSING, rank, "best" if rank == 1 else ""))
+        row_mean, complete = board.mean(row)
+        cells.append(TCell(number(row_mean) if complete else MISSING, row_mean if complete else None))
+        rows.append(cells)
+    notes = [
+        f"Rank on a scene: of the row's cell mean among the rows with a value there (1 = best in "
+        f"{board.spec.label}, {board.spec.direction}; ties share the mean of their ranks). Mean rank: over the "
+        f"board's scenes, for rows with a value on every scene.",
+        f"Rank (paired tests): 1 + the number of rows (with every scene) significantly better than the row (p < "
+        f"{ALPHA} in this section's paired test; matrix below), so rows whose differences are not significant "
+        f"share a rank; rows are listed in this order.",
+    ]
+    return Table(_board_anchor(board, "ranks"), f"Ranks: {board.title}", header, rows, notes)
+
+
+def paired_table(board: Board, tests: dict[tuple[str, str], PairedTest] | None = None) -> Table:
+    """Every row against every other: mean paired difference (row − column), the pairs where the row is
+    better, and the p-value; starred when significant, bold when the row is significantly better."""
+    tests = comparisons(board) if tests is None else tests
+    names = [row.name for row in board.rows]
+    header = ["row − column", *names]
+    rows = []
+    for a in names:
+        cells = [plain(a)]
+        for b in names:
+            if a == b:
+                cells.append(TCell(MISSING))
+                continue
+            test = tests[(a, b)]
+            if test.p is None:
+                cells.append(TCell("no pairs"))
+                continue
+            star = " *" if test.significant else ""
+            text = f"{test.mean_diff:+.3f}, {test.wins}/{test.n} better, p={p_text(test.p)}{star}"
+            cells.append(TCell(text, test.mean_diff, "best" if test.a_better else ("bad" if test.b_better else "")))
+        rows.append(cells)
+    notes = [
+        f"A cell compares its row with its column on {board.spec.label} ({board.spec.direction}): the mean over "
+        f"their (scene, seed) pairs of row − column, how many of the pairs the row is better on, and the p-value "
+        f"of the paired test of this section; * : p < {ALPHA}; **bold**: the row is significantly better, "
+        f"'*' alone: worse.",
+    ]
+    return Table(_board_anchor(board, "paired"), f"Paired comparisons: {board.title}", header, rows, notes)
+
+
+def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
+    """One table per group of claims (`gsbench.report.claims`), one line per claim: the ordering, the
+    paper's numbers and source, the rows compared, the mean paired difference, the pairs won, the p-value
+    and the verdict."""
+    groups: dict[str, list] = {}
+    for outcome in outcomes:
+        groups.setdefault(outcome.claim.group, []).append(outcome)
+    header = ["claim", "paper", "source", "rows compared", "Δ (claimed better − other)", "better on", "p (test)",
+              "verdict"]
+    tables = []
+    for group, members in groups.items():
+        rows = []
+        for o in members:
+            c, t = o.claim, o.test
+            where = f"sweep {c.sweep}: " if c.sweep else ""
+            compared = f"{where}{o.better_row} vs {o.worse_row}" if not o.why else o.why
+            measured = t is not None and t.p is not None
+            style = {"agrees": "best", "disagrees": "bad"}.get(o.verdict, "")
+            rows.append([
+                plain(c.text), plain(c.paper), plain(c.source), plain(compared),
+                TCell(f"{t.mean_diff:+.3f}" if measured else MISSING, t.mean_diff if measured else None),
+                plain(f"{t.wins}/{t.n} pairs" if measured else MISSING),
+                TCell(f"{p_text(t.p)} ({t.test})" if measured else MISSING, t.p if measured else None),
+                TCell(o.verdict, None, style),
+            ])
+        first = members[0].claim
+        spec = specs.get(first.metric)
+        metric = spec.label + f", {spec.direction}" if spec else first.metric
+        anchor = f"claims-{_slug(first.sweep or f'{first.dataset}-{first.metric}')}"
+        tables.append(Table(anchor, f"{group} ({first.dataset}: {metric})", header, rows))
+    return tables
 
 
 def fronts(board: Board) -> dict[str, set[str]]:
@@ -142,16 +264,32 @@ def _row_speed_cells(row: Row) -> list[TCell]:
     return [_stat_cell(row.speed["train"], lambda v: number(v, 1)), _stat_cell(row.speed["gaussians"], count)]
 
 
+def _paired_text(test: PairedTest) -> TCell:
+    """``p (n pairs)``, starred when significant; ``–`` without pairs."""
+    if test.p is None:
+        return TCell(MISSING)
+    star = " *" if test.significant else ""
+    return TCell(f"{p_text(test.p)} ({test.n}){star}", test.p, "best" if test.a_better else "")
+
+
 def ablation_table(board: Board) -> Table:
     """A sweep: transposed (``key | v1 | v2 ...``) for a one-key numeric grid, else one row per label
-    with the change of the mean against the first label."""
+    with the change of the mean against the first label and the paired test against it (over scene ×
+    seed; starred when significant)."""
     anchor = f"sweep-{_slug(board.title)}"
-    notes = [protocol_note(board), TIMES_NOTE]
+    baseline = board.rows[0] if board.rows else None
+    notes = [protocol_note(board), INTERVAL_NOTE]
+    if baseline is not None and len(board.rows) > 1:
+        notes.append(f"Against the first row ({baseline.name}): p (pairs) of the paired test over scene × seed "
+                     f"(this section's introduction); *, also on the Δ: p < {ALPHA}; **bold**: significantly "
+                     f"better than {baseline.name}.")
+    notes.append(TIMES_NOTE)
     if board.grid_key:
         return _grid_table(board, anchor, notes)
     several = len(board.scenes) > 1
     header = ["label", "method", *board.scenes, *(["mean"] if several else []),
-              f"Δ vs {board.rows[0].name}" if board.rows else "Δ", "train (s)", "Gaussians", "runs"]
+              f"Δ vs {board.rows[0].name}" if board.rows else "Δ",
+              f"p vs {board.rows[0].name} (pairs)" if board.rows else "p", "train (s)", "Gaussians", "runs"]
     best = {column: board.best(column) for column in [*board.scenes, "mean"]}
     first, first_complete = board.mean(board.rows[0]) if board.rows else (None, False)
     rows = []
@@ -163,7 +301,10 @@ def ablation_table(board: Board) -> Table:
             cells.append(TCell(number(value) if complete else MISSING, value if complete else None,
                                "best" if row.name in best["mean"] else ""))
         delta = value - first if complete and first_complete and value is not None and first is not None else None
-        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}", delta))
+        test = compare_rows(board, row, baseline) if row is not baseline else None
+        star = " *" if test is not None and test.significant else ""
+        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}{star}", delta))
+        cells.append(_paired_text(test) if test is not None else TCell(MISSING))
         cells += _row_speed_cells(row)
         cells.append(plain(status_text(row.counts)))
         rows.append(cells)
@@ -187,6 +328,13 @@ def _grid_table(board: Board, anchor: str, notes: list[str]) -> Table:
         rows.append([plain(f"{board.spec.label}, mean")] +
                     [TCell(number(v) if c else MISSING, v if c else None, "best" if row.name in best else "")
                      for row, (v, c) in zip(board.rows, means)])
+    if len(board.rows) > 1:
+        baseline = board.rows[0]
+        tests = [compare_rows(board, row, baseline) for row in board.rows[1:]]
+        rows.append([plain(f"paired vs {_value_text(board.grid_values[0])}: Δ, p (pairs)")] + [TCell(MISSING)] +
+                    [TCell(MISSING if t.p is None else
+                           f"{t.mean_diff:+.3f}, {p_text(t.p)} ({t.n}){' *' if t.significant else ''}",
+                           t.p, "best" if t.a_better else "") for t in tests])
     speed = [_row_speed_cells(row) for row in board.rows]
     rows.append([plain("train (s)")] + [cells[0] for cells in speed])
     rows.append([plain("Gaussians")] + [cells[1] for cells in speed])
@@ -337,7 +485,7 @@ def runs_table(runs: list[Run], specs: dict[str, MetricSpec], sweeps: dict[str, 
 
 CSV_COLUMNS = ("dataset", "metric", "unit", "higher_is_better", "method", "variant", "scene", "n_ok", "n_other",
                "n_missing", "mean", "std", "best", "complete", "reported", "iterations", "threads", "train_s",
-               "total_s", "train_peak_rss_mib", "gaussians")
+               "total_s", "train_peak_rss_mib", "gaussians", "ci95_low", "ci95_high", "rank", "rank_paired")
 
 
 def _csv_number(value) -> str:
@@ -345,13 +493,18 @@ def _csv_number(value) -> str:
 
 
 def leaderboard_csv(boards: list[Board]) -> str:
-    """Long format: one line per (dataset, row, scene) and one ``scene=mean`` line per row."""
+    """Long format: one line per (dataset, row, scene) and one ``scene=mean`` line per row. ``ci95_low`` /
+    ``ci95_high``: the 95% t-interval of a cell's mean over seeds (n ≥ 2); ``rank``: the rank on the scene,
+    or on the mean line the mean rank; ``rank_paired``: the significance rank (`gsbench.report.stats`)."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)
     for board in boards:
         spec = board.spec
         best = {column: board.best(column) for column in [*board.scenes, "mean"]}
+        per_scene = scene_ranks(board)
+        mean_rank = mean_ranks(board, per_scene)
+        shared = significance_ranks(board)
         for row in board.rows:
             variant = row.runs[0].variant if row.runs else ""
             method = row.methods[0] if len(row.methods) == 1 else ";".join(row.methods)
@@ -367,14 +520,21 @@ def leaderboard_csv(boards: list[Board]) -> str:
                                         statuses.get("missing", 0),
                                         _csv_number(value.mean if value else None),
                                         _csv_number(value.std if value else None), int(row.name in best[scene]), "",
-                                        _csv_number(ref.scene_value(scene) if ref else None)] + _csv_speed(runs))
+                                        _csv_number(ref.scene_value(scene) if ref else None)] + _csv_speed(runs)
+                                + [*_csv_interval(value), _csv_number(per_scene[row.name].get(scene)), ""])
             mean, complete = board.mean(row)
             counts = row.counts
             writer.writerow(base + ["mean", counts.get("ok", 0),
                                     sum(n for k, n in counts.items() if k not in ("ok", "missing")),
                                     counts.get("missing", 0), _csv_number(mean), "", int(row.name in best["mean"]),
-                                    int(complete), _csv_number(ref.mean if ref else None)] + _csv_speed(row.runs))
+                                    int(complete), _csv_number(ref.mean if ref else None)] + _csv_speed(row.runs)
+                            + ["", "", _csv_number(mean_rank[row.name]), _csv_number(shared.get(row.name))])
     return out.getvalue()
+
+
+def _csv_interval(value: Stat | None) -> list[str]:
+    interval = value.interval if value else None
+    return [_csv_number(interval[0]), _csv_number(interval[1])] if interval else ["", ""]
 
 
 def _csv_speed(runs: list[Run]) -> list[str]:

@@ -6,8 +6,9 @@
 //
 // Loop order: per 16x16 tile (OpenMP), Gaussians of the tile in depth order (outer), and the
 // 16 pixels of one tile row as SIMD lanes (inner). Rows outside a Gaussian's alpha >= 1/255 box are
-// skipped; this never changes a result. The backward walks the list back to front, recomputes alpha,
-// reduces each Gaussian's gradient over the tile's lanes, then adds it to a per-thread buffer.
+// skipped, and so is each 8-lane half of a row that the box's columns miss; this never changes a
+// result. The backward walks the list back to front, recomputes alpha, reduces each Gaussian's
+// gradient over the tile's lanes, then adds it to a per-thread buffer.
 // Determinism: the backward deals tiles round-robin (static, 1), not dynamically, and sums the
 // per-thread buffers in thread order, so the gradients are bit-identical from run to run at a given
 // thread count (training resumes exactly); the forward writes each pixel once, so its schedule is free.
@@ -27,6 +28,7 @@ namespace {
 
 constexpr int TS = 16;       // tile size
 constexpr int TP = TS * TS;  // pixels per tile
+constexpr int HL = 8;        // lanes per chunk: a tile row is two chunks, each evaluated only if the box meets it
 constexpr int K_EWA = 0, K_RADE = 1, K_RAYMAX = 2, K_SURFEL = 3;
 
 // common payload columns
@@ -111,6 +113,21 @@ template <typename T> inline T dmapm(T z, T nearz, T farz) {
     return farz * nearz / ((farz - nearz) * z * z);
 }
 
+// c ? a : b as a bitwise blend. The lane loops use it for every select that feeds a store: GCC turns a `?:`
+// into a branch, and with -fno-signed-zeros proves `x += c ? y : 0` / `x = c ? y : x` a no-op on one side,
+// so the vectoriser emits masked stores (vmaskmovps, slow on AVX2) behind a branch per store; a bitwise
+// select stays straight-line code. Bit-identical to `?:`.
+template <typename T> struct UInt;
+template <> struct UInt<float> { using t = uint32_t; };
+template <> struct UInt<double> { using t = uint64_t; };
+template <> struct UInt<int32_t> { using t = uint32_t; };
+template <typename T>
+inline T bsel(bool c, T a, T b) {
+    using U = typename UInt<T>::t;
+    const U m = (U)0 - (U)c;
+    return __builtin_bit_cast(T, (U)((__builtin_bit_cast(U, a) & m) | (__builtin_bit_cast(U, b) & ~m)));
+}
+
 struct FTZGuard {
     unsigned int csr;
     FTZGuard() : csr(_mm_getcsr()) { _mm_setcsr(csr | 0x8040); }
@@ -126,13 +143,24 @@ inline void prefetch_gauss(const T* P, const T* BND, int g) {
     __builtin_prefetch(BND + (int64_t)g * 4, 0, 1);
 }
 
-// rows of tile (y0..y0+nrows) whose pixel centre lies in [ymin, ymax]
+// rows of tile (y0..y0+nrows) whose pixel centre lies in [ymin, ymax] (also used for columns)
 template <typename T>
 inline void row_range(T ymin, T ymax, int y0, int nrows, int& r0, int& r1) {
     T lo = std::min(std::max(ymin, T(y0 - 2)), T(y0 + TS + 2));
     T hi = std::min(std::max(ymax, T(y0 - 2)), T(y0 + TS + 2));
     r0 = std::max(y0, (int)std::ceil(lo - T(0.5)));
     r1 = std::min(y0 + nrows, (int)std::floor(hi - T(0.5)) + 1);
+}
+
+// 1/|r| of each pixel of a tile (rade's camera-z depth), once per tile: same expression as per lane.
+template <typename T>
+inline void fill_invr(T* __restrict invrs, const T* __restrict rxs, int y0, int nrows, T cy, T fy) {
+    for (int ly = 0; ly < nrows; ++ly) {
+        const T py = T(y0 + ly) + T(0.5);
+        const T ry = (py - cy) / fy;
+#pragma omp simd
+        for (int lx = 0; lx < TS; ++lx) invrs[ly * TS + lx] = T(1) / std::sqrt(rxs[lx] * rxs[lx] + ry * ry + T(1));
+    }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -202,9 +230,9 @@ __attribute__((always_inline)) inline void eval_lane(Eval<K, T>& e, const T* __r
     } else {  // surfel: plane n·x = d (n = camera-facing unit normal), local axes a_u = t_u/s_u, a_v
         const T* X = p + P_X;  // n (3), d, a_u (3), b_u, a_v (3), b_v ; b = μ·a
         const T nr = X[0] * rx + X[1] * ry + X[2];
-        // ray parallel to the splat (p.z == 0 in the homogeneous form of 2DGS §2.4)
+        // ray parallel to the splat (p.z == 0 in the homogeneous form of docs/methods/2dgs.md §3.2)
         const bool par = std::fabs(nr) < T(1e-7) * (std::fabs(rx) + std::fabs(ry) + T(1));
-        e.ip = T(1) / (par ? T(1) : nr);
+        e.ip = T(1) / bsel<T>(par, T(1), nr);
         e.t = X[3] * e.ip;  // intersection depth (r_z = 1)
         e.k0 = X[4] * rx + X[5] * ry + X[6];   // r·a_u
         e.l0 = X[8] * rx + X[9] * ry + X[10];  // r·a_v
@@ -216,7 +244,7 @@ __attribute__((always_inline)) inline void eval_lane(Eval<K, T>& e, const T* __r
         // the 2DGS paper's object-space low-pass filter, k = 1/σ² = 2 there; surfel_k = 0 switches it off
         const T rho2 = surfel_k * (e.dx * e.dx + e.dy * e.dy);
         e.branch3d = surfel_k <= T(0) || rho3 <= rho2;
-        const T rho = e.branch3d ? rho3 : rho2;
+        const T rho = bsel<T>(e.branch3d, rho3, rho2);
         e.z = e.t;
         e.ok = !par && e.z >= nearz;
         e.G = fexp<T>(std::max(T(-0.5) * rho, T(-30)));
@@ -229,8 +257,12 @@ __attribute__((always_inline)) inline void eval_lane(Eval<K, T>& e, const T* __r
 // ---------------------------------------------------------------------------------------------
 // Forward
 // ---------------------------------------------------------------------------------------------
-template <int K, typename T, bool GEOM>
+// MODE: 0 = colour/alpha only; 1 = + depth, median, normal (GEOM); 2 = GEOM + distortion (DIST). In GEOM
+// mode the lanes compute depth, median and normal whether requested or not (only the requested ones are
+// written): runtime flags inside the lane loop block GCC's vectoriser (invariant-condition selects).
+template <int K, typename T, int MODE>
 void forward_impl(GsArgs& A) {
+    constexpr bool GEOM = MODE >= 1, DIST = MODE == 2;
     constexpr int NPK = NP<K>::v;
     const int W = (int)A.width, H = (int)A.height, TX = (int)A.tiles_x, TY = (int)A.tiles_y;
     const T* __restrict P = (const T*)A.params;
@@ -259,6 +291,7 @@ void forward_impl(GsArgs& A) {
         alignas(64) T dep[TP], med[TP], n0[TP], n1[TP], n2[TP], m1[TP], m2[TP];
         alignas(64) int32_t lastk[TP], medi[TP];
         alignas(64) T rxs[TS];
+        alignas(64) T invrs[K == K_RADE && GEOM ? TP : 1];
 #pragma omp for schedule(dynamic, 1)
         for (int tile = 0; tile < ntiles; ++tile) {
             const int tx = tile % TX, ty = tile / TX;
@@ -276,17 +309,22 @@ void forward_impl(GsArgs& A) {
                 }
             }
             for (int lx = 0; lx < TS; ++lx) rxs[lx] = (T(x0 + lx) + T(0.5) - cx) / fx;
+            if constexpr (K == K_RADE && GEOM) fill_invr<T>(invrs, rxs, y0, nrows, cy, fy);
             int ndone = TP - nrows * ncols;
             const int beg = A.tile_offsets[tile], end = A.tile_offsets[tile + 1];
             T m0 = T(0);
-            if (GEOM && w_dist && end > beg) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
+            if (DIST && end > beg) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
             for (int k = beg; k < end && ndone < TP; ++k) {
                 if (k + PF < end) prefetch_gauss<NPK, T>(P, BND, A.tile_list[k + PF]);
                 const int g = A.tile_list[k];
                 const T* __restrict p = P + (int64_t)g * NPK;
                 const T* bnd = BND + (int64_t)g * 4;
-                int r0, r1;
+                int r0, r1, q0, q1;
                 row_range<T>(bnd[2], bnd[3], y0, nrows, r0, r1);
+                row_range<T>(bnd[0], bnd[1], x0, ncols, q0, q1);
+                if (q0 >= q1) continue;  // no pixel centre of the tile in the box: nothing to do
+                // the lane chunks [h0, h1) meeting the box's columns (lanes outside it get alpha < 1/255)
+                const int h0 = (q0 - x0) / HL, h1 = (q1 - 1 - x0) / HL + 1;
                 const T o = p[P_O], c0 = p[P_R], c1 = p[P_G], c2 = p[P_B];
                 const int kk = k - beg;
                 for (int y = r0; y < r1; ++y) {
@@ -294,52 +332,57 @@ void forward_impl(GsArgs& A) {
                     const T ry = (py - cy) / fy;
                     const int base = (y - y0) * TS;
                     int nstop = 0;
-                    pairs += TS;
-#pragma omp simd reduction(+ : nstop)
-                    for (int lx = 0; lx < TS; ++lx) {
+                    // one pixel; run as a 16-lane loop when both chunks meet the box, else as one 8-lane
+                    // chunk (constant trip counts: straight vector code, no remainder loops)
+                    auto lane = [&](const int lx) __attribute__((always_inline)) -> int {
                         const int i = base + lx;
                         const T px = T(x0 + lx) + T(0.5);
                         const T rx = rxs[lx];
                         T invr = T(1);
-                        if constexpr (K == K_RADE) invr = T(1) / std::sqrt(rx * rx + ry * ry + T(1));
+                        if constexpr (K == K_RADE && GEOM) invr = invrs[i];
                         Eval<K, T> e;
-                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, surfel_k, GEOM && w_nrm);
+                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, surfel_k, GEOM);
                         const T al = std::min(T(0.99), o * e.G);
                         const bool v = act[i] > T(0) && e.ok && al >= T(1.0 / 255.0);
                         const T Ti = Tr[i];
                         const T Tn = Ti * (T(1) - al);
                         const bool stop = v && Tn < T(1e-4);
                         const bool bl = v && !stop;
-                        const T w = bl ? al * Ti : T(0);
-                        if (w_rgb) {
-                            cr[i] += w * c0;
-                            cg[i] += w * c1;
-                            cb[i] += w * c2;
-                        }
+                        const T w = bsel<T>(bl, al * Ti, T(0));
+                        cr[i] += w * c0;  // also when rgb is not requested (not written back): no branch
+                        cg[i] += w * c1;
+                        cb[i] += w * c2;
                         wa[i] += w;
-                        Tr[i] = bl ? Tn : Ti;
-                        lastk[i] = bl ? kk + 1 : lastk[i];
-                        act[i] = stop ? T(0) : act[i];
-                        nstop += stop ? 1 : 0;
+                        Tr[i] = bsel<T>(bl, Tn, Ti);
+                        lastk[i] = bsel<int32_t>(bl, kk + 1, lastk[i]);
+                        act[i] = bsel<T>(stop, T(0), act[i]);
+                        const int nst = stop ? 1 : 0;
                         if constexpr (GEOM) {
-                            if (w_depth) dep[i] += w * e.z;
-                            if (w_med) {
-                                const bool mm = bl && Ti > T(0.5);
-                                medi[i] = mm ? kk : medi[i];
-                                med[i] = mm ? e.z : med[i];
-                            }
-                            if (w_nrm) {
-                                n0[i] += w * e.n0;
-                                n1[i] += w * e.n1;
-                                n2[i] += w * e.n2;
-                            }
-                            if (w_dist) {
+                            dep[i] += w * e.z;
+                            const bool mm = bl && Ti > T(0.5);
+                            medi[i] = bsel<int32_t>(mm, kk, medi[i]);
+                            med[i] = bsel<T>(mm, e.z, med[i]);
+                            n0[i] += w * e.n0;
+                            n1[i] += w * e.n1;
+                            n2[i] += w * e.n2;
+                            if constexpr (DIST) {
                                 const bool zp = e.z > T(0);
-                                const T mz = (zp ? mapm<T>(zp ? e.z : T(1), nearz, farz) : T(0)) - m0;
+                                const T mz = bsel<T>(zp, mapm<T>(bsel<T>(zp, e.z, T(1)), nearz, farz), T(0)) - m0;
                                 m1[i] += w * mz;
                                 m2[i] += w * mz * mz;
                             }
                         }
+                        return nst;
+                    };
+                    if (h1 - h0 == 2) {
+                        pairs += TS;
+#pragma omp simd reduction(+ : nstop)
+                        for (int lx = 0; lx < TS; ++lx) nstop += lane(lx);
+                    } else {
+                        pairs += HL;
+                        const int lb = h0 * HL;
+#pragma omp simd reduction(+ : nstop)
+                        for (int l = 0; l < HL; ++l) nstop += lane(lb + l);
                     }
                     ndone += nstop;
                 }
@@ -368,7 +411,7 @@ void forward_impl(GsArgs& A) {
                             o_nrm[pix * 3 + 1] = n1[i];
                             o_nrm[pix * 3 + 2] = n2[i];
                         }
-                        if (w_dist) {
+                        if (DIST && w_dist) {
                             const T Wt = T(1) - Tr[i];
                             o_dist[pix] = std::max(Wt * m2[i] - m1[i] * m1[i], T(0));
                             o_M1[pix] = m1[i];
@@ -385,11 +428,11 @@ void forward_impl(GsArgs& A) {
 // ---------------------------------------------------------------------------------------------
 // Backward
 // ---------------------------------------------------------------------------------------------
-template <int K> struct NACC;  // number of reduced gradient slots per Gaussian
 // slots: 0..NPK-1 = payload gradient, NPK = absgrad, NPK+1..NPK+2 = proxy (raymax)
 
-template <int K, typename T, bool GEOM>
+template <int K, typename T, int MODE>
 void backward_impl(GsArgs& A) {
+    constexpr bool GEOM = MODE >= 1, DIST = MODE == 2;
     constexpr int NPK = NP<K>::v;
     constexpr int NS = NPK + 3;
     const int W = (int)A.width, H = (int)A.height, TX = (int)A.tiles_x, TY = (int)A.tiles_y;
@@ -404,7 +447,7 @@ void backward_impl(GsArgs& A) {
     const T* g_depth = GEOM ? (const T*)A.g_depth : nullptr;
     const T* g_med = GEOM ? (const T*)A.g_median : nullptr;
     const T* g_nrm = GEOM ? (const T*)A.g_normal : nullptr;
-    const T* g_dist = GEOM ? (const T*)A.g_dist : nullptr;
+    const T* g_dist = DIST ? (const T*)A.g_dist : nullptr;
     const bool b_rgb = g_rgb != nullptr, b_alpha = g_alpha != nullptr, b_depth = g_depth != nullptr,
                b_med = g_med != nullptr, b_nrm = g_nrm != nullptr, b_dist = g_dist != nullptr;
     const bool detach = A.detach_dist;
@@ -438,9 +481,10 @@ void backward_impl(GsArgs& A) {
             gx = ga + N;
         }
         alignas(64) T Tr[TP], Bb[TP], ga0[TP], gc0[TP], gc1[TP], gc2[TP], gD[TP], gm[TP], gN0[TP], gN1[TP], gN2[TP];
-        alignas(64) T gd[TP], Wt[TP], M1[TP], M2[TP];
+        alignas(64) T gd[TP], gdp[TP], Wt[TP], M1[TP], M2[TP];
         alignas(64) int32_t lastk[TP], medi[TP];
         alignas(64) T rxs[TS];
+        alignas(64) T invrs[K == K_RADE && GEOM ? TP : 1];
         alignas(64) T acc[NS][TS];
         alignas(64) T proxy_dal[TS];
 #pragma omp for schedule(static, 1)
@@ -470,6 +514,7 @@ void backward_impl(GsArgs& A) {
                     gN1[i] = (in && b_nrm) ? g_nrm[pix * 3 + 1] : T(0);
                     gN2[i] = (in && b_nrm) ? g_nrm[pix * 3 + 2] : T(0);
                     gd[i] = (in && b_dist) ? g_dist[pix] : T(0);
+                    gdp[i] = detach ? T(0) : gd[i];  // weight of the distortion term in psi (0: detached)
                     Wt[i] = T(1) - tf;
                     M1[i] = (in && b_dist) ? sM1[pix] : T(0);
                     M2[i] = (in && b_dist) ? sM2[pix] : T(0);
@@ -477,39 +522,56 @@ void backward_impl(GsArgs& A) {
             }
             if (maxlast == 0) continue;
             for (int lx = 0; lx < TS; ++lx) rxs[lx] = (T(x0 + lx) + T(0.5) - cx) / fx;
+            if constexpr (K == K_RADE && GEOM) fill_invr<T>(invrs, rxs, y0, nrows, cy, fy);
             const int beg = A.tile_offsets[tile];
             T m0 = T(0);
-            if (GEOM && b_dist) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
+            if (DIST) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
             for (int kk = maxlast - 1; kk >= 0; --kk) {
-                if (kk >= PF) prefetch_gauss<NPK, T>(P, BND, A.tile_list[beg + kk - PF]);
+                if (kk >= PF) {
+                    const int gq = A.tile_list[beg + kk - PF];
+                    prefetch_gauss<NPK, T>(P, BND, gq);
+                    // and its gradient rows (read-modify-write after the lanes; random access into N)
+                    const char* q = (const char*)(gp + (int64_t)gq * NPK);
+                    __builtin_prefetch(q, 1, 1);
+                    __builtin_prefetch(q + NPK * sizeof(T) - 1, 1, 1);
+                    __builtin_prefetch(ga + gq, 1, 1);
+                }
                 const int g = A.tile_list[beg + kk];
                 const T* __restrict p = P + (int64_t)g * NPK;
                 const T* bnd = BND + (int64_t)g * 4;
-                int r0, r1;
+                int r0, r1, q0, q1;
                 row_range<T>(bnd[2], bnd[3], y0, nrows, r0, r1);
-                if (r0 >= r1) continue;
-                for (int s = 0; s < NS; ++s)
-                    for (int lx = 0; lx < TS; ++lx) acc[s][lx] = T(0);
+                row_range<T>(bnd[0], bnd[1], x0, ncols, q0, q1);
+                if (r0 >= r1 || q0 >= q1) continue;
+                // lanes [l0, l1): the chunks meeting the box's columns (the others would only add zeros)
+                const int h0 = (q0 - x0) / HL, h1 = (q1 - 1 - x0) / HL + 1;
+                const int l0 = h0 * HL, l1 = h1 * HL;
+                if (l1 - l0 == TS) {  // constant trip counts: vector stores, no memset calls
+                    for (int s = 0; s < NS; ++s)
+                        for (int lx = 0; lx < TS; ++lx) acc[s][lx] = T(0);
+                } else {
+                    for (int s = 0; s < NS; ++s)
+                        for (int l = 0; l < HL; ++l) acc[s][l0 + l] = T(0);
+                }
                 const T o = p[P_O], c0 = p[P_R], c1 = p[P_G], c2 = p[P_B];
                 int nvalid = 0;
                 for (int y = r0; y < r1; ++y) {
                     const T py = T(y) + T(0.5);
                     const T ry = (py - cy) / fy;
                     const int base = (y - y0) * TS;
-                    pairs += TS;
-#pragma omp simd reduction(+ : nvalid)
-                    for (int lx = 0; lx < TS; ++lx) {
+                    // one pixel (16-lane loop or one 8-lane chunk, as in the forward); returns v
+                    auto lane = [&](const int lx) __attribute__((always_inline)) -> int {
                         const int i = base + lx;
                         const T px = T(x0 + lx) + T(0.5);
                         const T rx = rxs[lx];
                         T invr = T(1);
-                        if constexpr (K == K_RADE) invr = T(1) / std::sqrt(rx * rx + ry * ry + T(1));
+                        if constexpr (K == K_RADE && GEOM) invr = invrs[i];
                         Eval<K, T> e;
-                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, surfel_k, GEOM && b_nrm);
+                        eval_lane<K, T>(e, p, px, py, rx, ry, invr, nearz, surfel_k, GEOM);
                         const T oG = o * e.G;
                         const T al = std::min(T(0.99), oG);
                         const bool v = kk < lastk[i] && e.ok && al >= T(1.0 / 255.0);
-                        nvalid += v ? 1 : 0;
+                        const int nv = v ? 1 : 0;
                         const T ia = T(1) / (T(1) - al);
                         const T Ti = Tr[i] * ia;
                         const T w = al * Ti;
@@ -517,28 +579,30 @@ void backward_impl(GsArgs& A) {
                         T mz = T(0), dmz = T(0);
                         if constexpr (GEOM) {
                             psi += gD[i] * e.z + gN0[i] * e.n0 + gN1[i] * e.n1 + gN2[i] * e.n2;
-                            if (b_dist) {
+                            if constexpr (DIST) {
                                 const bool zp = e.z > T(0);
-                                const T zz = zp ? e.z : T(1);
-                                mz = (zp ? mapm<T>(zz, nearz, farz) : T(0)) - m0;
-                                dmz = zp ? dmapm<T>(zz, nearz, farz) : T(0);
-                                if (!detach) psi += gd[i] * (M2[i] + Wt[i] * mz * mz - T(2) * M1[i] * mz);
+                                const T zz = bsel<T>(zp, e.z, T(1));
+                                mz = bsel<T>(zp, mapm<T>(zz, nearz, farz), T(0)) - m0;
+                                dmz = bsel<T>(zp, dmapm<T>(zz, nearz, farz), T(0));
+                                // gdp = 0 when detached (a per-lane select: an invariant one does not vectorise)
+                                const T psd = psi + gdp[i] * (M2[i] + Wt[i] * mz * mz - T(2) * M1[i] * mz);
+                                psi = bsel<T>(gdp[i] != T(0), psd, psi);
                             }
                         }
                         const T dal = Ti * psi - Bb[i] * ia;
-                        Bb[i] = v ? Bb[i] + w * psi : Bb[i];
-                        Tr[i] = v ? Ti : Tr[i];
+                        Bb[i] = bsel<T>(v, Bb[i] + w * psi, Bb[i]);
+                        Tr[i] = bsel<T>(v, Ti, Tr[i]);
                         const bool vg = v && oG <= T(0.99);
-                        const T dG = vg ? o * dal : T(0);
-                        acc[P_O][lx] += vg ? e.G * dal : T(0);
-                        const T wv = v ? w : T(0);
+                        const T dG = bsel<T>(vg, o * dal, T(0));
+                        acc[P_O][lx] += bsel<T>(vg, e.G * dal, T(0));
+                        const T wv = bsel<T>(v, w, T(0));
                         acc[P_R][lx] += wv * gc0[i];
                         acc[P_G][lx] += wv * gc1[i];
                         acc[P_B][lx] += wv * gc2[i];
                         T dz = T(0), dn0 = T(0), dn1 = T(0), dn2 = T(0);
                         if constexpr (GEOM) {
-                            dz = wv * gD[i] + ((v && kk == medi[i]) ? gm[i] : T(0));
-                            if (b_dist) dz += wv * gd[i] * T(2) * (Wt[i] * mz - M1[i]) * dmz;
+                            dz = wv * gD[i] + bsel<T>(v && kk == medi[i], gm[i], T(0));
+                            if constexpr (DIST) dz += wv * gd[i] * T(2) * (Wt[i] * mz - M1[i]) * dmz;
                             dn0 = wv * gN0[i];
                             dn1 = wv * gN1[i];
                             dn2 = wv * gN2[i];
@@ -603,15 +667,11 @@ void backward_impl(GsArgs& A) {
                             proxy_dal[lx] = dG;  // = vg ? o·dal : 0
                         } else {  // surfel
                             const T drho = T(-0.5) * e.G * dG;
-                            T gs0 = T(0), gs1 = T(0);
-                            if (e.branch3d) {
-                                gs0 = drho * T(2) * e.s0;
-                                gs1 = drho * T(2) * e.s1;
-                            } else {
-                                gmx = drho * T(2) * surfel_k * e.dx;
-                                gmy = drho * T(2) * surfel_k * e.dy;
-                            }
-                            const T vm = v ? T(1) : T(0);
+                            T gs0 = bsel<T>(e.branch3d, drho * T(2) * e.s0, T(0));
+                            T gs1 = bsel<T>(e.branch3d, drho * T(2) * e.s1, T(0));
+                            gmx = bsel<T>(e.branch3d, T(0), drho * T(2) * surfel_k * e.dx);
+                            gmy = bsel<T>(e.branch3d, T(0), drho * T(2) * surfel_k * e.dy);
+                            const T vm = bsel<T>(v, T(1), T(0));
                             gs0 *= vm;
                             gs1 *= vm;
                             const T dt = dz + gs0 * e.k0 + gs1 * e.l0;
@@ -635,20 +695,36 @@ void backward_impl(GsArgs& A) {
                             acc[P_MY][lx] += gmy;
                             acc[NPK][lx] += std::fabs(gmx) * halfW + std::fabs(gmy) * halfH;
                         }
-                    }
-                    if constexpr (K == K_RAYMAX) {
-                        // proxy: dL/dalpha · d(o·G_ewa)/dmean2d with the EWA conic (GOF §1.4), pixel units
+                        return nv;
+                    };
+                    // GOF densification proxy (raymax): a second lane loop, keeps the first one vectorisable
+                    auto proxy_lane = [&](const int lx) __attribute__((always_inline)) {
+                        const T px = T(x0 + lx) + T(0.5);
+                        const T ddx = px - p[P_MX], ddy = py - p[P_MY];
+                        const T pw = T(-0.5) * (p[P_CA] * ddx * ddx + p[P_CC] * ddy * ddy) - p[P_CB] * ddx * ddy;
+                        const T gg = proxy_dal[lx] * fexp<T>(std::max(std::min(pw, T(0)), T(-30)));
+                        const T gmx = gg * (p[P_CA] * ddx + p[P_CB] * ddy);
+                        const T gmy = gg * (p[P_CB] * ddx + p[P_CC] * ddy);
+                        acc[NPK + 1][lx] += gmx;
+                        acc[NPK + 2][lx] += gmy;
+                        acc[NPK][lx] += std::fabs(gmx) * halfW + std::fabs(gmy) * halfH;
+                    };
+                    if (h1 - h0 == 2) {
+                        pairs += TS;
+#pragma omp simd reduction(+ : nvalid)
+                        for (int lx = 0; lx < TS; ++lx) nvalid += lane(lx);
+                        if constexpr (K == K_RAYMAX) {
 #pragma omp simd
-                        for (int lx = 0; lx < TS; ++lx) {
-                            const T px = T(x0 + lx) + T(0.5);
-                            const T ddx = px - p[P_MX], ddy = py - p[P_MY];
-                            const T pw = T(-0.5) * (p[P_CA] * ddx * ddx + p[P_CC] * ddy * ddy) - p[P_CB] * ddx * ddy;
-                            const T gg = proxy_dal[lx] * fexp<T>(std::max(std::min(pw, T(0)), T(-30)));
-                            const T gmx = gg * (p[P_CA] * ddx + p[P_CB] * ddy);
-                            const T gmy = gg * (p[P_CB] * ddx + p[P_CC] * ddy);
-                            acc[NPK + 1][lx] += gmx;
-                            acc[NPK + 2][lx] += gmy;
-                            acc[NPK][lx] += std::fabs(gmx) * halfW + std::fabs(gmy) * halfH;
+                            for (int lx = 0; lx < TS; ++lx) proxy_lane(lx);
+                        }
+                    } else {
+                        pairs += HL;
+                        const int lb = h0 * HL;
+#pragma omp simd reduction(+ : nvalid)
+                        for (int l = 0; l < HL; ++l) nvalid += lane(lb + l);
+                        if constexpr (K == K_RAYMAX) {
+#pragma omp simd
+                            for (int l = 0; l < HL; ++l) proxy_lane(lb + l);
                         }
                     }
                 }
@@ -656,11 +732,11 @@ void backward_impl(GsArgs& A) {
                 T* dst = gp + (int64_t)g * NPK;
                 for (int s = 0; s < NPK; ++s) {
                     T sum = T(0);
-                    for (int lx = 0; lx < TS; ++lx) sum += acc[s][lx];
+                    for (int lx = l0; lx < l1; ++lx) sum += acc[s][lx];
                     dst[s] += sum;
                 }
                 T sa = T(0), sx = T(0), sy = T(0);
-                for (int lx = 0; lx < TS; ++lx) {
+                for (int lx = l0; lx < l1; ++lx) {
                     sa += acc[NPK][lx];
                     sx += acc[NPK + 1][lx];
                     sy += acc[NPK + 2][lx];
@@ -699,12 +775,16 @@ template <int K, typename T>
 int dispatch_geom(GsArgs& A, bool fwd) {
     const bool geom = fwd ? (A.want_depth || A.want_median || A.want_normal || A.want_dist)
                           : (A.g_depth || A.g_median || A.g_normal || A.g_dist);
+    const bool dist = fwd ? A.want_dist : A.g_dist != nullptr;
+    const int mode = !geom ? 0 : dist ? 2 : 1;
     if (fwd) {
-        if (geom) forward_impl<K, T, true>(A);
-        else forward_impl<K, T, false>(A);
+        if (mode == 0) forward_impl<K, T, 0>(A);
+        else if (mode == 1) forward_impl<K, T, 1>(A);
+        else forward_impl<K, T, 2>(A);
     } else {
-        if (geom) backward_impl<K, T, true>(A);
-        else backward_impl<K, T, false>(A);
+        if (mode == 0) backward_impl<K, T, 0>(A);
+        else if (mode == 1) backward_impl<K, T, 1>(A);
+        else backward_impl<K, T, 2>(A);
     }
     return 0;
 }

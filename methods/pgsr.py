@@ -1,0 +1,316 @@
+"""PGSR, Planar-based Gaussian Splatting (Chen et al. 2024, TVCG), docs/methods/pgsr.md.
+
+Differences from 3DGS (the ``ewa`` kernel, no 3D filter):
+
+- flattened Gaussians: ``min_scale`` pulls the smallest scale of the visible Gaussians to 0 (λ 100 from
+  step 0, docs/methods/pgsr.md §4.1);
+- unbiased depth: the kernel renders the plane distance D = Σ wᵢdᵢ (dᵢ = −nᵢ·μᵢ, nᵢ the shortest axis facing
+  the camera) next to N = Σ wᵢnᵢ; depth = D / (−N·r̃) (`gsbench.methods.pgsr_terms.unbiased_depth`,
+  docs/methods/pgsr.md §3);
+- losses (docs/methods/pgsr.md §4): 0.8·L1 (on the exposure-compensated image, ``l1_exposure``) + 0.2·D-SSIM +
+  100·``min_scale`` + 0.015·``pgsr_normal`` + 0.03·``pgsr_geo`` + 0.15·``pgsr_ncc``, the last three from step 7000;
+- multi-view terms: each step one of the reference view's (up to) 8 neighbours (`neighbour_views`: camera
+  distance, then angle between viewing directions; angle < 30°, distance in (0.01, 1.5) scene radii) is
+  drawn with Python's seeded RNG and rendered by the method itself (``state["pgsr_multiview"]``, built once per
+  step and shared by the two terms; docs/methods/pgsr.md §4.3);
+- exposure compensation (``exposure_compensation``, on by default; off in the DTU layer as PGSR's DTU
+  script): a learnable (a_v, b_v) per image, Ĩ = exp(a_v)·I + b_v, from step 1000, Adam lr 0.001 with
+  β = (0.9, 0.99) (docs/methods/pgsr.md §4.5);
+- densification: `PGSRStrategy`, 3DGS clone/split with PGSR's extra abs-gradient split and percent_dense 0.001
+  (docs/methods/pgsr.md §5);
+- mesh: TSDF of the unbiased depth (``mesh.depth: unbiased``), optionally without pixels whose depth normal is
+  more than ``tsdf_max_view_angle`` degrees from the viewing ray (TnT: 80, docs/methods/pgsr.md §6).
+
+Not implemented: PGSR's multi-view trim (prune Gaussians observed in fewer than two views every 1000 steps),
+virtual cameras (off in PGSR), the NCC on images at twice the training resolution (``ncc_scale`` 0.5): see
+docs/methods/pgsr.md §8.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+import gsbench.raster as raster
+from gsbench.config import RunConfig
+from gsbench.data.camera import Scene
+from gsbench.errors import ConfigError
+from gsbench.losses import Batch, depth_to_normal, pixel_rays
+from gsbench.methods import pgsr_terms
+from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo
+from gsbench.mesh.tsdf import tsdf_fusion
+from gsbench.raster.types import RenderOutput
+from gsbench.strategies.base import Strategy
+from gsbench.strategies.default import DefaultStrategy
+from gsbench.train import scale_step, split_views
+
+
+@dataclass
+class PGSRConfig(GSConfig):
+    """PGSR's hyper-parameters (arguments/__init__.py of zju3dv/PGSR, docs/methods/pgsr.md §7): the 3DGS values
+    except percent_dense 0.001, plus the abs-gradient split, the multi-view settings and exposure compensation."""
+
+    percent_dense: float = 0.001
+    densify_abs_grad_threshold: float = 0.0008  # TnT script: 0.00015
+    abs_split_radius: float = 20.0  # px: the abs-gradient split needs a max screen radius above this
+    multi_view_num: int = 8
+    multi_view_max_angle: float = 30.0  # degrees between viewing directions
+    multi_view_min_dis: float = 0.01  # camera distances, in scene radii
+    multi_view_max_dis: float = 1.5
+    multi_view_patch_half: int = 3  # 7x7 patches
+    multi_view_sample_num: int = 102400
+    multi_view_pixel_noise_th: float = 1.0  # px
+    exposure_compensation: bool = True
+    exposure_from: int = 1000  # step (of 30 000) after which the compensated image is used
+    exposure_lr: float = 0.001
+    tsdf_max_view_angle: float = 0.0  # degrees; 0 = no filter (PGSR --use_depth_filter: 80)
+
+
+def neighbour_views(cameras, views, k: int, max_angle: float, min_dis: float, max_dis: float) -> dict[int, list[int]]:
+    """PGSR's neighbours of each training view: the others sorted by camera-centre distance (ties by the angle
+    between viewing directions), kept when angle < ``max_angle`` degrees and ``min_dis`` < distance < ``max_dis``,
+    the first ``k`` (docs/methods/pgsr.md §4.3). Returns {view index: [view indices]}."""
+    views = list(views)
+    centres = np.stack([np.asarray(cameras[i].center, np.float64) for i in views])
+    axes = np.stack([np.asarray(cameras[i].R, np.float64)[2] for i in views])  # camera z in world
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    dist = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
+    angle = np.degrees(np.arccos(np.clip(axes @ axes.T, -1.0, 1.0)))
+    out = {}
+    for a, view in enumerate(views):
+        order = np.lexsort((angle[a], dist[a]))
+        keep = [b for b in order if angle[a, b] < max_angle and min_dis < dist[a, b] < max_dis]
+        out[view] = [views[b] for b in keep[:k]]
+    return out
+
+
+@dataclass
+class MultiViewContext:
+    """One step's neighbour and warp, shared by ``pgsr_geo`` and ``pgsr_ncc`` (`gsbench.methods.pgsr_terms`)."""
+
+    neighbour: int
+    warp: pgsr_terms.Warp
+    ncc_index: torch.Tensor
+    ref_gray: torch.Tensor
+    nb_gray: torch.Tensor
+    patch_half: int
+
+
+@dataclass(frozen=True)
+class PGSRStrategy(DefaultStrategy):
+    """PGSR's densification (docs/methods/pgsr.md §5): `DefaultStrategy` (3DGS) with clones sampled at μ + R(s ⊙ ε)
+    and, besides g >= ``grad_threshold``, a split of the Gaussians with s_max > percent_dense·extent, a max
+    screen radius > ``abs_split_radius`` px and g_abs >= ``abs_grad_threshold``, g_abs the mean NDC
+    abs-gradient Σ_pixels |g_x| + |g_y| (`RenderOutput.densify_grads`)."""
+
+    abs_grad_threshold: float = 0.0008
+    abs_split_radius: float = 20.0
+
+    def init_state(self, n: int) -> dict:
+        return {**super().init_state(n), "absgrad": torch.zeros(n)}
+
+    def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
+        visible = super()._accumulate(state, out)
+        _, absgrad = out.densify_grads()
+        state["absgrad"][visible] += absgrad.detach().to(state["absgrad"].dtype)[visible]
+        return visible
+
+    def _refine(self, gaussians, optimizer, state: dict, step: int) -> dict:
+        state["_big"] = gaussians.scales.detach().max(-1).values > self.percent_dense * self.scene_extent
+        try:
+            return super()._refine(gaussians, optimizer, state, step)
+        finally:
+            state.pop("_big", None)
+
+    def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        standard, grads = super()._select(state)
+        absgrads = torch.nan_to_num(state["absgrad"] / state["count"], nan=0.0, posinf=0.0)
+        extra = (absgrads >= self.abs_grad_threshold) & (state["radii"] > self.abs_split_radius) & state["_big"]
+        return standard | extra, torch.maximum(grads, absgrads)
+
+    def _clones(self, gaussians, clone: torch.Tensor) -> dict:
+        from gsbench.strategies.base import _sample_offsets  # noqa: PLC0415
+
+        rows = super()._clones(gaussians, clone)
+        rows["means"] = rows["means"] + _sample_offsets(rows, self._orientations(rows))
+        return rows
+
+
+class PGSR(Method):
+    """PGSR (module docstring)."""
+
+    name = "pgsr"
+    Config = PGSRConfig
+    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "normal", "plane_distance"),
+                      mesh_extractor="tsdf", mesh_depth="unbiased",
+                      loss_terms=("l1_exposure", "dssim", "min_scale", "pgsr_normal", "pgsr_geo", "pgsr_ncc"))
+    MESH_DEPTHS = ("unbiased", *DEPTH_OUTPUTS)
+    # docs/methods/pgsr.md §9: the "PGSR(Paper)" rows of the authors' README (zju3dv/PGSR @0a1fdfa), which quote
+    # the paper's DTU and TnT tables; the tables themselves were not read [UNVERIFIED against the paper PDF].
+    REPORTED = {
+        "dtu": {"metric": "chamfer", "mean": 0.53, "source": "PGSR paper, DTU table (as quoted in the zju3dv/PGSR README)",
+                "scenes": {"scan24": 0.34, "scan37": 0.58, "scan40": 0.29, "scan55": 0.29, "scan63": 0.78,
+                           "scan65": 0.58, "scan69": 0.54, "scan83": 1.01, "scan97": 0.73, "scan105": 0.51,
+                           "scan106": 0.49, "scan110": 0.69, "scan114": 0.31, "scan118": 0.37, "scan122": 0.38}},
+        "tnt": {"metric": "f1_centroids", "mean": 0.50,
+                "source": "PGSR paper, TnT table (as quoted in the zju3dv/PGSR README)",
+                "scenes": {"Barn": 0.66, "Caterpillar": 0.41, "Courthouse": 0.21, "Ignatius": 0.80,
+                           "Meetingroom": 0.29, "Truck": 0.60}},
+    }
+
+    def __init__(self):
+        super().__init__()
+        self.exposure: torch.nn.Parameter | None = None
+        self.step = 0
+        self.scale = 1.0
+        self.multiview_seconds = 0.0
+        self._cache: tuple | None = None
+
+    # ---- configuration ------------------------------------------------------------------------
+    def check_params(self) -> None:
+        super().check_params()
+        p, cfg = self.params, self.cfg
+        if p.exposure_compensation and cfg.train.optimizer != "adam":
+            raise ConfigError(f"method.exposure_compensation needs train.optimizer=adam (the per-image exposure is "
+                              f"one more Adam group; {cfg.train.optimizer} steps only visible Gaussian rows); "
+                              "set method.exposure_compensation=false or train.optimizer=adam")
+        checks = [("multi_view_num", p.multi_view_num >= 1), ("multi_view_patch_half", p.multi_view_patch_half >= 1),
+                  ("multi_view_sample_num", p.multi_view_sample_num >= 1),
+                  ("multi_view_pixel_noise_th", p.multi_view_pixel_noise_th > 0),
+                  ("multi_view_max_angle", 0 < p.multi_view_max_angle <= 180),
+                  ("multi_view_max_dis", p.multi_view_max_dis > p.multi_view_min_dis >= 0),
+                  ("tsdf_max_view_angle", 0 <= p.tsdf_max_view_angle < 90), ("exposure_lr", p.exposure_lr > 0)]
+        for key, ok in checks:
+            if not ok:
+                raise ConfigError(f"method.{key} is out of range (got {getattr(p, key)}); see docs/methods/pgsr.md §7")
+
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        self.configure(cfg)
+        self.exposure = torch.nn.Parameter(torch.zeros(len(scene.cameras), 2))
+        super().setup(scene, cfg)
+        p = self.params
+        self.cameras = list(scene.cameras)
+        self.view_of = {id(c): i for i, c in enumerate(self.cameras)}
+        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        self.neighbours = neighbour_views(self.cameras, views, p.multi_view_num, p.multi_view_max_angle,
+                                          p.multi_view_min_dis * scene.radius, p.multi_view_max_dis * scene.radius)
+        self.gray = [pgsr_terms.gray(torch.as_tensor(np.asarray(img, dtype=np.float32))) for img in scene.images] \
+            if scene.images is not None else []
+
+    def make_optimizer(self, gaussians):
+        optimizer = super().make_optimizer(gaussians)
+        if self.params.exposure_compensation:
+            optimizer.add_param_group({"params": [self.exposure], "name": "exposure", "lr": self.params.exposure_lr,
+                                       "betas": (0.9, 0.99), "eps": 1e-8})
+        return optimizer
+
+    def strategy(self) -> Strategy:
+        p = self.params
+        return PGSRStrategy(**self.densify_settings(), abs_grad_threshold=p.densify_abs_grad_threshold,
+                            abs_split_radius=p.abs_split_radius)
+
+    def update_schedules(self, step: int, scale: float) -> None:
+        super().update_schedules(step, scale)
+        self.step, self.scale = step, scale
+
+    def training_phases(self) -> dict[str, float]:
+        return {"multiview": self.multiview_seconds}
+
+    # ---- what the loss terms read -------------------------------------------------------------
+    def loss_state(self) -> dict:
+        return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview}
+
+    def _view(self, batch: Batch) -> int | None:
+        return self.view_of.get(id(batch.camera))
+
+    def _exposure_of(self, batch: Batch):
+        """(a_v, b_v) of the batch's view when exposure compensation is on and past its start, else None."""
+        p = self.params
+        if not p.exposure_compensation or self.step <= scale_step(p.exposure_from, self.scale):
+            return None
+        view = self._view(batch)
+        return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
+
+    def _multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
+        """This step's neighbour render and warp, computed on first use and shared by the terms (module docstring)."""
+        key = (batch.step, id(render))
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        t0 = time.perf_counter()
+        # the neighbour's forward is part of this loss term's cost: keep it out of the rasterizer phase timers
+        # of `gsbench bench train` (which time the step's own render; gsbench/bench/train.py)
+        saved, raster.profile = raster.profile, None
+        try:
+            ctx = self._build_multiview(render, batch)
+        finally:
+            raster.profile = saved
+        self.multiview_seconds += time.perf_counter() - t0
+        self._cache = (key, ctx)
+        return ctx
+
+    def _build_multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
+        p = self.params
+        view = self._view(batch)
+        candidates = self.neighbours.get(view, []) if view is not None else []
+        if not candidates:
+            return None
+        nb = candidates[random.randrange(len(candidates))]  # PGSR random.sample(nearest_id, 1)
+        nb_cam = self.cameras[nb]
+        nb_render = self.render(nb_cam, {"plane_distance", "normal"})
+        warp = pgsr_terms.warp_to_neighbour((render.plane_distance, render.normal), batch.camera,
+                                            (nb_render.plane_distance, nb_render.normal), nb_cam,
+                                            near=self.raster_settings().near, threshold=p.multi_view_pixel_noise_th)
+        index = torch.nonzero(warp.mask).flatten()
+        if index.numel() > p.multi_view_sample_num:
+            index = index[torch.randperm(index.numel())[:p.multi_view_sample_num]]
+        ref_gray = pgsr_terms.gray(batch.image.to(torch.float32)) if view is None else self.gray[view]
+        return MultiViewContext(neighbour=nb, warp=warp, ncc_index=index, ref_gray=ref_gray,
+                                nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half)
+
+    # ---- mesh ---------------------------------------------------------------------------------
+    def _tsdf_mesh(self, scene: Scene, cfg: RunConfig, views: list[int]):
+        """TSDF fusion of ``mesh.depth`` (``unbiased``: D / (−N·r̃), docs/methods/pgsr.md §6); with
+        ``tsdf_max_view_angle`` > 0, pixels whose depth normal is farther than that from the viewing ray are
+        dropped (PGSR ``--use_depth_filter``)."""
+        if cfg.mesh.depth != "unbiased" and self.params.tsdf_max_view_angle <= 0:
+            return super()._tsdf_mesh(scene, cfg, views)
+        depths, colors, alphas = [], [], []
+        for i in tqdm(views, desc="extract", unit="view", disable=None, leave=False):
+            camera = scene.cameras[i]
+            if cfg.mesh.depth == "unbiased":
+                out = self.render(camera, {"plane_distance", "normal", "alpha", "rgb"})
+                depth = pgsr_terms.render_depth(out, camera)
+            else:
+                key = DEPTH_OUTPUTS[cfg.mesh.depth]
+                out = self.render(camera, {key, "alpha", "rgb"})
+                depth = getattr(out, key)
+            depth = self._view_angle_filter(depth, camera)
+            depths.append(depth.numpy())
+            colors.append(out.rgb.clamp(0, 1).numpy())
+            alphas.append(out.alpha.numpy())
+        masks = [scene.masks[i] for i in views] if cfg.data.use_masks and scene.masks is not None else None
+        return tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
+                           alphas=alphas, masks=masks)
+
+    def _view_angle_filter(self, depth: torch.Tensor, camera) -> torch.Tensor:
+        limit = self.params.tsdf_max_view_angle
+        if limit <= 0:
+            return depth
+        normal = depth_to_normal(depth, camera)
+        rays = torch.nn.functional.normalize(pixel_rays(camera, depth.dtype), dim=-1)
+        cos = (normal * rays).sum(-1).abs()
+        return torch.where(cos < math.cos(math.radians(limit)), torch.zeros_like(depth), depth)
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "exposure": self.exposure.detach().clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.exposure = torch.nn.Parameter(state["exposure"].clone())
+        super().load_state_dict(state)

@@ -1,0 +1,257 @@
+"""Rankings with confidence: the t-interval of a cell, the paired tests, shared ranks, the papers' orderings
+tested (`gsbench.report.stats`, `gsbench.report.claims`) on constructed records; and suites of scenes in
+sweeps (`gsbench.suites`)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gsbench.data.builtin import BUILTIN_SCENES
+from gsbench.errors import ConfigError
+from gsbench.report.aggregate import leaderboard
+from gsbench.report.build import write_report
+from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, verdict
+from gsbench.report.collect import label_variants, load_manifests, load_runs
+from gsbench.report.metrics import PAPERS_METRIC, metric_specs
+from gsbench.report.stats import (MIN_WILCOXON, comparisons, paired_test, sign_test_p, significance_ranks,
+                                  t_half_width, t_interval)
+from gsbench.suites import load_suite, suite_names
+from gsbench.sweep import expand, load_sweep, with_suite
+
+SCENES = ("scan1", "scan2", "scan3")
+SEEDS = (0, 1, 2)
+
+
+def write_record(runs: Path, method: str, scene: str, seed: int, metrics: dict, dataset: str = "dtu",
+                 config: dict | None = None) -> str:
+    """An ok record as the runner writes it (the fields the report reads); returns its run id."""
+    config = config or {}
+    run_id = hashlib.sha1(json.dumps([method, scene, seed, config], sort_keys=True).encode()).hexdigest()[:12]
+    record = {"run_id": run_id, "method": method, "scene": f"/data/{scene}", "dataset": dataset, "seed": seed,
+              "status": "ok", "error_tail": "",
+              "config": {"method": {"name": method, **config}, "train": {"iterations": 3000}, "threads": 1,
+                         "preset": "cpu", "out": "runs"},
+              "metrics": metrics, "timings": {"train": 10.0, "total": 12.0}, "num_gaussians": 1000,
+              "eval_protocol": {}, "environment": {"threads": 1}}
+    path = runs / dataset / scene / method / run_id / "record.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(record))
+    return run_id
+
+
+def board_of(runs_dir: Path, dataset: str = "dtu", metric: str = "chamfer"):
+    runs = label_variants(load_runs(runs_dir)[0])
+    return leaderboard(runs, dataset, metric_specs()[metric], {})
+
+
+# ---------------------------------------------------------------- intervals
+
+
+def test_t_interval_covers_the_mean_95_percent_of_the_time():
+    rng = np.random.default_rng(20)
+    for n in (3, 5):
+        hits = 0
+        for _ in range(2000):
+            low, high = t_interval(rng.normal(1.5, 0.2, n))
+            hits += low <= 1.5 <= high
+        assert 0.93 <= hits / 2000 <= 0.97, (n, hits / 2000)
+
+
+def test_t_interval_formula_and_one_value_has_none():
+    assert t_half_width([1.0]) is None and t_interval([2.0]) is None
+    # n = 2: t(0.975, 1) = 12.706, s = 0.02828 -> h = 12.706 * 0.02828 / sqrt(2) = 0.2541
+    assert t_half_width([0.62, 0.66]) == pytest.approx(0.2541, abs=1e-4)
+    assert t_interval([1.0, 2.0, 3.0]) == pytest.approx((2 - 2.4841, 2 + 2.4841), abs=1e-4)
+
+
+def test_cells_show_mean_and_interval(tmp_path):
+    runs = tmp_path / "runs"
+    for seed, value in zip(SEEDS, (0.60, 0.62, 0.64)):
+        write_record(runs, "2dgs", "scan1", seed, {"chamfer": value})
+    write_record(runs, "3dgs", "scan1", 0, {"chamfer": 0.9})
+    write_report(runs, tmp_path / "out", plots=False)
+    md = (tmp_path / "out" / "leaderboard.md").read_text()
+    assert "| 2dgs | **0.620 ± 0.050** |" in md  # t(0.975, 2) = 4.303, s = 0.02 -> 0.0497
+    assert "| 3dgs | 0.900 |" in md  # one run: no interval
+    csv = (tmp_path / "out" / "leaderboard.csv").read_text().splitlines()
+    header = csv[0].split(",")
+    row = dict(zip(header, next(line for line in csv if line.startswith("dtu,chamfer,mm,0,2dgs,,scan1")).split(",")))
+    assert float(row["ci95_low"]) == pytest.approx(0.5703, abs=1e-4) and row["rank"] == "1"
+
+
+# ---------------------------------------------------------------- paired tests
+
+
+def test_sign_test_and_wilcoxon_p_values():
+    assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 0) == pytest.approx(0.25) and sign_test_p(1, 1) == 1.0
+    all_better = paired_test([-0.1, -0.2, -0.3, -0.15, -0.25, -0.05], higher_is_better=False)
+    assert (all_better.test, all_better.wins, all_better.losses) == ("wilcoxon", 6, 0)
+    assert all_better.p == pytest.approx(2 / 2**6) and all_better.a_better  # exact: both tails of W+ = 0
+    zeros = paired_test([0.0] * 9, higher_is_better=False)
+    assert zeros.test == "sign" and zeros.p == 1.0 and not zeros.significant
+    tiny = paired_test([-0.1] * (MIN_WILCOXON - 1), higher_is_better=False)
+    assert tiny.test == "sign" and tiny.p == pytest.approx(2 / 2**5) and not tiny.significant
+    flipped = paired_test([0.1, 0.2, 0.3, 0.15, 0.25, 0.05], higher_is_better=True)
+    assert flipped.a_better and flipped.swapped().b_better and flipped.swapped().mean_diff == pytest.approx(-0.175)
+    assert paired_test([], higher_is_better=True).p is None
+
+
+def test_a_known_difference_is_significant(tmp_path):
+    runs = tmp_path / "runs"
+    rng = np.random.default_rng(1)
+    for scene, base in zip(SCENES, (0.6, 0.9, 1.2)):
+        for seed in SEEDS:
+            noise = rng.normal(0, 0.01)
+            write_record(runs, "gof", scene, seed, {"chamfer": base + noise})
+            write_record(runs, "2dgs", scene, seed, {"chamfer": base + noise + 0.1 + rng.normal(0, 0.01)})
+    board = board_of(runs)
+    tests = comparisons(board)
+    gof_vs_2dgs = tests[("gof", "2dgs")]
+    assert gof_vs_2dgs.n == 9 and gof_vs_2dgs.wins == 9 and gof_vs_2dgs.test == "wilcoxon"
+    assert gof_vs_2dgs.p == pytest.approx(2 / 2**9) and gof_vs_2dgs.a_better
+    assert tests[("2dgs", "gof")].b_better
+    assert significance_ranks(board, tests) == {"gof": 1, "2dgs": 2}
+    outcomes = {o.claim.text: o for o in evaluate_claims(label_variants(load_runs(runs)[0]), [], metric_specs())}
+    assert outcomes["gof better than 2dgs"].verdict == "agrees"
+    assert outcomes["radegs better than gof"].verdict == "not measured"
+    assert "no runs of radegs" in outcomes["radegs better than gof"].why
+
+    write_report(runs, tmp_path / "out", plots=False)
+    md = (tmp_path / "out" / "leaderboard.md").read_text()
+    ranks = md[md.index("### Ranks: DTU"):md.index("### Paired comparisons: DTU")]
+    assert "| gof | **1** | **1** | **1** | **1.00** | **1** |" in ranks and "| 2dgs | 2 | 2 | 2 | 2.00 | 2 |" in ranks
+    matrix = md[md.index("### Paired comparisons: DTU"):md.index("## The papers' orderings")]
+    assert "| gof | **-0.102, 9/9 better, p=0.004 \\*** | – |" in matrix
+    assert "| 2dgs | – | +0.102, 0/9 better, p=0.004 \\* |" in matrix
+    claims = md[md.index("## The papers' orderings"):md.index("## Speed")]
+    assert "| gof better than 2dgs | 0.74 vs 0.80 |" in claims and "| 0.004 (wilcoxon) | **agrees** |" in claims
+    assert 'id="paired-dtu"' in (tmp_path / "out" / "index.html").read_text()
+
+
+def test_equal_distributions_are_not_separable_and_share_a_rank(tmp_path):
+    runs = tmp_path / "runs"
+    rng = np.random.default_rng(7)
+    for scene in SCENES:
+        for seed in SEEDS:
+            write_record(runs, "radegs", scene, seed, {"chamfer": 0.7 + rng.normal(0, 0.05)})
+            write_record(runs, "ibgs", scene, seed, {"chamfer": 0.7 + rng.normal(0, 0.05)})
+            write_record(runs, "3dgs", scene, seed, {"chamfer": 0.7})
+            write_record(runs, "2dgs", scene, seed, {"chamfer": 0.7})
+    board = board_of(runs)
+    tests = comparisons(board)
+    assert tests[("ibgs", "radegs")].n == 9 and tests[("ibgs", "radegs")].p >= 0.05
+    assert tests[("3dgs", "2dgs")].test == "sign" and tests[("3dgs", "2dgs")].p == 1.0  # every difference 0
+    assert set(significance_ranks(board, tests).values()) == {1}
+    outcomes = {o.claim.text: o for o in evaluate_claims(label_variants(load_runs(runs)[0]), [], metric_specs())}
+    assert outcomes["ibgs at least as good as radegs"].verdict == "agrees (not separable)"
+
+
+def test_equal_distributions_reject_at_about_the_nominal_rate():
+    rng = np.random.default_rng(3)
+    rejected = sum(paired_test(rng.normal(0, 1, 12) - rng.normal(0, 1, 12), False).significant for _ in range(400))
+    assert rejected / 400 <= 0.09
+
+
+def test_verdicts():
+    assert verdict(">", None) == "not measured"
+    better = paired_test([0.1] * 6, higher_is_better=True)
+    assert verdict(">", better) == "agrees" and verdict(">", better.swapped()) == "disagrees"
+    assert verdict("≈", better) == "disagrees" and verdict("≥", better.swapped()) == "disagrees"
+    unclear = paired_test([0.1, -0.1, 0.2], higher_is_better=True)
+    assert verdict(">", unclear) == "not separable" and verdict("≈", unclear) == "agrees (not separable)"
+    assert verdict("≥", unclear) == "agrees (not separable)"
+
+
+def test_ablation_cells_differing_from_the_baseline_are_marked(tmp_path):
+    runs = tmp_path / "runs"
+    entries = []
+    for label, shift, config in (("ibgs", 0.0, {}), ("ibgs_without_Ld_Ln", 0.3, {"x": 1}), ("same", 0.0, {"x": 2})):
+        for scene in SCENES[:2]:
+            for seed in SEEDS:
+                value = 0.7 + 0.01 * seed + shift + (0.001 * seed if label == "ibgs_without_Ld_Ln" else 0.0)
+                run_id = write_record(runs, "ibgs", scene, seed, {"chamfer": value}, config=config)
+                entries.append({"run_id": run_id, "label": label, "method": "ibgs", "scene": f"/data/{scene}",
+                                "seed": seed, "status": "ok"})
+    (runs / "sweeps").mkdir()
+    (runs / "sweeps" / "ibgs_losses.json").write_text(json.dumps({"name": "ibgs_losses", "runs": entries}))
+    write_report(runs, tmp_path / "out", plots=False)
+    md = (tmp_path / "out" / "leaderboard.md").read_text()
+    table = md[md.index("### sweep ibgs_losses"):md.index("## Failed")]
+    assert "| ibgs_without_Ld_Ln | ibgs | 1.011 ± 0.027 | 1.011 ± 0.027 | 1.011 | +0.301 \\* | 0.031 (6) \\* |" in table
+    assert "| same | ibgs | **0.710 ± 0.025** | **0.710 ± 0.025** | **0.710** | +0.000 | 1.000 (6) |" in table
+    runs_list = label_variants(load_runs(runs)[0])
+    outcomes = {o.claim.text: o for o in evaluate_claims(runs_list, load_manifests(runs)[0], metric_specs())}
+    assert outcomes["ibgs better than ibgs_without_Ld_Ln"].verdict == "agrees"
+    assert outcomes["ibgs better than ibgs_without_Ld_Ln"].test.n == 6
+    assert outcomes["ibgs better than ibgs_Ls_and_eigval"].verdict == "not measured"
+
+
+# ---------------------------------------------------------------- the claims as data
+
+
+def test_claims_use_the_papers_metric_and_name_their_source():
+    from gsbench.config import config_root
+    from gsbench.sweep import _label, _rows
+
+    for claim in CLAIMS:
+        assert claim.metric == PAPERS_METRIC[claim.dataset], claim
+        assert claim.relation in RELATIONS and claim.source and " vs " in claim.paper, claim
+        if claim.sweep:  # the labels are rows of the shipped sweep that repeats the ablation
+            sweep = load_sweep(config_root() / "sweeps" / f"{claim.sweep}.yaml")
+            labels = set(sweep.get("variants", {})) or {_label(None, row) for row in _rows(sweep["grid"])}
+            assert {claim.better, claim.worse} <= labels, claim
+    assert PAPERS_METRIC == {"dtu": "chamfer", "tnt": "f1_centroids"}
+
+
+# ---------------------------------------------------------------- suites
+
+
+def test_suites_list_the_protocols_scenes():
+    assert suite_names() == ["dtu-like", "tnt-like"]
+    for name, fmt in (("dtu-like", "dtu"), ("tnt-like", "tnt")):
+        suite = load_suite(name)
+        assert suite.seeds == (0, 1, 2)
+        assert all(BUILTIN_SCENES[s].format == fmt for s in suite.scenes)
+    assert "synthetic/spot" in load_suite("dtu-like").scenes and "synthetic/spot-tnt" in load_suite("tnt-like").scenes
+
+
+def _sweep(tmp_path, text) -> Path:
+    path = tmp_path / "sweep.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_suites_expand_in_sweeps(tmp_path):
+    suite = load_suite("dtu-like")
+    runs = expand(load_sweep(_sweep(tmp_path, "base: {method: 3dgs, preset: quick}\nsuite: dtu-like\n")))
+    assert [(r.config.scene, r.config.seed) for r in runs] == [(s, k) for s in suite.scenes for k in suite.seeds]
+    own_seeds = expand(load_sweep(_sweep(tmp_path, "base: {method: 3dgs, preset: quick}\nsuite: tnt-like\nseeds: [4]\n")))
+    assert [(r.config.scene, r.config.seed) for r in own_seeds] == [(s, 4) for s in load_suite("tnt-like").scenes]
+    # --suite replaces a file's scenes; --seeds its seeds
+    sweep = load_sweep(_sweep(tmp_path, "base: {method: 3dgs, preset: quick}\nscenes: [synthetic/spot]\n"))
+    replaced = expand(with_suite(sweep, "suite:tnt-like", [1]))
+    assert {r.config.scene for r in replaced} == set(load_suite("tnt-like").scenes)
+    assert {r.config.seed for r in replaced} == {1}
+
+
+def test_unknown_suite_is_an_error_listing_the_suites(tmp_path):
+    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-like, tnt-like"):
+        load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-lik\n"))
+    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-like, tnt-like"):
+        with_suite({"base": {"method": "3dgs"}}, "nope")
+    with pytest.raises(ConfigError, match="'suite'.*or 'scenes', not both"):
+        load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-like\nscenes: [synthetic/spot]\n"))
+
+
+def test_a_suite_as_one_scene_points_to_the_sweep(capsys):
+    from gsbench.cli import main
+
+    assert main(["config", "--method", "3dgs", "--scene", "suite:dtu-like"]) == 2
+    assert "gsbench sweep FILE --suite dtu-like" in capsys.readouterr().err
+    assert main(["run", "--method", "3dgs", "--scene", "suite:nope"]) == 2
+    assert "available suites: dtu-like, tnt-like" in capsys.readouterr().err
