@@ -191,16 +191,25 @@ def test_densification_and_sadc_keep_the_knn_index_valid(tiny_spot):
     assert torch.isfinite(m.gaussians.params["quats"].grad).all()
 
 
-def test_sadc_places_new_gaussians_on_the_local_plane_between_sparse_neighbours():
+def grid_and_sparse_cluster(height, cluster_scale=None):
+    """A 6x6 grid of Gaussians 0.1 apart and a far cluster of 4 (the higher indices) at z = height(x),
+    optionally with the cluster's own scale; returns (Gaussians with IBGS frames, optimizer, SADC strategy)."""
     xy = torch.cartesian_prod(torch.arange(6.0), torch.arange(6.0)) * 0.1
-    xy = torch.cat([xy, xy[:4] + torch.tensor([1.5, 0.0])])  # a far, sparse cluster
-    means = torch.cat([xy, (0.2 * xy[:, :1] + 0.1)], 1)  # the plane z = 0.2x + 0.1
-    g = Gaussians.from_points(means.numpy(), None)
+    xy = torch.cat([xy, xy[:4] + torch.tensor([1.5, 0.0])])
+    g = Gaussians.from_points(torch.cat([xy, height(xy[:, :1])], 1).numpy(), None)
+    if cluster_scale is not None:
+        with torch.no_grad():
+            g.params["log_scales"][:] = math.log(0.01)
+            g.params["log_scales"][36:] = math.log(cluster_scale)
     neighbours = NeighbourIndex(5)
     neighbours.refresh(g.means)
     g.add_state("frame", local_geometry(g.means, neighbours.index, 1.0).eigenvectors.float())
     optimizer = torch.optim.Adam([{"params": [p], "name": k} for k, p in g.params.items() if p.requires_grad])
-    strategy = SparsityAwareStrategy(neighbours=neighbours, percent_dense=1.0, scene_extent=1.0)
+    return g, optimizer, SparsityAwareStrategy(neighbours=neighbours, percent_dense=1.0, scene_extent=1.0)
+
+
+def test_sadc_places_new_gaussians_on_the_local_plane_between_sparse_neighbours():
+    g, optimizer, strategy = grid_and_sparse_cluster(lambda x: 0.2 * x + 0.1)  # the plane z = 0.2x + 0.1
     added = strategy._densify_sparse(g, optimizer)
     new = g.means[-added:].detach()
     assert added > 0
@@ -213,18 +222,7 @@ def test_sadc_places_new_gaussians_on_the_local_plane_between_sparse_neighbours(
 
 
 def test_sadc_takes_the_sparse_gaussian_of_a_pair_even_when_its_neighbour_comes_first():
-    xy = torch.cartesian_prod(torch.arange(6.0), torch.arange(6.0)) * 0.1
-    xy = torch.cat([xy, xy[:4] + torch.tensor([1.5, 0.0])])  # the sparse cluster has the higher indices
-    means = torch.cat([xy, torch.zeros(len(xy), 1)], 1)
-    g = Gaussians.from_points(means.numpy(), None)
-    with torch.no_grad():
-        g.params["log_scales"][:] = math.log(0.01)
-        g.params["log_scales"][36:] = math.log(0.3)  # the cluster's own scales
-    neighbours = NeighbourIndex(5)
-    neighbours.refresh(g.means)
-    g.add_state("frame", local_geometry(g.means, neighbours.index, 1.0).eigenvectors.float())
-    optimizer = torch.optim.Adam([{"params": [p], "name": k} for k, p in g.params.items() if p.requires_grad])
-    strategy = SparsityAwareStrategy(neighbours=neighbours, percent_dense=1.0, scene_extent=1.0)
+    g, optimizer, strategy = grid_and_sparse_cluster(torch.zeros_like, cluster_scale=0.3)
     added = strategy._densify_sparse(g, optimizer)
     assert added > 0
     assert (g.scales[-added:].detach().max(-1).values > 0.1).all()  # the sparse parent's scales, not the grid's
