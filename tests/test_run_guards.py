@@ -75,10 +75,11 @@ def test_sigterm_records_an_interrupted_run_that_resumes(tiny_spot, tmp_path, mo
         return step(self, t)
 
     monkeypatch.setattr(Trainer, "train_step", terminate_at_45)
+    before = signal.getsignal(signal.SIGTERM)  # SIG_DFL, or what an earlier test (ray.init) installed
     folder = gsbench_run("3dgs", tiny_spot, tmp_path / "runs", "eval.evaluators=[mesh_stats]", expect=143)
     record = RunRecord.read(folder / "record.json")
     assert record.status == "interrupted" and record.error_tail == "" and (folder / CHECKPOINT).is_file()
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler is the run's only
+    assert signal.getsignal(signal.SIGTERM) is before  # the run's handler is gone again
     monkeypatch.undo()
     gsbench_run("3dgs", tiny_spot, tmp_path / "runs", "eval.evaluators=[mesh_stats]")
     assert RunRecord.read(folder / "record.json").status == "ok"
