@@ -213,21 +213,6 @@ def test_hard_cases_float32_finite_and_close(kernel):
     assert float(_rel(p32.params.detach()[vis], p64.params[vis]).max()) < 1e-5
 
 
-@pytest.mark.parametrize("kernel", KERNELS)
-def test_gradcheck_fused_projection(kernel):
-    cam = _posed_camera(20, 16)
-    g = random_gaussians(5, kernel, seed=2, camera=make_camera(20, 16), dtype=torch.float64, sh_degree=2,
-                         scale_range=(0.1, 0.4), filter3d=1e-3)
-    settings = RasterSettings(sh_degree=2, antialias2d=0.2)
-
-    def fn(means, quats, scales, opacities, sh):
-        gg = RasterGaussians(means, quats, scales, opacities, sh, g.filter3d)
-        return project_fused(gg, cam, kernel, settings).params
-
-    inputs = tuple(getattr(g, p).clone().requires_grad_(True) for p in PARAMS)
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
-
-
 def test_selection_switch_raymax_surfel(monkeypatch):
     monkeypatch.setattr(projection, "IMPL", None)
     monkeypatch.delenv("GSBENCH_PROJECTION", raising=False)

@@ -131,7 +131,7 @@ def test_hard_cases_float32_finite_and_close(kernel):
     assert float(rel.max()) < 1e-5
 
 
-@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("kernel", ("ewa", "rade", "raymax", "surfel"))  # one float64 gradcheck for every fused projection
 def test_gradcheck_fused_projection(kernel):
     cam = _posed_camera(20, 16)
     g = random_gaussians(5, kernel, seed=2, camera=make_camera(20, 16), dtype=torch.float64, sh_degree=2,
