@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from gsbench.config import suggest
 from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
+from gsbench.normal_consistency import normal_consistency
 from gsbench.raster.types import OUTPUTS, RenderOutput
 from gsbench.ssim import ssim
 
@@ -287,12 +288,13 @@ def _check_mix(mix: str) -> str:
     return mix
 
 
-def _depth_normal(render: RenderOutput, camera: Camera, depth_ratio: float, mix: str) -> torch.Tensor:
-    """n_d of `normal_consistency_term`: the normal of the mixed depth, or the mix of the two normals."""
+def _depth_maps(render: RenderOutput, depth_ratio: float, mix: str) -> tuple[list[torch.Tensor], list[float]]:
+    """The depth maps of n_d and their weights (`normal_consistency_term`): one map (the mixed depth, or
+    the one map r selects), or both maps with weights 1 − r and r."""
     r = _check_depth_ratio(depth_ratio)
     if _check_mix(mix) == "depth" or r in (0.0, 1.0):
-        return depth_to_normal(surface_depth(render, r), camera)
-    return (1 - r) * depth_to_normal(render.depth, camera) + r * depth_to_normal(render.median_depth, camera)
+        return [surface_depth(render, r)], [1.0]
+    return [render.depth, render.median_depth], [1 - r, r]
 
 
 def normal_consistency_term(render: RenderOutput, batch: Batch, state: dict, depth_ratio: float = 1.0,
@@ -308,13 +310,11 @@ def normal_consistency_term(render: RenderOutput, batch: Batch, state: dict, dep
     n_r with ``normalize`` False (2DGS): the rendered normal (unnormalised, length ≈ alpha) against
     n_d·stopgrad(alpha); True (GOF, RaDe-GS): the rendered normal normalised, against n_d.
     Background and the 1-pixel border (n_d = 0) contribute a constant 1 each, which carries no gradient.
+    Evaluated by `gsbench.normal_consistency.normal_consistency` (a fused C++ kernel; PyTorch reference).
     """
-    n_d = _depth_normal(render, batch.camera, depth_ratio, mix)
-    if normalize:
-        n_r = F.normalize(render.normal, dim=-1)
-    else:
-        n_r, n_d = render.normal, n_d * render.alpha.detach()[..., None]
-    return (1.0 - (n_r * n_d).sum(-1)).mean()
+    depths, weights = _depth_maps(render, depth_ratio, mix)
+    return normal_consistency(render.normal, depths, weights, batch.camera, normalize,
+                              alpha=None if normalize else render.alpha)
 
 
 def _normal_consistency_requires(params: Mapping) -> frozenset:

@@ -1,7 +1,9 @@
 """The optimizers a run can choose (``train.optimizer``).
 
-- ``adam`` (every method's default): `torch.optim.Adam` on its multi-tensor (foreach) path, the
-  papers' update for every Gaussian every step (bit for bit the single-tensor Adam; tested).
+- ``adam`` (every method's default): `torch.optim.Adam` on its fused path (one C++ loop per parameter
+  tensor, ~3x faster than the multi-tensor path on 13k–100k Gaussians), the papers' update for every
+  Gaussian every step: equal to the single-tensor Adam up to rounding (the fused loop evaluates the same
+  formula in another order; within 1e-6 relative after several steps, tested).
 - ``visible_adam`` (opt-in, `VisibleAdam`): Adam on the rows of the Gaussians the step's view sees
   (``render.visible``) only. Per visible row i, with the group's global step count t:
 
@@ -65,7 +67,7 @@ class VisibleAdam(torch.optim.Adam):
 def make_adam(groups, kind: str, eps: float) -> torch.optim.Optimizer:
     """The optimizer ``kind`` (`OPTIMIZERS`) over ``groups`` with Adam's ``eps``."""
     if kind == "adam":
-        return torch.optim.Adam(groups, lr=0.0, eps=eps, foreach=True)
+        return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=True)
     if kind == "visible_adam":
         return VisibleAdam(groups, lr=0.0, eps=eps)
     from gsbench.errors import ConfigError  # noqa: PLC0415

@@ -148,13 +148,13 @@ def test_non_finite_parameter_is_a_numerical_error_naming_it_and_the_step(tiny_s
         trainer.check_parameters(7)
 
 
-def test_foreach_adam_is_the_single_tensor_update_bit_for_bit(tiny_spot, tmp_path):
+def test_fused_adam_is_the_single_tensor_update_up_to_rounding(tiny_spot, tmp_path):
     trainer = make_trainer("2dgs", tiny_spot, tmp_path, "train.iterations=10")
     fast = trainer.method.optimizer
-    assert all(group["foreach"] for group in fast.param_groups)
+    assert all(group["fused"] for group in fast.param_groups)
     params = [p for group in fast.param_groups for p in group["params"]]
     copies = [p.detach().clone().requires_grad_(True) for p in params]
-    slow = torch.optim.Adam([{**{k: v for k, v in g.items() if k not in ("params", "foreach")}, "params": [c]}
+    slow = torch.optim.Adam([{**{k: v for k, v in g.items() if k not in ("params", "foreach", "fused")}, "params": [c]}
                              for g, c in zip(fast.param_groups, copies)], foreach=False)
     gen = torch.Generator().manual_seed(0)
     for _ in range(5):
@@ -163,7 +163,7 @@ def test_foreach_adam_is_the_single_tensor_update_bit_for_bit(tiny_spot, tmp_pat
             c.grad = p.grad.clone()
         fast.step()
         slow.step()
-    assert all(torch.equal(p, c) for p, c in zip(params, copies))
+    assert all(torch.allclose(p, c, rtol=1e-6, atol=1e-7) for p, c in zip(params, copies))
 
 
 def test_masked_targets_show_the_background_outside_the_mask(tiny_spot):
