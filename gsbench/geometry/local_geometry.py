@@ -20,13 +20,16 @@ docs/methods/ibgs.md §3, §4, docs/methods/ibgs.md §7.
 from __future__ import annotations
 
 import itertools
+import os
 from dataclasses import dataclass
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from gsbench.geometry.eigen3 import sym3_eigh
 from gsbench.phase_timer import PhaseTimer
 
+COVARIANCE_ENV = "GSBENCH_LOCAL_COVARIANCE"  # "reference": the PyTorch covariance instead of the fused kernel
 COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.md §3.4); λ1 <= 2δ: coincident points
 
 PERMUTATIONS_3D = tuple(itertools.permutations(range(3)))
@@ -62,12 +65,69 @@ def neighbourhood_points(means: torch.Tensor, neighbour_means: torch.Tensor, inc
 
 def local_covariance(means: torch.Tensor, index: torch.Tensor, radius: float,
                      include_self: bool = True) -> torch.Tensor:
-    """C (N,3,3) float64 of each Gaussian's neighbourhood (module docstring, Eq. 4)."""
+    """C (N,3,3) float64 of each Gaussian's neighbourhood (module docstring, Eq. 4).
+
+    By the fused C++ kernel (``csrc/local_covariance.cpp``: one pass forward, the backward
+    dL/dp = (1/n)(G + Gᵀ)(p − μ̄) per member, scattered in member order) for CPU float32 / float64 means;
+    `local_covariance_reference` otherwise or with ``GSBENCH_LOCAL_COVARIANCE=reference``.
+    """
+    if (means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)
+            or os.environ.get(COVARIANCE_ENV, "").strip().lower() == "reference"):
+        return local_covariance_reference(means, index, radius, include_self)
+    return _FusedLocalCovariance.apply(means, index, COVARIANCE_JITTER * radius**2, include_self)
+
+
+def local_covariance_reference(means: torch.Tensor, index: torch.Tensor, radius: float,
+                               include_self: bool = True) -> torch.Tensor:
+    """`local_covariance` in PyTorch ops (gather, centre, batched product; autograd backward)."""
     x = means.to(torch.float64)
     points = neighbourhood_points(x, x[index], include_self)
     centred = points - points.mean(1, keepdim=True)
     cov = centred.transpose(1, 2) @ centred / max(points.shape[1], 1)
     return cov + (COVARIANCE_JITTER * radius**2) * torch.eye(3, dtype=torch.float64)
+
+
+class _FusedLocalCovariance(torch.autograd.Function):
+    """``gs_local_covariance_forward`` / ``_backward`` (csrc/local_covariance.cpp)."""
+
+    @staticmethod
+    def forward(ctx, means, index, jitter, include_self):
+        from gsbench.raster.build import load_library  # noqa: PLC0415
+
+        x = means.detach().contiguous()
+        idx = index.to(torch.int64).contiguous()
+        N, K = idx.shape
+        if N != x.shape[0]:
+            raise ValueError(f"local_covariance: index has {N} rows for {x.shape[0]} means")
+        C = torch.empty(N, 3, 3, dtype=torch.float64)
+        rc = load_library().gs_local_covariance_forward(N, K, int(include_self), int(x.dtype == torch.float64),
+                                                        x.data_ptr(), idx.data_ptr(), jitter, C.data_ptr(), _threads())
+        if rc != 0:
+            raise ValueError(f"local_covariance: neighbour index out of range [0, {N}) or no members (code {rc})")
+        ctx.include_self = include_self
+        ctx.save_for_backward(x, idx)
+        return C
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_C):
+        from gsbench.raster.build import load_library  # noqa: PLC0415
+
+        x, idx = ctx.saved_tensors
+        N, K = idx.shape
+        g = g_C.to(torch.float64).contiguous()
+        g_means = torch.empty(N, 3, dtype=torch.float64)
+        rc = load_library().gs_local_covariance_backward(N, K, int(ctx.include_self), int(x.dtype == torch.float64),
+                                                         x.data_ptr(), idx.data_ptr(), g.data_ptr(), g_means.data_ptr(),
+                                                         _threads())
+        if rc != 0:
+            raise RuntimeError(f"gsbench local_covariance backward failed (code {rc})")
+        return g_means.to(x.dtype), None, None, None
+
+
+def _threads() -> int:
+    """OpenMP threads for the C++ calls: torch's intra-op count, as for the rasterizer."""
+    return max(1, torch.get_num_threads())
 
 
 def local_geometry(means: torch.Tensor, index: torch.Tensor, radius: float, include_self: bool = True,

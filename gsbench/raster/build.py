@@ -4,7 +4,8 @@ The extension has a plain C ABI (raster.cpp: binning and compositing; integrate.
 fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver of `gsbench.geometry.eigen3`;
 ssim.cpp: the fused SSIM map and its backward of `gsbench.ssim`; sugar_field.cpp: SuGaR's neighbour field
 and normal average and their backwards of `gsbench.methods.sugar_field`; normal_consistency.cpp: the
-depth-normal consistency term and its backward of `gsbench.normal_consistency`), compiled with
+depth-normal consistency term and its backward of `gsbench.normal_consistency`; local_covariance.cpp:
+IBGS's kNN neighbourhood covariance and its backward of `gsbench.geometry.local_geometry`), compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)
 and called through ctypes. The library name carries a hash of the sources, the flags and the CPU, so
 an edit or another machine triggers a rebuild. The first build prints one line.
@@ -25,7 +26,7 @@ from gsbench.errors import BuildError
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp", "ssim.cpp", "sugar_field.cpp",
-           "normal_consistency.cpp"]
+           "normal_consistency.cpp", "local_covariance.cpp"]
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -210,5 +211,11 @@ def load_library() -> ctypes.CDLL:
         lib.gs_normal_consistency_forward.restype = ctypes.c_int
         lib.gs_normal_consistency_backward.argtypes = maps + [ctypes.c_double] + [ctypes.c_void_p] * 3 + [ctypes.c_int64]
         lib.gs_normal_consistency_backward.restype = ctypes.c_int
+        lib.gs_local_covariance_forward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 2 + [ctypes.c_double] + [
+            ctypes.c_void_p, ctypes.c_int64,
+        ]
+        lib.gs_local_covariance_forward.restype = ctypes.c_int
+        lib.gs_local_covariance_backward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 4 + [ctypes.c_int64]
+        lib.gs_local_covariance_backward.restype = ctypes.c_int
         _lib = lib
         return lib
