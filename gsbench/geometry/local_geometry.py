@@ -153,8 +153,29 @@ def frame_alignment(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool 
 
     Apply as ``vectors[:, :, perm] * signs``: column k of the result is ± the new eigenvector that best
     matches previous column k; the signs make each dot product >= 0, then det is made +1 by flipping
-    the least aligned column.
+    the least aligned column. By ``gs_frame_alignment`` (csrc/frames.cpp) for CPU float64 ``vectors``;
+    `frame_alignment_reference` otherwise.
     """
+    if vectors.device.type != "cpu" or vectors.dtype != torch.float64 or previous.dtype not in (torch.float32,
+                                                                                                   torch.float64):
+        return frame_alignment_reference(vectors, previous, surfel)
+    from gsbench.raster.build import load_library  # noqa: PLC0415
+
+    V, prev = vectors.contiguous(), previous.contiguous()
+    n = V.shape[0]
+    perm = torch.empty(n, 3, dtype=torch.int64)
+    signs = torch.empty(n, 3, dtype=torch.float64)
+    rc = load_library().gs_frame_alignment(n, int(surfel), V.data_ptr(), prev.data_ptr(), int(prev.dtype == torch.float64),
+                                           perm.data_ptr(), signs.data_ptr(), _threads())
+    if rc != 0:
+        raise RuntimeError(f"gsbench frame_alignment failed (code {rc})")
+    return perm, signs
+
+
+@torch.no_grad()
+def frame_alignment_reference(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool = False
+                              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """`frame_alignment` in PyTorch ops (the reference)."""
     perms = torch.tensor(PERMUTATIONS_2D if surfel else PERMUTATIONS_3D, dtype=torch.int64)
     dots = previous.transpose(1, 2).to(vectors.dtype) @ vectors  # (N, old k, new m)
     picks = torch.zeros(9, len(perms), dtype=dots.dtype)  # picks[3k + p(k), p] = 1: scores = |dots| · picks

@@ -25,7 +25,23 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 
     Of the four candidate forms (from 1 + tr, 1 + 2R₀₀ − tr, 1 + 2R₁₁ − tr, 1 + 2R₂₂ − tr) the one with
     the largest radicand is used, so the square root is of at least 1 and the gradient is bounded.
+    Without a gradient to carry (R not requiring grad, or grad disabled) and for CPU float64 R, by
+    ``gs_rotmat_to_quat`` (csrc/frames.cpp, the same steps in one loop); `rotmat_to_quat_reference` otherwise.
     """
+    if (R.requires_grad and torch.is_grad_enabled()) or R.device.type != "cpu" or R.dtype != torch.float64:
+        return rotmat_to_quat_reference(R)
+    from gsbench.raster.build import load_library  # noqa: PLC0415
+
+    m = R.detach().contiguous()
+    q = torch.empty(m.shape[0], 4, dtype=torch.float64)
+    rc = load_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), max(1, torch.get_num_threads()))
+    if rc != 0:
+        raise RuntimeError(f"gsbench rotmat_to_quat failed (code {rc})")
+    return q
+
+
+def rotmat_to_quat_reference(R: torch.Tensor) -> torch.Tensor:
+    """`rotmat_to_quat` in PyTorch ops (differentiable; the reference)."""
     m = R
     tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
     radicands = torch.stack([1 + tr, 1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr, 1 + 2 * m[:, 2, 2] - tr], -1)

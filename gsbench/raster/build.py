@@ -5,7 +5,8 @@ fused EWA-family projection; eigen3.cpp: the batched symmetric 3×3 eigen-solver
 ssim.cpp: the fused SSIM map and its backward of `gsbench.ssim`; sugar_field.cpp: SuGaR's neighbour field
 and normal average and their backwards of `gsbench.methods.sugar_field`; normal_consistency.cpp: the
 depth-normal consistency term and its backward of `gsbench.normal_consistency`; local_covariance.cpp:
-IBGS's kNN neighbourhood covariance and its backward of `gsbench.geometry.local_geometry`), compiled with
+IBGS's kNN neighbourhood covariance and its backward of `gsbench.geometry.local_geometry`; frames.cpp: its
+frame alignment and the no-gradient rotation → quaternion of `gsbench.geometry.rotations`), compiled with
 ``torch.utils.cpp_extension.load`` into ``$GSBENCH_CACHE/raster`` (default ``~/.cache/gsbench/raster``)
 and called through ctypes. The library name carries a hash of the sources, the flags and the CPU, so
 an edit or another machine triggers a rebuild. The first build prints one line.
@@ -26,7 +27,7 @@ from gsbench.errors import BuildError
 
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = ["raster.cpp", "integrate.cpp", "project.cpp", "eigen3.cpp", "ssim.cpp", "sugar_field.cpp",
-           "normal_consistency.cpp", "local_covariance.cpp"]
+           "normal_consistency.cpp", "local_covariance.cpp", "frames.cpp"]
 CFLAGS = [
     "-O3",
     "-march=native",
@@ -217,5 +218,11 @@ def load_library() -> ctypes.CDLL:
         lib.gs_local_covariance_forward.restype = ctypes.c_int
         lib.gs_local_covariance_backward.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 4 + [ctypes.c_int64]
         lib.gs_local_covariance_backward.restype = ctypes.c_int
+        lib.gs_frame_alignment.argtypes = [ctypes.c_int64] * 2 + [ctypes.c_void_p] * 2 + [ctypes.c_int64] + [
+            ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64,
+        ]
+        lib.gs_frame_alignment.restype = ctypes.c_int
+        lib.gs_rotmat_to_quat.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64]
+        lib.gs_rotmat_to_quat.restype = ctypes.c_int
         _lib = lib
         return lib

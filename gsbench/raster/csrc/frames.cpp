@@ -1,0 +1,127 @@
+// IBGS's per-step frame bookkeeping without autograd: the column permutation and signs that keep each
+// Gaussian's eigenvector frame continuous (gsbench/geometry/local_geometry.py, `frame_alignment`), and
+// rotation matrix -> unit quaternion (gsbench/geometry/rotations.py, `rotmat_to_quat`) for inputs that need
+// no gradient. The PyTorch functions are the references; tests: tests/test_frames_fused.py.
+//
+// Layout: V, previous, R (N, 3, 3) row-major, columns are the frame's axes; perm (N, 3) int64; signs (N, 3)
+// and q (N, 4) (w, x, y, z) float64. V and R are float64; previous float32 or float64.
+//
+// Alignment, per Gaussian: dots[k][m] = previous column k · V column m; over the candidate permutations p
+// (all six; for surfels the two that keep column 2) the score Σ_k |dots[k][p(k)]|, the first maximum wins;
+// signs[k] = −1 where dots[k][p(k)] < 0, else 1; if the aligned frame V[:, p]·signs has det < 0, the sign of
+// the least aligned column (smallest |dots[k][p(k)]|, column 2 excluded for surfels) is flipped.
+//
+// Quaternion (Shepperd): of the radicands 1 + tr, 1 + 2R00 − tr, 1 + 2R11 − tr, 1 + 2R22 − tr the first
+// largest is used, s = 2 sqrt(max(radicand, 1e−12)) (= 4·|that component|), the other components from the
+// differences / sums of the off-diagonal pairs divided by s; the result is negated if w < 0 and normalised
+// by max(|q|, 1e−12).
+#include <cmath>
+#include <cstdint>
+#include <omp.h>
+
+namespace {
+
+constexpr int64_t MIN_PARALLEL = 4096;
+constexpr int PERMS_3D[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
+constexpr int PERMS_2D[2][3] = {{0, 1, 2}, {1, 0, 2}};
+
+int threads(int64_t n, int64_t nthreads) { return n < MIN_PARALLEL ? 1 : static_cast<int>(nthreads < 1 ? 1 : nthreads); }
+
+inline double det3(const double m[9]) {
+    return m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) + m[2] * (m[3] * m[7] - m[4] * m[6]);
+}
+
+template <typename P>
+void align(int64_t N, bool surfel, const double* V, const P* previous, int64_t* perm, double* signs, int64_t nthreads) {
+    const int count = surfel ? 2 : 6;
+#pragma omp parallel for schedule(static) num_threads(threads(N, nthreads))
+    for (int64_t i = 0; i < N; ++i) {
+        const double* v = V + 9 * i;
+        const P* prev = previous + 9 * i;
+        double dots[3][3];
+        for (int k = 0; k < 3; ++k)
+            for (int m = 0; m < 3; ++m)
+                dots[k][m] = static_cast<double>(prev[k]) * v[m] + static_cast<double>(prev[3 + k]) * v[3 + m] +
+                             static_cast<double>(prev[6 + k]) * v[6 + m];
+        int best = 0;
+        double best_score = -1.0;
+        for (int c = 0; c < count; ++c) {
+            const int* p = surfel ? PERMS_2D[c] : PERMS_3D[c];
+            const double score = std::fabs(dots[0][p[0]]) + std::fabs(dots[1][p[1]]) + std::fabs(dots[2][p[2]]);
+            if (score > best_score) {
+                best_score = score;
+                best = c;
+            }
+        }
+        const int* p = surfel ? PERMS_2D[best] : PERMS_3D[best];
+        double s[3], aligned[3], frame[9];
+        for (int k = 0; k < 3; ++k) {
+            aligned[k] = dots[k][p[k]];
+            s[k] = aligned[k] < 0 ? -1.0 : 1.0;
+            for (int row = 0; row < 3; ++row) frame[3 * row + k] = v[3 * row + p[k]] * s[k];
+        }
+        if (det3(frame) < 0) {
+            int weakest = 0;
+            double weakest_value = 0.0;
+            for (int k = 0; k < 3; ++k) {
+                const double value = std::fabs(aligned[k]) + (surfel && k == 2 ? 1.0 : 0.0);
+                if (k == 0 || value < weakest_value) {
+                    weakest_value = value;
+                    weakest = k;
+                }
+            }
+            s[weakest] = -s[weakest];
+        }
+        for (int k = 0; k < 3; ++k) {
+            perm[3 * i + k] = p[k];
+            signs[3 * i + k] = s[k];
+        }
+    }
+}
+
+void to_quaternion(int64_t N, const double* R, double* q, int64_t nthreads) {
+#pragma omp parallel for schedule(static) num_threads(threads(N, nthreads))
+    for (int64_t i = 0; i < N; ++i) {
+        const double* m = R + 9 * i;
+        const double tr = m[0] + m[4] + m[8];
+        const double rad[4] = {1 + tr, 1 + 2 * m[0] - tr, 1 + 2 * m[4] - tr, 1 + 2 * m[8] - tr};
+        int c = 0;
+        for (int j = 1; j < 4; ++j)
+            if (rad[j] > rad[c]) c = j;
+        const double s = 2 * std::sqrt(rad[c] > 1e-12 ? rad[c] : 1e-12);
+        const double d21 = m[7] - m[5], d02 = m[2] - m[6], d10 = m[3] - m[1];
+        const double s01 = m[1] + m[3], s02 = m[2] + m[6], s12 = m[5] + m[7];
+        const double quarter = s / 4;
+        double out[4];
+        if (c == 0) { out[0] = quarter; out[1] = d21 / s; out[2] = d02 / s; out[3] = d10 / s; }
+        else if (c == 1) { out[0] = d21 / s; out[1] = quarter; out[2] = s01 / s; out[3] = s02 / s; }
+        else if (c == 2) { out[0] = d02 / s; out[1] = s01 / s; out[2] = quarter; out[3] = s12 / s; }
+        else { out[0] = d10 / s; out[1] = s02 / s; out[2] = s12 / s; out[3] = quarter; }
+        const double sign = out[0] < 0 ? -1.0 : 1.0;
+        const double norm = std::sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3]);
+        const double den = norm > 1e-12 ? norm : 1e-12;
+        for (int j = 0; j < 4; ++j) q[4 * i + j] = sign * out[j] / den;
+    }
+}
+
+}  // namespace
+
+extern "C" {
+
+// perm (N, 3) and signs (N, 3) aligning V to previous (header); previous_dtype 0: float32, 1: float64.
+int gs_frame_alignment(int64_t N, int64_t surfel, const double* V, const void* previous, int64_t previous_dtype,
+                       int64_t* perm, double* signs, int64_t nthreads) {
+    if (N < 0) return 1;
+    if (previous_dtype == 1) align(N, surfel != 0, V, static_cast<const double*>(previous), perm, signs, nthreads);
+    else align(N, surfel != 0, V, static_cast<const float*>(previous), perm, signs, nthreads);
+    return 0;
+}
+
+// q (N, 4) unit quaternions, w >= 0, of the rotations R (N, 3, 3) (header).
+int gs_rotmat_to_quat(int64_t N, const double* R, double* q, int64_t nthreads) {
+    if (N < 0) return 1;
+    to_quaternion(N, R, q, nthreads);
+    return 0;
+}
+
+}  // extern "C"
