@@ -66,7 +66,8 @@ class AbsGradStrategy(DefaultStrategy):
     def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
         visible = super()._accumulate(state, out)
         _, absgrad = out.densify_grads()
-        state["absgrad"][visible] += absgrad.detach().to(state["absgrad"].dtype)[visible]
+        values = absgrad.detach().to(state["absgrad"].dtype)
+        state["absgrad"].add_(torch.where(visible, values, torch.zeros((), dtype=values.dtype)))
         return visible
 
     def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:

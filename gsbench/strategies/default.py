@@ -93,9 +93,12 @@ class DefaultStrategy(Strategy):
         grad, _ = out.densify_grads()
         radii = out.radii.detach().to(state["radii"].dtype)
         visible = out.visible if out.visible is not None else radii > 0
-        state["grad2d"][visible] += grad.detach().norm(dim=-1).to(state["grad2d"].dtype)[visible]
-        state["count"][visible] += 1
-        state["radii"][visible] = torch.maximum(state["radii"][visible], radii[visible])
+        # masked elementwise updates rather than boolean indexing: the same values (adding 0 is exact),
+        # without a nonzero() and a gather/scatter per statistic on every step
+        norm = grad.detach().norm(dim=-1).to(state["grad2d"].dtype)
+        state["grad2d"].add_(torch.where(visible, norm, torch.zeros((), dtype=norm.dtype)))
+        state["count"].add_(visible.to(state["count"].dtype))
+        torch.where(visible, torch.maximum(state["radii"], radii), state["radii"], out=state["radii"])
         return visible
 
     def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
