@@ -210,6 +210,67 @@ def test_gradcheck_float64(kernel):
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
+# plane_distance (PGSR, docs/methods/pgsr.md §3.1): Σ w_i d_i composited in the kernel's own pass like one more
+# colour channel; its reverse pass adds g_plane·d_i to ψ (the suffix of every Gaussian in front) and returns
+# dL/dd_i = Σ_pixels w_i·g_plane. Losses mix it with colour so that both channels share one suffix.
+PLANE_OUTS = ("plane_distance", "rgb", "normal", "alpha")
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=("f32", "f64"))
+def test_plane_distance_native_matches_reference(kernel, dtype):
+    """Value and the gradients w.r.t. every raster input (and means2d, absgrad) of the native output, alone and
+    in a loss with colour, normal and alpha; float32 within the tolerances above, float64 to rounding."""
+    from gsbench.raster.build import load_library  # noqa: PLC0415
+
+    assert load_library().gs_plane_distance_abi() == 1
+    settings = RasterSettings(sh_degree=1)
+    cam, g32 = _scene(kernel, seed=9, n=150, W=48, H=40)
+    fwd_tol, grad_tol = (FWD_ATOL, GRAD_RTOL) if dtype == torch.float32 else (1e-9, 1e-7)
+    for outs in (("plane_distance",), PLANE_OUTS):
+        gr = with_grad(_cast(g32, torch.float64))
+        gf = with_grad(_cast(g32, dtype))
+        ref = reference.render(gr, cam, kernel=kernel, outputs=outs, settings=settings)
+        out = rasterize(gf, cam, kernel=kernel, outputs=outs, settings=settings)
+        assert float(ref.plane_distance.detach().max()) > 0.1
+        for o in outs:
+            diff = float((getattr(out, o).detach().double() - getattr(ref, o).detach()).abs().max())
+            assert diff <= fwd_tol, f"{kernel}/{o}: forward max abs diff {diff:.3g} > {fwd_tol}"
+        w = _weights(out, outs, seed=2)
+        _loss(out, w).backward()
+        loss_ref = _loss(ref, w)
+        errs = _grad_errors(gf, None, loss_ref, gr)  # one reverse pass of the reference: fills its absgrad
+        bad = {p: e for p, e in errs.items() if not e <= grad_tol}
+        assert not bad, f"{kernel}/{outs}: relative gradient errors {bad}"
+        if kernel != "raymax":  # raymax's densification statistics are GOF's proxy (tested above)
+            a, b = out.extras["absgrad"].double(), ref.extras["absgrad"]
+            assert float((a - b).norm()) <= grad_tol * float(b.norm())
+            gm_ref = torch.autograd.grad(loss_ref, ref.means2d)[0]
+            gm = out.means2d.grad.double()
+            assert float((gm - gm_ref).norm()) <= grad_tol * float(gm_ref.norm())
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_plane_distance_gradcheck_float64(kernel):
+    """Full float64 gradcheck of the native output alone and of a loss mixing it with colour."""
+    cam = make_camera(16, 12)
+    g = random_gaussians(6, kernel, seed=12, camera=cam, dtype=torch.float64, sh_degree=1, scale_range=(0.15, 0.4))
+    settings = RasterSettings(sh_degree=1)
+    gen = torch.Generator().manual_seed(3)
+    w_pl = torch.rand(12, 16, generator=gen, dtype=torch.float64)
+    w_rgb = torch.rand(12, 16, 3, generator=gen, dtype=torch.float64)
+
+    def fn(means, quats, scales, opacities, sh):
+        gs = RasterGaussians(means, quats, scales, opacities, sh)
+        alone = rasterize(gs, cam, kernel=kernel, outputs=("plane_distance",), settings=settings).plane_distance
+        out = rasterize(gs, cam, kernel=kernel, outputs=("plane_distance", "rgb"), settings=settings)
+        return alone, (out.plane_distance * w_pl).sum() + (out.rgb * w_rgb).sum()
+
+    inputs = tuple(getattr(g, p).clone().requires_grad_(True) for p in PARAMS)
+    assert float(fn(*inputs)[0].detach().max()) > 0.1
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
 def test_only_requested_outputs():
     cam, g32 = _scene("ewa", n=50, W=32, H=32)
     out = rasterize(g32, cam, kernel="ewa", outputs=("rgb",))

@@ -388,16 +388,15 @@ def rasterize(
 
     m2d_leaf = proj.means2d.detach().clone().requires_grad_(True)
     absgrad = torch.zeros(n, dtype=dtype)
-    native_plane = hasattr(lib, "gs_plane_distance_abi")
+    # plane_distance = Σ w_i d_i (d_i = −n_i·μ_i), composited in the same pass as the colour, like a 4th channel
     plane_d = _plane_distances(proj.params, gaussians.means, camera, kernel) if want["plane_distance"] else None
-    a.want_plane = int(want["plane_distance"] and native_plane)
+    a.want_plane = int(want["plane_distance"])
     state = _State(lib, a, kernel, n, m2d_leaf, absgrad, H, W, dtype, (bounds, depth_key, offsets, tile_list, rect))
-    state.want = {**want, "plane_distance": bool(a.want_plane)}
+    state.want = want
 
     empty = torch.empty(0, dtype=dtype)
-    rgb, alpha, dacc, med, nrm, dist, plane = _RasterFn.apply(proj.params, plane_d if a.want_plane else empty, state)
-    if want["plane_distance"] and not native_plane:  # interim: a library without the output (see _plane_pass)
-        plane = _plane_pass(proj.params, plane_d, a, state)
+    plane_in = empty if plane_d is None else plane_d
+    rgb, alpha, dacc, med, nrm, dist, plane = _RasterFn.apply(proj.params, plane_in, state)
 
     res = RenderOutput(width=W, height=H)
     if want["rgb"]:
@@ -440,25 +439,6 @@ def _plane_distances(params: torch.Tensor, means: torch.Tensor, camera: Camera, 
     if kernel == "raymax":
         normal = -torch.nn.functional.normalize(normal, dim=-1)
     return -(normal * mu).sum(-1)
-
-
-def _plane_pass(params: torch.Tensor, plane_d: torch.Tensor, args, state: _State) -> torch.Tensor:
-    """Σ w_i d_i by a second colour-only compositing pass with d in the red channel (exact, same gradients
-    w.r.t. the payload and means2d; absgrad sums the two passes' abs-gradients). Used only with a
-    compiled library that predates the native ``plane_distance`` output."""
-    import ctypes as _ct  # noqa: PLC0415
-
-    from gsbench.raster.build import GsArgs  # noqa: PLC0415
-
-    b = GsArgs()
-    _ct.memmove(_ct.byref(b), _ct.byref(args), _ct.sizeof(GsArgs))
-    b.want_rgb, b.want_depth, b.want_median, b.want_normal, b.want_dist = 1, 0, 0, 0, 0
-    second = _State(state.lib, b, state.kernel, state.n, state.m2d_leaf, state.absgrad, state.height, state.width,
-                    state.dtype, state.bufs)
-    second.want = {o: o == "rgb" for o in OUTPUTS}
-    n = params.shape[0]
-    payload = torch.cat([params[:, :6], plane_d[:, None], params.new_zeros(n, 2), params[:, 9:]], 1)
-    return _RasterFn.apply(payload, torch.empty(0, dtype=params.dtype), second)[0][..., 0]
 
 
 def _with_bg(settings: RasterSettings, background) -> RasterSettings:

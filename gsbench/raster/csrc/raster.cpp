@@ -78,6 +78,12 @@ struct GsArgs {
     void* absgrad;      // (N,), zero-initialised
     void* proxy;        // (N, 2) raymax densification proxy (pixel units), zero-initialised
     int64_t pairs;      // out: pixel-Gaussian lanes evaluated
+    // plane_distance (PGSR, docs/methods/pgsr.md §3.1), appended so the fields above keep their offsets
+    int64_t want_plane;
+    const void* plane_d;  // (N,) per-Gaussian plane distance d_i = −n_i·μ_i
+    void* out_plane;      // (H, W) Σ w d
+    const void* g_plane;  // (H, W) backward input (null if no gradient)
+    void* grad_plane;     // (N,) dL/dd = Σ_pixels w·g_plane, zero-initialised
 };
 
 }  // extern "C"
@@ -260,9 +266,11 @@ __attribute__((always_inline)) inline void eval_lane(Eval<K, T>& e, const T* __r
 // MODE: 0 = colour/alpha only; 1 = + depth, median, normal (GEOM); 2 = GEOM + distortion (DIST). In GEOM
 // mode the lanes compute depth, median and normal whether requested or not (only the requested ones are
 // written): runtime flags inside the lane loop block GCC's vectoriser (invariant-condition selects).
-template <int K, typename T, int MODE>
+// PL (GEOM only): + the plane distance Σ w d, like one more colour channel from the per-Gaussian d (plane_d).
+template <int K, typename T, int MODE, bool PL>
 void forward_impl(GsArgs& A) {
     constexpr bool GEOM = MODE >= 1, DIST = MODE == 2;
+    static_assert(GEOM || !PL, "the plane distance is a geometry output");
     constexpr int NPK = NP<K>::v;
     const int W = (int)A.width, H = (int)A.height, TX = (int)A.tiles_x, TY = (int)A.tiles_y;
     const T* __restrict P = (const T*)A.params;
@@ -281,6 +289,8 @@ void forward_impl(GsArgs& A) {
     T* o_T = (T*)A.T_final;
     T* o_M1 = (T*)A.M1;
     T* o_M2 = (T*)A.M2;
+    const T* __restrict PD = (const T*)A.plane_d;
+    T* o_pl = (T*)A.out_plane;
     int64_t pairs = 0;
     const int ntiles = TX * TY;
 
@@ -289,6 +299,7 @@ void forward_impl(GsArgs& A) {
         FTZGuard ftz;
         alignas(64) T Tr[TP], act[TP], cr[TP], cg[TP], cb[TP], wa[TP];
         alignas(64) T dep[TP], med[TP], n0[TP], n1[TP], n2[TP], m1[TP], m2[TP];
+        alignas(64) T pl[PL ? TP : 1];
         alignas(64) int32_t lastk[TP], medi[TP];
         alignas(64) T rxs[TS];
         alignas(64) T invrs[K == K_RADE && GEOM ? TP : 1];
@@ -307,6 +318,7 @@ void forward_impl(GsArgs& A) {
                     dep[i] = med[i] = n0[i] = n1[i] = n2[i] = m1[i] = m2[i] = T(0);
                     medi[i] = -1;
                 }
+                if constexpr (PL) pl[i] = T(0);
             }
             for (int lx = 0; lx < TS; ++lx) rxs[lx] = (T(x0 + lx) + T(0.5) - cx) / fx;
             if constexpr (K == K_RADE && GEOM) fill_invr<T>(invrs, rxs, y0, nrows, cy, fy);
@@ -315,7 +327,10 @@ void forward_impl(GsArgs& A) {
             T m0 = T(0);
             if (DIST && end > beg) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
             for (int k = beg; k < end && ndone < TP; ++k) {
-                if (k + PF < end) prefetch_gauss<NPK, T>(P, BND, A.tile_list[k + PF]);
+                if (k + PF < end) {
+                    prefetch_gauss<NPK, T>(P, BND, A.tile_list[k + PF]);
+                    if constexpr (PL) __builtin_prefetch(PD + A.tile_list[k + PF], 0, 1);
+                }
                 const int g = A.tile_list[k];
                 const T* __restrict p = P + (int64_t)g * NPK;
                 const T* bnd = BND + (int64_t)g * 4;
@@ -326,6 +341,8 @@ void forward_impl(GsArgs& A) {
                 // the lane chunks [h0, h1) meeting the box's columns (lanes outside it get alpha < 1/255)
                 const int h0 = (q0 - x0) / HL, h1 = (q1 - 1 - x0) / HL + 1;
                 const T o = p[P_O], c0 = p[P_R], c1 = p[P_G], c2 = p[P_B];
+                [[maybe_unused]] T dpl = T(0);  // plane distance d of this Gaussian
+                if constexpr (PL) dpl = PD[g];
                 const int kk = k - beg;
                 for (int y = r0; y < r1; ++y) {
                     const T py = T(y) + T(0.5);
@@ -365,6 +382,7 @@ void forward_impl(GsArgs& A) {
                             n0[i] += w * e.n0;
                             n1[i] += w * e.n1;
                             n2[i] += w * e.n2;
+                            if constexpr (PL) pl[i] += w * dpl;  // Σ w d
                             if constexpr (DIST) {
                                 const bool zp = e.z > T(0);
                                 const T mz = bsel<T>(zp, mapm<T>(bsel<T>(zp, e.z, T(1)), nearz, farz), T(0)) - m0;
@@ -417,6 +435,7 @@ void forward_impl(GsArgs& A) {
                             o_M1[pix] = m1[i];
                             o_M2[pix] = m2[i];
                         }
+                        if constexpr (PL) o_pl[pix] = pl[i];
                     }
                 }
             }
@@ -428,13 +447,16 @@ void forward_impl(GsArgs& A) {
 // ---------------------------------------------------------------------------------------------
 // Backward
 // ---------------------------------------------------------------------------------------------
-// slots: 0..NPK-1 = payload gradient, NPK = absgrad, NPK+1..NPK+2 = proxy (raymax)
+// slots: 0..NPK-1 = payload gradient, NPK = absgrad, NPK+1..NPK+2 = proxy (raymax), NPK+3 = dL/dd of the
+// plane distance (PL only: g_plane given). The plane channel enters like a colour channel: ψ += g_plane·d
+// (so the suffix B carries it into dL/dα of the Gaussians in front) and dL/dd = Σ_pixels w·g_plane.
 
-template <int K, typename T, int MODE>
+template <int K, typename T, int MODE, bool PL>
 void backward_impl(GsArgs& A) {
     constexpr bool GEOM = MODE >= 1, DIST = MODE == 2;
+    static_assert(GEOM || !PL, "the plane distance is a geometry output");
     constexpr int NPK = NP<K>::v;
-    constexpr int NS = NPK + 3;
+    constexpr int NS = NPK + (PL ? 4 : 3);  // the slots above (lane accumulators, thread buffer rows)
     const int W = (int)A.width, H = (int)A.height, TX = (int)A.tiles_x, TY = (int)A.tiles_y;
     const int64_t N = A.n_gauss;
     const T* __restrict P = (const T*)A.params;
@@ -448,6 +470,8 @@ void backward_impl(GsArgs& A) {
     const T* g_med = GEOM ? (const T*)A.g_median : nullptr;
     const T* g_nrm = GEOM ? (const T*)A.g_normal : nullptr;
     const T* g_dist = DIST ? (const T*)A.g_dist : nullptr;
+    const T* g_pl = PL ? (const T*)A.g_plane : nullptr;
+    const T* __restrict PD = (const T*)A.plane_d;
     const bool b_rgb = g_rgb != nullptr, b_alpha = g_alpha != nullptr, b_depth = g_depth != nullptr,
                b_med = g_med != nullptr, b_nrm = g_nrm != nullptr, b_dist = g_dist != nullptr;
     const bool detach = A.detach_dist;
@@ -469,19 +493,23 @@ void backward_impl(GsArgs& A) {
         T* gp;
         T* ga;
         T* gx;
+        [[maybe_unused]] T* gpl;  // dL/dd (PL)
         if (tid == 0) {
             gp = (T*)A.grad_params;
             ga = (T*)A.absgrad;
             gx = (T*)A.proxy;
+            gpl = (T*)A.grad_plane;
         } else {
             auto& buf = extra[tid - 1];
-            buf.assign((size_t)N * (NPK + 3), T(0));
+            buf.assign((size_t)N * NS, T(0));
             gp = buf.data();
             ga = gp + (size_t)N * NPK;
             gx = ga + N;
+            gpl = gx + 2 * N;  // only with PL (the buffer has N more rows)
         }
         alignas(64) T Tr[TP], Bb[TP], ga0[TP], gc0[TP], gc1[TP], gc2[TP], gD[TP], gm[TP], gN0[TP], gN1[TP], gN2[TP];
         alignas(64) T gd[TP], gdp[TP], Wt[TP], M1[TP], M2[TP];
+        alignas(64) T gP[PL ? TP : 1];
         alignas(64) int32_t lastk[TP], medi[TP];
         alignas(64) T rxs[TS];
         alignas(64) T invrs[K == K_RADE && GEOM ? TP : 1];
@@ -519,6 +547,7 @@ void backward_impl(GsArgs& A) {
                     M1[i] = (in && b_dist) ? sM1[pix] : T(0);
                     M2[i] = (in && b_dist) ? sM2[pix] : T(0);
                 }
+                if constexpr (PL) gP[i] = in ? g_pl[pix] : T(0);
             }
             if (maxlast == 0) continue;
             for (int lx = 0; lx < TS; ++lx) rxs[lx] = (T(x0 + lx) + T(0.5) - cx) / fx;
@@ -535,6 +564,10 @@ void backward_impl(GsArgs& A) {
                     __builtin_prefetch(q, 1, 1);
                     __builtin_prefetch(q + NPK * sizeof(T) - 1, 1, 1);
                     __builtin_prefetch(ga + gq, 1, 1);
+                    if constexpr (PL) {
+                        __builtin_prefetch(PD + gq, 0, 1);
+                        __builtin_prefetch(gpl + gq, 1, 1);
+                    }
                 }
                 const int g = A.tile_list[beg + kk];
                 const T* __restrict p = P + (int64_t)g * NPK;
@@ -554,6 +587,8 @@ void backward_impl(GsArgs& A) {
                         for (int l = 0; l < HL; ++l) acc[s][l0 + l] = T(0);
                 }
                 const T o = p[P_O], c0 = p[P_R], c1 = p[P_G], c2 = p[P_B];
+                [[maybe_unused]] T dpl = T(0);  // plane distance d of this Gaussian
+                if constexpr (PL) dpl = PD[g];
                 int nvalid = 0;
                 for (int y = r0; y < r1; ++y) {
                     const T py = T(y) + T(0.5);
@@ -579,6 +614,7 @@ void backward_impl(GsArgs& A) {
                         T mz = T(0), dmz = T(0);
                         if constexpr (GEOM) {
                             psi += gD[i] * e.z + gN0[i] * e.n0 + gN1[i] * e.n1 + gN2[i] * e.n2;
+                            if constexpr (PL) psi += gP[i] * dpl;
                             if constexpr (DIST) {
                                 const bool zp = e.z > T(0);
                                 const T zz = bsel<T>(zp, e.z, T(1));
@@ -606,6 +642,7 @@ void backward_impl(GsArgs& A) {
                             dn0 = wv * gN0[i];
                             dn1 = wv * gN1[i];
                             dn2 = wv * gN2[i];
+                            if constexpr (PL) acc[NPK + 3][lx] += wv * gP[i];  // dL/dd = Σ w g_plane
                         }
                         T gmx = T(0), gmy = T(0);
                         if constexpr (K == K_EWA || K == K_RADE) {
@@ -746,6 +783,11 @@ void backward_impl(GsArgs& A) {
                     gx[2 * g] += sx;
                     gx[2 * g + 1] += sy;
                 }
+                if constexpr (PL) {
+                    T sp = T(0);
+                    for (int lx = l0; lx < l1; ++lx) sp += acc[NPK + 3][lx];
+                    gpl[g] += sp;
+                }
             }
         }
     }
@@ -766,6 +808,10 @@ void backward_impl(GsArgs& A) {
             for (int64_t j = 0; j < N; ++j) ga[j] += bb[j];
             if (K == K_RAYMAX)
                 for (int64_t j = 0; j < 2 * N; ++j) gx[j] += bb[N + j];
+            if (PL) {
+                T* gpl = (T*)A.grad_plane;
+                for (int64_t j = 0; j < N; ++j) gpl[j] += bb[3 * N + j];
+            }
         }
     }
     A.pairs = pairs;
@@ -773,18 +819,19 @@ void backward_impl(GsArgs& A) {
 
 template <int K, typename T>
 int dispatch_geom(GsArgs& A, bool fwd) {
-    const bool geom = fwd ? (A.want_depth || A.want_median || A.want_normal || A.want_dist)
-                          : (A.g_depth || A.g_median || A.g_normal || A.g_dist);
+    const bool plane = fwd ? A.want_plane != 0 : A.g_plane != nullptr;  // the plane distance runs in GEOM mode
+    const bool geom = plane || (fwd ? (A.want_depth || A.want_median || A.want_normal || A.want_dist)
+                                    : (A.g_depth || A.g_median || A.g_normal || A.g_dist));
     const bool dist = fwd ? A.want_dist : A.g_dist != nullptr;
     const int mode = !geom ? 0 : dist ? 2 : 1;
     if (fwd) {
-        if (mode == 0) forward_impl<K, T, 0>(A);
-        else if (mode == 1) forward_impl<K, T, 1>(A);
-        else forward_impl<K, T, 2>(A);
+        if (mode == 0) forward_impl<K, T, 0, false>(A);
+        else if (mode == 1) plane ? forward_impl<K, T, 1, true>(A) : forward_impl<K, T, 1, false>(A);
+        else plane ? forward_impl<K, T, 2, true>(A) : forward_impl<K, T, 2, false>(A);
     } else {
-        if (mode == 0) backward_impl<K, T, 0>(A);
-        else if (mode == 1) backward_impl<K, T, 1>(A);
-        else backward_impl<K, T, 2>(A);
+        if (mode == 0) backward_impl<K, T, 0, false>(A);
+        else if (mode == 1) plane ? backward_impl<K, T, 1, true>(A) : backward_impl<K, T, 1, false>(A);
+        else plane ? backward_impl<K, T, 2, true>(A) : backward_impl<K, T, 2, false>(A);
     }
     return 0;
 }
@@ -860,6 +907,9 @@ int64_t bin_entries(int64_t M, RectOf rect_of, IdOf id_of, int64_t tiles_x, int6
 extern "C" {
 
 int gs_abi_version() { return 1; }
+
+// Present since GsArgs carries the plane_distance fields (want_plane .. grad_plane; docs/methods/pgsr.md §3.1).
+int gs_plane_distance_abi() { return 1; }
 
 int gs_forward(GsArgs* A) {
     if (A->n_params != (A->kernel == K_EWA ? 13 : A->kernel == K_RADE ? 15 : A->kernel == K_RAYMAX ? 24 : 21)) return -2;
