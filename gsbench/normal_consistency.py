@@ -24,13 +24,12 @@ of depth 0 and on each mode. The fused path is not twice differentiable.
 from __future__ import annotations
 
 import ctypes
-import os
 
 import torch
 from torch.autograd.function import once_differentiable
 
 from gsbench.data.camera import Camera
-from gsbench.errors import ConfigError
+from gsbench.impl_choice import choose_impl
 
 IMPLS = ("fused", "reference")
 ENV = "GSBENCH_NORMAL_CONSISTENCY"
@@ -43,7 +42,7 @@ def normal_consistency(normal: torch.Tensor, depths: list[torch.Tensor], weights
     if not 1 <= len(depths) <= 2 or len(weights) != len(depths):
         raise ValueError(f"normal_consistency takes one or two depth maps with one weight each, got "
                          f"{len(depths)} maps and {len(weights)} weights")
-    choice = _choose_impl(impl)
+    choice = choose_impl(impl, ENV, IMPLS)
     reason = _unsupported(normal, depths, alpha)
     if choice == "fused" and reason is not None and impl == "fused":
         raise ValueError(f"normal_consistency impl='fused' cannot take these inputs: {reason}")
@@ -65,17 +64,6 @@ def normal_consistency_reference(normal: torch.Tensor, depths: list[torch.Tensor
         n_d = n_d * alpha.detach()[..., None]
     n_r = torch.nn.functional.normalize(normal, dim=-1) if normalize else normal
     return (1.0 - (n_r * n_d).sum(-1)).mean()
-
-
-def _choose_impl(impl: str | None) -> str:
-    if impl is None:
-        env = os.environ.get(ENV, "").strip().lower()
-        if env not in ("",) + IMPLS:
-            raise ConfigError(f"{ENV}='{env}' is not one of {IMPLS}; unset it to use the fused kernel")
-        return env or "fused"
-    if impl not in IMPLS:
-        raise ValueError(f"impl must be None or one of {IMPLS}, got {impl!r}")
-    return impl
 
 
 def _unsupported(normal: torch.Tensor, depths: list[torch.Tensor], alpha: torch.Tensor | None) -> str | None:

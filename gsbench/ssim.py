@@ -55,13 +55,12 @@ Speed (``python tests/test_ssim_fused.py``; 150x200x3 float32, ``1 − ssim`` fo
 from __future__ import annotations
 
 import functools
-import os
 
 import torch
 import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
-from gsbench.errors import ConfigError
+from gsbench.impl_choice import choose_impl
 
 WINDOW_SIZE = 11
 SIGMA = 1.5
@@ -108,7 +107,7 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, impl: str | None = None) ->
     does not take); ``"fused"`` (``ValueError`` for such inputs) or ``"reference"`` to force one.
     """
     _check(img1, img2)
-    choice = _choose_impl(impl)
+    choice = choose_impl(impl, SSIM_ENV, IMPLS)
     if choice == "reference":
         return ssim_map_reference(img1, img2)
     reason = _unsupported(img1, img2)
@@ -165,17 +164,6 @@ def _masked_mean(smap: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     m = mask.to(smap.dtype)[..., None]
     count = m.sum() * smap.shape[-1]
     return torch.where(count > 0, (smap * m).sum() / count.clamp(min=1), torch.ones((), dtype=smap.dtype))
-
-
-def _choose_impl(impl: str | None) -> str:
-    if impl is None:
-        env = os.environ.get(SSIM_ENV, "").strip().lower()
-        if env not in ("",) + IMPLS:
-            raise ConfigError(f"{SSIM_ENV}='{env}' is not one of {IMPLS}; unset it to use the fused kernel")
-        return env or "fused"
-    if impl not in IMPLS:
-        raise ValueError(f"impl must be None or one of {IMPLS}, got {impl!r}")
-    return impl
 
 
 def _unsupported(img1: torch.Tensor, img2: torch.Tensor) -> str | None:

@@ -19,13 +19,12 @@ function with ``torch.linalg.eigh`` forward and the backward written plainly in 
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
-from gsbench.errors import ConfigError, NumericalError
+from gsbench.errors import NumericalError
+from gsbench.impl_choice import choose_impl
 
 EIGEN_ENV = "GSBENCH_EIGEN"
 IMPLS = ("fast", "reference")
@@ -77,7 +76,7 @@ def sym3_eigh(C: torch.Tensor, gap_eps: float = 1e-3, impl: str | None = None) -
     ``GSBENCH_EIGEN``.
     """
     _check_input(C, gap_eps)
-    if _choose_impl(impl) == "reference":
+    if choose_impl(impl, EIGEN_ENV, IMPLS) == "reference":
         return _ReferenceSym3Eigh.apply(C, float(gap_eps))
     return _FastSym3Eigh.apply(C, float(gap_eps))
 
@@ -92,17 +91,6 @@ def sym3_eigh_reference(C: torch.Tensor, gap_eps: float = 1e-3) -> tuple[torch.T
     """
     _check_input(C, gap_eps)
     return _ReferenceSym3Eigh.apply(C, float(gap_eps))
-
-
-def _choose_impl(impl: str | None) -> str:
-    if impl is None:
-        env = os.environ.get(EIGEN_ENV, "").strip().lower()
-        if env not in ("",) + IMPLS:
-            raise ConfigError(f"{EIGEN_ENV}='{env}' is not one of {IMPLS}; unset it to use the fast path")
-        return env or "fast"
-    if impl not in IMPLS:
-        raise ValueError(f"impl must be None or one of {IMPLS}, got {impl!r}")
-    return impl
 
 
 def _check_input(C: torch.Tensor, gap_eps: float) -> None:
