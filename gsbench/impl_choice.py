@@ -1,6 +1,6 @@
 """Which implementation of a kernel with a fast path and a PyTorch reference runs (SSIM, the 3×3
-eigen-solver, the normal consistency): the ``impl`` argument, else an environment variable, else the
-fast path."""
+eigen-solver, the normal consistency, SuGaR's field): the ``impl`` argument, else an environment
+variable, else the fast path."""
 
 from __future__ import annotations
 

@@ -30,6 +30,7 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.data.camera import Camera
 from gsbench.impl_choice import choose_impl
+from gsbench.raster.build import omp_threads
 
 IMPLS = ("fused", "reference")
 ENV = "GSBENCH_NORMAL_CONSISTENCY"
@@ -44,7 +45,7 @@ def normal_consistency(normal: torch.Tensor, depths: list[torch.Tensor], weights
                          f"{len(depths)} maps and {len(weights)} weights")
     choice = choose_impl(impl, ENV, IMPLS)
     reason = _unsupported(normal, depths, alpha)
-    if choice == "fused" and reason is not None and impl == "fused":
+    if reason is not None and impl == "fused":
         raise ValueError(f"normal_consistency impl='fused' cannot take these inputs: {reason}")
     if choice == "reference" or reason is not None:
         return normal_consistency_reference(normal, depths, weights, camera, normalize, alpha)
@@ -100,7 +101,7 @@ class _FusedNormalConsistency(torch.autograd.Function):
         total = ctypes.c_double(0.0)
         rc = load_library().gs_normal_consistency_forward(
             H, W, int(n.dtype == torch.float64), n.data_ptr(), a.data_ptr(), _pointer(b), _pointer(al), w1, w2,
-            int(normalize), *_camera_args(camera), ctypes.byref(total), max(1, torch.get_num_threads()))
+            int(normalize), *_camera_args(camera), ctypes.byref(total), omp_threads())
         if rc != 0:
             raise RuntimeError(f"gsbench normal_consistency forward failed (code {rc})")
         ctx.save_for_backward(n, a, b, al)
@@ -122,7 +123,7 @@ class _FusedNormalConsistency(torch.autograd.Function):
         rc = load_library().gs_normal_consistency_backward(
             H, W, int(n.dtype == torch.float64), n.data_ptr(), a.data_ptr(), _pointer(b), _pointer(al), w1, w2,
             int(normalize), *_camera_args(camera), float(grad) / (H * W), _pointer(g_n), _pointer(g_a), _pointer(g_b),
-            max(1, torch.get_num_threads()))
+            omp_threads())
         if rc != 0:
             raise RuntimeError(f"gsbench normal_consistency backward failed (code {rc})")
         return g_n, g_a, g_b, None, None, None, None, None

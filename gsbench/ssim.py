@@ -61,6 +61,7 @@ import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
 from gsbench.impl_choice import choose_impl
+from gsbench.raster.build import omp_threads
 
 WINDOW_SIZE = 11
 SIGMA = 1.5
@@ -181,10 +182,6 @@ def _unsupported(img1: torch.Tensor, img2: torch.Tensor) -> str | None:
     return None
 
 
-def _threads() -> int:
-    """OpenMP threads for the C++ calls: torch's intra-op count, as for the rasterizer."""
-    return max(1, torch.get_num_threads())
-
 
 def _fused_forward(x: torch.Tensor, y: torch.Tensor, need_coef: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Map (H, W, C) and, if ``need_coef``, the backward's factors (3, H, W, C) of contiguous CPU x, y."""
@@ -195,7 +192,7 @@ def _fused_forward(x: torch.Tensor, y: torch.Tensor, need_coef: bool) -> tuple[t
     coef = torch.empty((3, H, W, C), dtype=x.dtype) if need_coef else None
     rc = load_library().gs_ssim_forward(
         H, W, C, int(x.dtype == torch.float64), x.data_ptr(), y.data_ptr(), _window_1d().data_ptr(), C1, C2,
-        smap.data_ptr(), None if coef is None else coef.data_ptr(), _threads(),
+        smap.data_ptr(), None if coef is None else coef.data_ptr(), omp_threads(),
     )
     if rc != 0:
         raise RuntimeError(f"gsbench ssim forward failed (code {rc})")
@@ -223,7 +220,7 @@ class _FusedSSIMMap(torch.autograd.Function):
         g_x = torch.empty_like(x)
         rc = load_library().gs_ssim_backward(
             H, W, C, int(x.dtype == torch.float64), x.data_ptr(), y.data_ptr(), _window_1d().data_ptr(),
-            coef.data_ptr(), g.data_ptr(), g_x.data_ptr(), _threads(),
+            coef.data_ptr(), g.data_ptr(), g_x.data_ptr(), omp_threads(),
         )
         if rc != 0:
             raise RuntimeError(f"gsbench ssim backward failed (code {rc})")

@@ -38,12 +38,12 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import os
 
 import torch
 from torch.autograd.function import once_differentiable
 
-from gsbench.errors import ConfigError
+from gsbench.impl_choice import choose_impl
+from gsbench.raster.build import omp_threads
 
 FIELD_ENV = "GSBENCH_SUGAR_FIELD"
 IMPLS = ("fused", "reference")
@@ -111,16 +111,7 @@ def neighbour_normals_reference(normals: torch.Tensor, points: torch.Tensor, mea
 
 def _fused(impl: str | None, tensors, idx: torch.Tensor, n: int) -> bool:
     """Whether to run the kernel: ``impl``/the environment choose, and inputs it cannot take fall back."""
-    if impl is None:
-        env = os.environ.get(FIELD_ENV, "").strip().lower()
-        if env not in ("",) + IMPLS:
-            raise ConfigError(f"{FIELD_ENV}='{env}' is not one of {IMPLS}; unset it to use the fused kernel")
-        choice = env or "fused"
-    elif impl in IMPLS:
-        choice = impl
-    else:
-        raise ValueError(f"impl must be None or one of {IMPLS}, got {impl!r}")
-    if choice == "reference":
+    if choose_impl(impl, FIELD_ENV, IMPLS) == "reference":
         return False
     reason = _unsupported(tensors, idx, n)
     if reason is not None and impl == "fused":
@@ -146,10 +137,6 @@ def _unsupported(tensors, idx: torch.Tensor, n: int) -> str | None:
 def _index(idx: torch.Tensor) -> torch.Tensor:
     return idx.to(torch.int64).contiguous()
 
-
-def _threads() -> int:
-    """OpenMP threads for the C++ calls: torch's intra-op count, as for the rasterizer."""
-    return max(1, torch.get_num_threads())
 
 
 @functools.lru_cache(maxsize=1)
@@ -186,7 +173,7 @@ def _field_forward(inputs: list[torch.Tensor], idx: torch.Tensor, clamp_max: flo
     out = torch.empty(idx.shape, dtype=inputs[0].dtype)
     rc = _library().gs_sugar_field_forward(
         *_sizes(idx, inputs[1].shape[0], out.dtype), *(t.data_ptr() for t in inputs), idx.data_ptr(),
-        float(clamp_max), out.data_ptr(), _threads(),
+        float(clamp_max), out.data_ptr(), omp_threads(),
     )
     _check(rc, "field forward")
     return out
@@ -211,7 +198,7 @@ class _FusedField(torch.autograd.Function):
         grads = [torch.empty_like(t) for t in inputs]
         rc = _library().gs_sugar_field_backward(
             *_sizes(idx, inputs[1].shape[0], g.dtype), *(t.data_ptr() for t in inputs), idx.data_ptr(),
-            float(ctx.clamp_max), g.data_ptr(), *(t.data_ptr() for t in grads), _threads(),
+            float(ctx.clamp_max), g.data_ptr(), *(t.data_ptr() for t in grads), omp_threads(),
         )
         _check(rc, "field backward")
         return *grads, None, None
@@ -225,7 +212,7 @@ def _normals_forward(normals: torch.Tensor, constants: list[torch.Tensor], sourc
     rc = _library().gs_sugar_normal_forward(
         *_sizes(idx, normals.shape[0], normals.dtype), normals.data_ptr(), *(t.data_ptr() for t in constants),
         source.data_ptr(), idx.data_ptr(), float(kappa), float(scale_min), float(sum_min), out.data_ptr(),
-        weights.data_ptr(), _threads(),
+        weights.data_ptr(), omp_threads(),
     )
     _check(rc, "normal forward")
     return out, weights
@@ -252,7 +239,7 @@ class _FusedNormals(torch.autograd.Function):
         g_normals = torch.empty((ctx.n, 3), dtype=weights.dtype)
         rc = _library().gs_sugar_normal_backward(
             *_sizes(idx, ctx.n, weights.dtype), idx.data_ptr(), weights.data_ptr(), g.data_ptr(),
-            g_normals.data_ptr(), _threads(),
+            g_normals.data_ptr(), omp_threads(),
         )
         _check(rc, "normal backward")
         return g_normals, *([None] * 9)

@@ -293,7 +293,7 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch, shape):
     w = _weights(shape).float()
     results = []
     for n in (1, 2, 3, 8):
-        monkeypatch.setattr(ssim_module, "_threads", lambda n=n: n)
+        monkeypatch.setattr(ssim_module, "omp_threads", lambda n=n: n)
         x = a.clone().requires_grad_(True)
         smap = ssim_map(x, b, impl="fused")
         (smap * w).sum().backward()

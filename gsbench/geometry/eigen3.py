@@ -25,6 +25,7 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.errors import NumericalError
 from gsbench.impl_choice import choose_impl
+from gsbench.raster.build import omp_threads
 
 EIGEN_ENV = "GSBENCH_EIGEN"
 IMPLS = ("fast", "reference")
@@ -157,7 +158,7 @@ class _FastSym3Eigh(torch.autograd.Function):
         n = flat.shape[0]
         lam = torch.empty(n, 3, dtype=torch.float64)
         V = torch.empty(n, 3, 3, dtype=torch.float64)
-        rc = lib.gs_sym3_eigh_forward(n, flat.data_ptr(), lam.data_ptr(), V.data_ptr(), _threads())
+        rc = lib.gs_sym3_eigh_forward(n, flat.data_ptr(), lam.data_ptr(), V.data_ptr(), omp_threads())
         if rc != 0:
             raise RuntimeError(f"gsbench sym3_eigh forward failed (code {rc})")
         ctx.gap_eps, ctx.batch = gap_eps, batch
@@ -176,13 +177,8 @@ class _FastSym3Eigh(torch.autograd.Function):
         g_C = torch.empty(n, 3, 3, dtype=torch.float64)
         rc = load_library().gs_sym3_eigh_backward(
             n, lam.data_ptr(), V.data_ptr(), g_lam64.data_ptr(), g_V64.data_ptr(), ctx.gap_eps, GAP_EPS_FLOOR,
-            g_C.data_ptr(), _threads(),
+            g_C.data_ptr(), omp_threads(),
         )
         if rc != 0:
             raise RuntimeError(f"gsbench sym3_eigh backward failed (code {rc})")
         return g_C.reshape(*ctx.batch, 3, 3).to(g_lam.device, g_lam.dtype), None
-
-
-def _threads() -> int:
-    """OpenMP threads for the C++ calls: torch's intra-op count, as for the rasterizer."""
-    return max(1, torch.get_num_threads())

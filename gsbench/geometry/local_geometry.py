@@ -28,6 +28,7 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.geometry.eigen3 import sym3_eigh
 from gsbench.phase_timer import PhaseTimer
+from gsbench.raster.build import omp_threads
 
 COVARIANCE_ENV = "GSBENCH_LOCAL_COVARIANCE"  # "reference": the PyTorch covariance instead of the fused kernel
 COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.md §3.4); λ1 <= 2δ: coincident points
@@ -101,7 +102,7 @@ class _FusedLocalCovariance(torch.autograd.Function):
             raise ValueError(f"local_covariance: index has {N} rows for {x.shape[0]} means")
         C = torch.empty(N, 3, 3, dtype=torch.float64)
         rc = load_library().gs_local_covariance_forward(N, K, int(include_self), int(x.dtype == torch.float64),
-                                                        x.data_ptr(), idx.data_ptr(), jitter, C.data_ptr(), _threads())
+                                                        x.data_ptr(), idx.data_ptr(), jitter, C.data_ptr(), omp_threads())
         if rc != 0:
             raise ValueError(f"local_covariance: neighbour index out of range [0, {N}) or no members (code {rc})")
         ctx.include_self = include_self
@@ -119,15 +120,11 @@ class _FusedLocalCovariance(torch.autograd.Function):
         g_means = torch.empty(N, 3, dtype=torch.float64)
         rc = load_library().gs_local_covariance_backward(N, K, int(ctx.include_self), int(x.dtype == torch.float64),
                                                          x.data_ptr(), idx.data_ptr(), g.data_ptr(), g_means.data_ptr(),
-                                                         _threads())
+                                                         omp_threads())
         if rc != 0:
             raise RuntimeError(f"gsbench local_covariance backward failed (code {rc})")
         return g_means.to(x.dtype), None, None, None
 
-
-def _threads() -> int:
-    """OpenMP threads for the C++ calls: torch's intra-op count, as for the rasterizer."""
-    return max(1, torch.get_num_threads())
 
 
 def local_geometry(means: torch.Tensor, index: torch.Tensor, radius: float, include_self: bool = True,
@@ -166,7 +163,7 @@ def frame_alignment(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool 
     perm = torch.empty(n, 3, dtype=torch.int64)
     signs = torch.empty(n, 3, dtype=torch.float64)
     rc = load_library().gs_frame_alignment(n, int(surfel), V.data_ptr(), prev.data_ptr(), int(prev.dtype == torch.float64),
-                                           perm.data_ptr(), signs.data_ptr(), _threads())
+                                           perm.data_ptr(), signs.data_ptr(), omp_threads())
     if rc != 0:
         raise RuntimeError(f"gsbench frame_alignment failed (code {rc})")
     return perm, signs

@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from gsbench.raster.build import omp_threads
+
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product a ⊗ b of (..., 4) quaternions: R(a ⊗ b) = R(a) R(b)."""
@@ -34,7 +36,7 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 
     m = R.detach().contiguous()
     q = torch.empty(m.shape[0], 4, dtype=torch.float64)
-    rc = load_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), max(1, torch.get_num_threads()))
+    rc = load_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), omp_threads())
     if rc != 0:
         raise RuntimeError(f"gsbench rotmat_to_quat failed (code {rc})")
     return q

@@ -22,6 +22,7 @@ import torch
 
 from gsbench.data.camera import Camera
 from gsbench.errors import NumericalError
+from gsbench.raster.build import omp_threads
 from gsbench.raster.types import KERNELS, OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
 
 __all__ = [
@@ -330,7 +331,7 @@ def rasterize(
     )
     capacity = int(cap.value)
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int32)
-    nthr = max(1, torch.get_num_threads())
+    nthr = omp_threads()
     if kernel in ("ewa", "rade") and exact_overlap_enabled():
         # exact ellipse/tile overlap (csrc/raster.cpp): a Gaussian is listed only in the tiles of its rectangle
         # that its alpha >= 1/255 ellipse meets; the count pass sizes tile_list exactly
@@ -371,7 +372,7 @@ def rasterize(
     a.width, a.height, a.tiles_x, a.tiles_y = W, H, tiles_x, tiles_y
     a.n_gauss = n
     a.n_params = NUM_PARAMS[kernel]
-    a.nthreads = max(1, torch.get_num_threads())
+    a.nthreads = omp_threads()
     a.want_rgb = int(want["rgb"])
     a.want_depth = int(want["depth"])
     a.want_median = int(want["median_depth"])

@@ -41,6 +41,13 @@ CFLAGS = [
 ]
 LDFLAGS = ["-fopenmp"]
 
+def omp_threads() -> int:
+    """OpenMP threads for every call into the library: torch's intra-op thread count (at least 1)."""
+    import torch  # noqa: PLC0415
+
+    return max(1, torch.get_num_threads())
+
+
 _lock = threading.Lock()
 _lib = None
 

@@ -35,6 +35,7 @@ from collections.abc import Sequence
 import torch
 
 from gsbench.data.camera import Camera
+from gsbench.raster.build import omp_threads
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
 ALPHA_SKIP_MARGIN = 0.01  # added to 2 ln(255 o): pre-skip only when q exceeds the α = 1/255 bound by this
@@ -103,7 +104,7 @@ class OpacityField:
         lists then refined to cells by the α >= 1/255 pixel boxes (csrc/integrate.cpp header)."""
         from gsbench.raster.projection import project  # noqa: PLC0415
 
-        ts, nthreads = self.settings.tile_size, max(1, torch.get_num_threads())
+        ts, nthreads = self.settings.tile_size, omp_threads()
         W, H = int(cam.width), int(cam.height)
         gx, gy = (W + ts - 1) // ts, (H + ts - 1) // ts
         proj = project(g, cam, kernel, self.settings)
@@ -139,7 +140,7 @@ class OpacityField:
         a = GsIntArgs()
         a.n_points, a.n_views, a.n_params = pts.shape[0], len(self._views), self.n_params
         a.dtype = 0 if self.dtype == torch.float32 else 1
-        a.nthreads, a.cell = max(1, torch.get_num_threads()), self.cell
+        a.nthreads, a.cell = omp_threads(), self.cell
         a.near_z, a.cap, a.stop_below = self.settings.near, cap, stop_below
         a.cams, a.dims, a.view_ptrs = self._cams.data_ptr(), self._dims.data_ptr(), self._ptrs.data_ptr()
         a.points, a.out = pts.data_ptr(), out.data_ptr()

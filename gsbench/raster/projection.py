@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from gsbench.data.camera import Camera
-from gsbench.raster.build import ProjArgs
+from gsbench.raster.build import ProjArgs, omp_threads
 from gsbench.raster.sh import sh_to_rgb
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
@@ -245,7 +245,7 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
     a.sh_degree, a.sh_k = int(settings.sh_degree), int(sh.shape[1])
     a.width, a.height, a.tile = W, H, ts
     a.gx, a.gy = (W + ts - 1) // ts, (H + ts - 1) // ts
-    a.nthreads = max(1, torch.get_num_threads())
+    a.nthreads = omp_threads()
     a.fx, a.fy, a.cx, a.cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
     a.near_z = float(settings.near)
     a.eps2d = float(settings.eps2d_for(kernel))
