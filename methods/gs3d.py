@@ -18,8 +18,8 @@ class GS3D(Method):
     Config = GSConfig
     INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"), mesh_extractor="tsdf",
                       mesh_depth="expected", loss_terms=("l1", "dssim"))
-    # docs/methods/3dgs.md §9: the 2DGS paper's tables [UNVERIFIED].
+    # docs/methods/3dgs.md §9: the 2DGS paper's Tables 1 and 2 (checked against arXiv 2403.17888v3).
     REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 1.96, "source": "2DGS paper, DTU table (3DGS row)"},
-        "tnt": {"metric": "f1_centroids", "mean": 0.09, "source": "2DGS paper, TnT table (3DGS row)"},
+        "dtu": {"metric": "chamfer", "mean": 1.96, "source": "2DGS paper, Table 1 (3DGS row)"},
+        "tnt": {"metric": "f1_centroids", "mean": 0.09, "source": "2DGS paper, Table 2 (3DGS row)"},
     }

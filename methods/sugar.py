@@ -96,10 +96,10 @@ class SuGaR(Method):
                       mesh_extractor="poisson", mesh_depth="median",
                       loss_terms=("l1", "dssim", "opacity_entropy", "sugar_sdf", "sugar_normal"))
     MESH_EXTRACTORS = ("poisson", "tsdf")
-    # docs/methods/sugar.md §8: the 2DGS paper's tables [UNVERIFIED].
+    # docs/methods/sugar.md §8: the 2DGS paper's Tables 1 and 2 (checked against arXiv 2403.17888v3).
     REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 1.33, "source": "2DGS paper, DTU table (SuGaR row)"},
-        "tnt": {"metric": "f1_centroids", "mean": 0.19, "source": "2DGS paper, TnT table (SuGaR row)"},
+        "dtu": {"metric": "chamfer", "mean": 1.33, "source": "2DGS paper, Table 1 (SuGaR row)"},
+        "tnt": {"metric": "f1_centroids", "mean": 0.19, "source": "2DGS paper, Table 2 (SuGaR row)"},
     }
 
     def check_params(self) -> None:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from gsbench.report.aggregate import Board, Row, ablations, leaderboard
 from gsbench.report.stats import PairedTest, compare_rows
 
-DTU_TABLES = "2DGS paper, DTU table"
+DTU_TABLES = "2DGS paper, Table 1"
 RELATIONS = {">": "better than", "≥": "at least as good as", "≈": "as good as"}
 
 
@@ -75,19 +75,19 @@ CLAIMS: tuple[Claim, ...] = (
     *_ordering("DTU Chamfer (mm) 3DGS > SuGaR > 2DGS > GOF > RaDe-GS ≥ IBGS: 3DGS worst, IBGS best", "dtu", "chamfer", (
         ("sugar", ">", "3dgs", "1.33 vs 1.96", f"{DTU_TABLES} (SuGaR and 3DGS rows)"),
         ("2dgs", ">", "sugar", "0.80 vs 1.33", f"{DTU_TABLES} (2DGS and SuGaR rows)"),
-        ("gof", ">", "2dgs", "0.74 vs 0.80", "GOF paper, DTU table; 2DGS paper, Table 1"),
-        ("radegs", ">", "gof", "0.68 vs 0.74", "RaDe-GS paper v1, DTU table; GOF paper, DTU table"),
+        ("gof", ">", "2dgs", "0.74 vs 0.80", "GOF paper, DTU table (as quoted by PGSR, MILo); 2DGS paper, Table 1"),
+        ("radegs", ">", "gof", "0.68 vs 0.74", "RaDe-GS paper v1, DTU table (as quoted by MILo); GOF paper, DTU table (as quoted by PGSR, MILo)"),
         ("ibgs", "≥", "radegs", "0.67 vs 0.68", "IBGS OpenReview discussion; RaDe-GS paper v1, DTU table"),
     )),
-    # TnT mean F1 (vertices + centroids): GOF 0.46 > RaDe-GS 0.40 ~ IBGS 0.40 > 2DGS 0.30 > SuGaR 0.19 > 3DGS 0.09
+    # TnT mean F1 (vertices + centroids): GOF 0.46 > RaDe-GS 0.40 ~ IBGS 0.40 > 2DGS 0.32 > SuGaR 0.19 > 3DGS 0.09
     *_ordering("TnT F1 GOF > RaDe-GS ≈ IBGS > 2DGS > SuGaR > 3DGS: GOF best, 3DGS worst", "tnt", "f1_centroids", (
-        ("gof", ">", "radegs", "0.46 vs 0.40", "GOF paper, TnT table; RaDe-GS as quoted in the IBGS discussion"),
-        ("gof", ">", "ibgs", "0.46 vs 0.40", "GOF paper, TnT table; IBGS OpenReview discussion, TnT table"),
+        ("gof", ">", "radegs", "0.46 vs 0.40", "GOF paper, TnT table (as quoted by MILo); RaDe-GS as quoted by MILo and the IBGS discussion"),
+        ("gof", ">", "ibgs", "0.46 vs 0.40", "GOF paper, TnT table (as quoted by MILo); IBGS OpenReview discussion, TnT table"),
         ("ibgs", "≈", "radegs", "0.40 vs 0.40", "IBGS OpenReview discussion, TnT table"),
-        ("radegs", ">", "2dgs", "0.40 vs 0.30", "RaDe-GS as quoted in the IBGS discussion; 2DGS paper, TnT table"),
-        ("ibgs", ">", "2dgs", "0.40 vs 0.30", "IBGS OpenReview discussion, TnT table; 2DGS paper, TnT table"),
-        ("2dgs", ">", "sugar", "0.30 vs 0.19", "2DGS paper, TnT table (2DGS and SuGaR rows)"),
-        ("sugar", ">", "3dgs", "0.19 vs 0.09", "2DGS paper, TnT table (SuGaR and 3DGS rows)"),
+        ("radegs", ">", "2dgs", "0.40 vs 0.32", "RaDe-GS as quoted in the IBGS discussion; 2DGS paper v3, Table 2"),
+        ("ibgs", ">", "2dgs", "0.40 vs 0.32", "IBGS OpenReview discussion, TnT table; 2DGS paper v3, Table 2"),
+        ("2dgs", ">", "sugar", "0.32 vs 0.19", "2DGS paper v3, Table 2 (2DGS and SuGaR rows)"),
+        ("sugar", ">", "3dgs", "0.19 vs 0.09", "2DGS paper, Table 2 (SuGaR and 3DGS rows)"),
     )),
     # IBGS K: best at K = 5 (DTU mean Chamfer for K = 2..10)
     *(Claim("IBGS: K = 5 best", "dtu", "chamfer", "method.knn_k=5", f"method.knn_k={k}",
