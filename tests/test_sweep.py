@@ -15,7 +15,7 @@ import pytest
 
 from gsbench.config import config_root
 from gsbench.errors import ConfigError
-from gsbench.sweep import expand, format_runs, load_sweep
+from gsbench.sweep import expand, format_runs, load_sweep, with_suite
 
 SWEEPS = sorted((config_root() / "sweeps").glob("*.yaml"))
 
@@ -105,6 +105,18 @@ def test_shipped_sweeps_are_the_issue_grids():
     assert pgsr["pgsr_without_mv_geo"].losses["pgsr_geo"]["weight"] == 0.0
     assert pgsr["pgsr_without_mv_ncc"].losses["pgsr_ncc"]["weight"] == 0.0
 
+
+
+@pytest.mark.parametrize("suite", ["dtu-like", "tnt-like"])
+def test_pgsr_suite_sweeps_reuse_the_suite_runs_of_2dgs_and_radegs(suite):
+    """pgsr_<suite>.yaml's 2DGS / RaDe-GS runs are the suite sweep's seed-0 runs (same ids: one runs folder)."""
+    stem = suite.replace("-", "_")
+    suite_runs = expand(with_suite(load_sweep(config_root() / "sweeps" / f"{stem}.yaml"), suite, [0]))
+    pgsr_runs = expand(load_sweep(config_root() / "sweeps" / f"pgsr_{stem}.yaml"))
+    shared = {r.run_id for r in pgsr_runs if r.config.method["name"] in ("2dgs", "radegs")}
+    assert shared and shared <= {r.run_id for r in suite_runs}
+    assert {r.config.scene for r in pgsr_runs if r.config.method["name"] == "pgsr"} == \
+        {r.config.scene for r in suite_runs}
 
 def test_cli_dry_run_prints_every_run_id(capsys):
     from gsbench.cli import main
