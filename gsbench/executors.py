@@ -83,6 +83,15 @@ class LocalExecutor(ProcessPoolExecutor):
         super().__init__(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                          initializer=_init_local_worker, initargs=(threads,), max_tasks_per_child=1)
 
+    def _adjust_process_count(self) -> None:
+        """Replace an exited worker, unless the executor is shut down: with ``max_tasks_per_child`` a worker exits
+        after each run, and when that exit reaches the pool's manager thread after ``shutdown(wait=False)``
+        (a Ctrl-C while a run ends), CPython (3.11) replaces it from ``_processes``, which the shutdown set to
+        None; the TypeError killed the manager thread, the running futures never ended and the sweep hung."""
+        if self._processes is None:
+            return
+        super()._adjust_process_count()
+
     if sys.version_info < (3, 14):
         def terminate_workers(self) -> None:
             """Python 3.14's ``ProcessPoolExecutor.terminate_workers``: cancel the pending tasks, terminate

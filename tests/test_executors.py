@@ -62,6 +62,17 @@ def test_terminate_workers_cancels_queued_tasks_and_stops_running_ones():
     assert time.perf_counter() - start < 30
 
 
+def test_a_run_ending_after_shutdown_leaves_the_pool_working():
+    """A worker that exits after its run (max_tasks_per_child=1) once the pool is shut down without waiting (a
+    Ctrl-C as a run ends) must not kill the pool's manager thread: the other run still ends (it hung)."""
+    executor = LocalExecutor(2, 1)
+    short, long = executor.submit(time.sleep, 1), executor.submit(time.sleep, 3)
+    while not (short.running() and long.running()):
+        time.sleep(0.01)
+    executor.shutdown(wait=False)
+    assert short.result(timeout=30) is None and long.result(timeout=30) is None
+
+
 def ending(future) -> str:
     """How ``future`` ended: "cancelled" or its exception's type name (waits up to 30 s)."""
     try:
