@@ -30,7 +30,7 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.data.camera import Camera
 from gsbench.impl_choice import choose_impl
-from gsbench.raster.build import omp_threads
+from gsbench.raster.build import load_library, omp_threads
 
 IMPLS = ("fused", "reference")
 ENV = "GSBENCH_NORMAL_CONSISTENCY"
@@ -43,11 +43,7 @@ def normal_consistency(normal: torch.Tensor, depths: list[torch.Tensor], weights
     if not 1 <= len(depths) <= 2 or len(weights) != len(depths):
         raise ValueError(f"normal_consistency takes one or two depth maps with one weight each, got "
                          f"{len(depths)} maps and {len(weights)} weights")
-    choice = choose_impl(impl, ENV, IMPLS)
-    reason = _unsupported(normal, depths, alpha)
-    if reason is not None and impl == "fused":
-        raise ValueError(f"normal_consistency impl='fused' cannot take these inputs: {reason}")
-    if choice == "reference" or reason is not None:
+    if choose_impl(impl, ENV, IMPLS, lambda: _unsupported(normal, depths, alpha), "normal_consistency") == "reference":
         return normal_consistency_reference(normal, depths, weights, camera, normalize, alpha)
     d2 = depths[1] if len(depths) == 2 else None
     w2 = float(weights[1]) if d2 is not None else 0.0
@@ -93,7 +89,6 @@ class _FusedNormalConsistency(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, normal, d1, d2, alpha, w1, w2, normalize, camera):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
 
         n, a, b = normal.detach().contiguous(), d1.detach().contiguous(), None if d2 is None else d2.detach().contiguous()
         al = None if alpha is None else alpha.contiguous()
@@ -111,8 +106,6 @@ class _FusedNormalConsistency(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         n, a, b, al = ctx.saved_tensors
         w1, w2, normalize, camera = ctx.settings
         H, W = a.shape

@@ -61,7 +61,7 @@ import torch.nn.functional as F
 from torch.autograd.function import once_differentiable
 
 from gsbench.impl_choice import choose_impl
-from gsbench.raster.build import omp_threads
+from gsbench.raster.build import load_library, omp_threads
 
 WINDOW_SIZE = 11
 SIGMA = 1.5
@@ -108,13 +108,7 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, impl: str | None = None) ->
     does not take); ``"fused"`` (``ValueError`` for such inputs) or ``"reference"`` to force one.
     """
     _check(img1, img2)
-    choice = choose_impl(impl, SSIM_ENV, IMPLS)
-    if choice == "reference":
-        return ssim_map_reference(img1, img2)
-    reason = _unsupported(img1, img2)
-    if reason is not None:
-        if impl == "fused":
-            raise ValueError(f"ssim impl='fused' cannot take these inputs: {reason}; use impl=None or 'reference'")
+    if choose_impl(impl, SSIM_ENV, IMPLS, lambda: _unsupported(img1, img2), "ssim") == "reference":
         return ssim_map_reference(img1, img2)
     if torch.is_grad_enabled() and img1.requires_grad:
         return _FusedSSIMMap.apply(img1, img2)
@@ -185,7 +179,6 @@ def _unsupported(img1: torch.Tensor, img2: torch.Tensor) -> str | None:
 
 def _fused_forward(x: torch.Tensor, y: torch.Tensor, need_coef: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Map (H, W, C) and, if ``need_coef``, the backward's factors (3, H, W, C) of contiguous CPU x, y."""
-    from gsbench.raster.build import load_library  # noqa: PLC0415
 
     H, W, C = x.shape
     smap = torch.empty_like(x)
@@ -212,8 +205,6 @@ class _FusedSSIMMap(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_map):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         x, y, coef = ctx.saved_tensors
         H, W, C = x.shape
         g = g_map.to(dtype=x.dtype).contiguous()

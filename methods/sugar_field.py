@@ -43,7 +43,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from gsbench.impl_choice import choose_impl
-from gsbench.raster.build import omp_threads
+from gsbench.raster.build import load_library, omp_threads
 
 FIELD_ENV = "GSBENCH_SUGAR_FIELD"
 IMPLS = ("fused", "reference")
@@ -111,12 +111,7 @@ def neighbour_normals_reference(normals: torch.Tensor, points: torch.Tensor, mea
 
 def _fused(impl: str | None, tensors, idx: torch.Tensor, n: int) -> bool:
     """Whether to run the kernel: ``impl``/the environment choose, and inputs it cannot take fall back."""
-    if choose_impl(impl, FIELD_ENV, IMPLS) == "reference":
-        return False
-    reason = _unsupported(tensors, idx, n)
-    if reason is not None and impl == "fused":
-        raise ValueError(f"sugar field impl='fused' cannot take these inputs: {reason}; use impl=None or 'reference'")
-    return reason is None
+    return choose_impl(impl, FIELD_ENV, IMPLS, lambda: _unsupported(tensors, idx, n), "sugar field") == "fused"
 
 
 def _unsupported(tensors, idx: torch.Tensor, n: int) -> str | None:
@@ -142,7 +137,6 @@ def _index(idx: torch.Tensor) -> torch.Tensor:
 @functools.lru_cache(maxsize=1)
 def _library() -> ctypes.CDLL:
     """The extension with the four entry points' signatures declared."""
-    from gsbench.raster.build import load_library  # noqa: PLC0415
 
     lib = load_library()
     i64, ptr, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double

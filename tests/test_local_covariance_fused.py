@@ -8,6 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from gsbench.errors import ConfigError
 from gsbench.geometry import local_geometry as lg
 from gsbench.geometry.local_geometry import local_covariance, local_covariance_reference
 
@@ -72,3 +73,16 @@ def test_an_index_out_of_range_is_an_error_and_the_environment_selects_the_refer
     monkeypatch.setenv(lg.COVARIANCE_ENV, "reference")
     C = local_covariance(means, index, 1.0)
     assert "Fused" not in type(C.grad_fn).__name__
+
+
+def test_impl_choice_typos_and_inputs_the_kernel_cannot_take(monkeypatch):
+    """The environment variable is checked like its siblings' (`gsbench.impl_choice`); float16 falls back to the
+    reference, unless the fused kernel is asked for by name."""
+    means, index = _cloud(8, 3)
+    half = means.detach().half().requires_grad_(True)
+    assert "Fused" not in type(local_covariance(half, index, 1.0).grad_fn).__name__
+    with pytest.raises(ValueError, match="local_covariance impl='fused' cannot take these inputs: means on cpu as torch.float16"):
+        local_covariance(half, index, 1.0, impl="fused")
+    monkeypatch.setenv(lg.COVARIANCE_ENV, "refrence")
+    with pytest.raises(ConfigError, match=lg.COVARIANCE_ENV):
+        local_covariance(means, index, 1.0)

@@ -25,7 +25,7 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.errors import NumericalError
 from gsbench.impl_choice import choose_impl
-from gsbench.raster.build import omp_threads
+from gsbench.raster.build import load_library, omp_threads
 
 EIGEN_ENV = "GSBENCH_EIGEN"
 IMPLS = ("fast", "reference")
@@ -150,8 +150,6 @@ class _FastSym3Eigh(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, C, gap_eps):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         lib = load_library()
         batch = C.shape[:-2]
         flat = C.detach().reshape(-1, 3, 3).to(device="cpu", dtype=torch.float64).contiguous()
@@ -168,8 +166,6 @@ class _FastSym3Eigh(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_lam, g_V):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         lam, V = ctx.saved_tensors
         n = lam.shape[0]
         g_lam64 = g_lam.reshape(n, 3).to(device="cpu", dtype=torch.float64).contiguous()

@@ -20,17 +20,18 @@ docs/methods/ibgs.md §3, §4, docs/methods/ibgs.md §7.
 from __future__ import annotations
 
 import itertools
-import os
 from dataclasses import dataclass
 
 import torch
 from torch.autograd.function import once_differentiable
 
 from gsbench.geometry.eigen3 import sym3_eigh
+from gsbench.impl_choice import choose_impl
 from gsbench.phase_timer import PhaseTimer
-from gsbench.raster.build import omp_threads
+from gsbench.raster.build import load_library, omp_threads
 
 COVARIANCE_ENV = "GSBENCH_LOCAL_COVARIANCE"  # "reference": the PyTorch covariance instead of the fused kernel
+IMPLS = ("fused", "reference")
 COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.md §3.4); λ1 <= 2δ: coincident points
 
 PERMUTATIONS_3D = tuple(itertools.permutations(range(3)))
@@ -65,15 +66,20 @@ def neighbourhood_points(means: torch.Tensor, neighbour_means: torch.Tensor, inc
 
 
 def local_covariance(means: torch.Tensor, index: torch.Tensor, radius: float,
-                     include_self: bool = True) -> torch.Tensor:
+                     include_self: bool = True, impl: str | None = None) -> torch.Tensor:
     """C (N,3,3) float64 of each Gaussian's neighbourhood (module docstring, Eq. 4).
 
     By the fused C++ kernel (``csrc/local_covariance.cpp``: one pass forward, the backward
     dL/dp = (1/n)(G + Gᵀ)(p − μ̄) per member, scattered in member order) for CPU float32 / float64 means;
-    `local_covariance_reference` otherwise or with ``GSBENCH_LOCAL_COVARIANCE=reference``.
+    `local_covariance_reference` otherwise, with ``impl="reference"`` or with
+    ``GSBENCH_LOCAL_COVARIANCE=reference`` (`gsbench.impl_choice.choose_impl`).
     """
-    if (means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)
-            or os.environ.get(COVARIANCE_ENV, "").strip().lower() == "reference"):
+    def unsupported():
+        if means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64):
+            return f"means on {means.device.type} as {means.dtype} (the kernel takes CPU float32 / float64)"
+        return None
+
+    if choose_impl(impl, COVARIANCE_ENV, IMPLS, unsupported, "local_covariance") == "reference":
         return local_covariance_reference(means, index, radius, include_self)
     return _FusedLocalCovariance.apply(means, index, COVARIANCE_JITTER * radius**2, include_self)
 
@@ -93,8 +99,6 @@ class _FusedLocalCovariance(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, index, jitter, include_self):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         x = means.detach().contiguous()
         idx = index.to(torch.int64).contiguous()
         N, K = idx.shape
@@ -112,8 +116,6 @@ class _FusedLocalCovariance(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_C):
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         x, idx = ctx.saved_tensors
         N, K = idx.shape
         g = g_C.to(torch.float64).contiguous()
@@ -156,7 +158,6 @@ def frame_alignment(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool 
     if vectors.device.type != "cpu" or vectors.dtype != torch.float64 or previous.dtype not in (torch.float32,
                                                                                                    torch.float64):
         return frame_alignment_reference(vectors, previous, surfel)
-    from gsbench.raster.build import load_library  # noqa: PLC0415
 
     V, prev = vectors.contiguous(), previous.contiguous()
     n = V.shape[0]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from gsbench.raster.build import omp_threads
+from gsbench.raster.build import load_library, omp_threads
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -32,7 +32,6 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """
     if (R.requires_grad and torch.is_grad_enabled()) or R.device.type != "cpu" or R.dtype != torch.float64:
         return rotmat_to_quat_reference(R)
-    from gsbench.raster.build import load_library  # noqa: PLC0415
 
     m = R.detach().contiguous()
     q = torch.empty(m.shape[0], 4, dtype=torch.float64)
