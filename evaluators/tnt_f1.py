@@ -14,8 +14,8 @@ Three point sets of one mesh, each scored after the same alignment (steps 2-4, d
   per (tau/2)² of the surface (faces with a vertex in the crop's bounding box, padded by tau), reduced
   on the fly to one centroid per occupied tau/2 voxel (`pointsets.voxel_area_samples`, seeded; the
   toolbox's voxel step, done while sampling so memory follows the voxels), then cropped and scored as
-  in step 5. The reduction comes before the crop here (after it in the toolbox): it changes only
-  voxels cut by the crop's boundary.
+  in step 5. The reduction comes before the crop here (after it in the toolbox), and its grid is anchored at
+  the origin (the toolbox's at the cloud's minimum corner), so the voxel boundaries differ from the toolbox's.
 
 Protocol v1 (before 2026-11-24) ranked by vertices plus centroids; v2 headlines are not comparable with it.
 

@@ -78,8 +78,8 @@ HULL_INIT_MAX_BATCHES = 50  # candidate batches drawn at most to reach that floo
 @dataclass(frozen=True)
 class MethodInfo:
     """What a method declares: primitive (``3d``|``2d``), rasterizer kernel, the render outputs it may
-    request, its mesh extractor and the depth that extractor fuses by default (``expected``|``median``,
-    the method yaml sets ``mesh.depth`` to it), and the loss terms it configures."""
+    request, its mesh extractor and the depth that extractor fuses by default (``expected``|``median``, or a method's
+    own such as PGSR's ``unbiased``; the method yaml sets ``mesh.depth`` to it), and the loss terms it configures."""
 
     primitive: str
     kernel: str

@@ -14,7 +14,7 @@ Geometry (camera space, the pixel-centre convention of docs/design.md §2.1, r̃
 - `patch_ncc` / `ncc_cost`: normalised cross-correlation of grey patches and PGSR's cost
   clamp(1 − cc², 0, 2) with cc² = cov² / (var_r var_n + 1e-8) on patch sums (docs/methods/pgsr.md §4.4).
 
-Terms (the method binds nothing; constants are PGSR's, `PGSRConfig` carries them into ``state``):
+Terms (the method binds nothing; their constants are this module's, PGSR's values):
 
 - ``min_scale``: mean over the Gaussians visible in this render of their smallest scale (docs/methods/pgsr.md §4.1);
 - ``l1_exposure``: L1 of exp(a_v)·I + b_v against the GT when the method's exposure compensation is on

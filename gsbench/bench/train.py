@@ -21,7 +21,8 @@ Phases, milliseconds per step (mean over the timed steps):
   the parameters it reads, measured in a separate pass of ``probe_steps`` steps (``torch.autograd.grad`` with the graph
   kept) so the timed steps are untouched;
 - PGSR's multi-view terms render a neighbouring view themselves (docs/methods/pgsr.md §4.3): that render and its
-  backward are in ``fwd.pgsr_geo`` and ``bwd.pgsr_geo`` (the first of the two terms) and kept out of the
+  backward are in the first active one of the two terms (``fwd.pgsr_geo`` / ``bwd.pgsr_geo``; ``pgsr_ncc``'s when
+  ``pgsr_geo`` has weight 0) and kept out of the
   rasterizer timers above, which time the step's own render;
 - ``backward_rest`` = Trainer ``backward`` − raster_bwd − Σ bwd.<term>: the autograd glue and the
   projection's backward (not timed on its own: the fused projections run inside autograd);

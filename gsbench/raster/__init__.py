@@ -285,7 +285,8 @@ def rasterize(
     """Render ``outputs`` of ``gaussians`` seen by ``camera`` with ``kernel``; differentiable.
 
     See `gsbench.raster.types` for every definition. ``background`` (3,) overrides
-    ``settings.background`` (a tensor may require grad). Only the requested outputs are computed.
+    ``settings.background`` (a tensor may require grad). Only the requested outputs are returned
+    (what the kernel accumulates alongside: `gsbench.raster.types`).
     """
     outs = _check_kernel_outputs(kernel, outputs)
     validate_gaussians(gaussians, kernel)

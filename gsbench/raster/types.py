@@ -33,7 +33,8 @@ Per pixel, per Gaussian i (front to back, sorted per 16x16 tile by centre camera
 - α_i = min(0.99, o_eff·G); skip if α_i < 1/255; the pixel stops before blending i if T·(1−α_i) < 1e-4.
 - w_i = α_i T_i with T_i = Π_{j<i}(1 − α_j).
 
-Outputs (only the requested ones are computed and stored):
+Outputs (only the requested ones are stored and returned; the compositing loop accumulates rgb always and, when
+any geometric output is requested, depth, median depth and normal together):
 - ``rgb``          (H,W,3) Σ w_i c_i + T_final · background
 - ``alpha``        (H,W)   1 − T_final
 - ``depth``        (H,W)   Σ w_i z_i / max(alpha, 1e-10)         (0 where nothing contributes)
