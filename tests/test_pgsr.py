@@ -14,7 +14,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 
 from method_setup import quick_run, setup_method, straight_and_resumed  # noqa: E402
-from raster_scenes import concat, look_at_camera, make_camera, single_gaussian, with_grad  # noqa: E402
+from raster_scenes import concat, look_at_camera, make_camera, single_gaussian  # noqa: E402
 
 from gsbench.losses import Batch, active_terms, required_outputs  # noqa: E402
 from gsbench.methods import pgsr_terms as T  # noqa: E402
@@ -102,36 +102,6 @@ def test_unbiased_depth_is_exact_for_coplanar_flat_gaussians():
         assert int(seen.sum()) > 40
         torch.testing.assert_close(depth[seen], exact[seen], rtol=1e-9, atol=1e-9)
         assert float((render.depth[seen] - exact[seen]).abs().max()) > 1e-2  # the expected depth is biased
-
-
-def test_plane_distance_output_fast_matches_reference_and_gradchecks():
-    """The ``plane_distance`` kernel output (docs/methods/pgsr.md §3.1) for PGSR's ewa kernel; every kernel is
-    covered by tests/test_raster_fast.py, which iterates over all outputs."""
-    from raster_scenes import random_gaussians  # noqa: PLC0415
-
-    cam = make_camera(40, 32)
-    g = random_gaussians(80, "ewa", seed=4, camera=cam, dtype=torch.float64, sh_degree=0)
-    outs = ("plane_distance", "normal", "alpha")
-    fast, ref = with_grad(g), with_grad(g)
-    a = rasterize(fast, cam, kernel="ewa", outputs=outs)
-    b = reference.render(ref, cam, kernel="ewa", outputs=outs)
-    torch.testing.assert_close(a.plane_distance, b.plane_distance, rtol=0, atol=1e-9)
-    assert float(b.plane_distance.detach().max()) > 0.1 and float(b.plane_distance.detach().min()) >= 0.0
-    w = torch.rand(32, 40, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    (a.plane_distance * w).sum().backward()
-    (b.plane_distance * w).sum().backward()
-    for name in ("means", "quats", "scales", "opacities"):
-        torch.testing.assert_close(getattr(fast, name).grad, getattr(ref, name).grad, rtol=1e-7, atol=1e-10)
-    small = random_gaussians(5, "ewa", seed=6, camera=make_camera(12, 10), dtype=torch.float64, sh_degree=0,
-                             scale_range=(0.15, 0.4))
-
-    def fn(means, quats, scales, opacities):
-        out = rasterize(type(small)(means, quats, scales, opacities, small.sh), make_camera(12, 10), kernel="ewa",
-                        outputs=("plane_distance",))
-        return out.plane_distance
-
-    inputs = tuple(getattr(small, k).clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities"))
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
 def test_unbiased_depth_drops_grazing_and_empty_pixels_with_finite_gradients():

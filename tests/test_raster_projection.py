@@ -19,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from raster_scenes import concat, look_at_camera, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
 
 from gsbench.raster import RasterGaussians, RasterSettings, projection, rasterize  # noqa: E402
-from gsbench.raster.projection import project_fused, project_torch  # noqa: E402
+from gsbench.raster.projection import FUSED_KERNELS, project_fused, project_torch  # noqa: E402
 
 KERNELS = ("ewa", "rade")
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
@@ -131,7 +131,7 @@ def test_hard_cases_float32_finite_and_close(kernel):
     assert float(rel.max()) < 1e-5
 
 
-@pytest.mark.parametrize("kernel", ("ewa", "rade", "raymax", "surfel"))  # one float64 gradcheck for every fused projection
+@pytest.mark.parametrize("kernel", FUSED_KERNELS)  # one float64 gradcheck for every fused projection
 def test_gradcheck_fused_projection(kernel):
     cam = _posed_camera(20, 16)
     g = random_gaussians(5, kernel, seed=2, camera=make_camera(20, 16), dtype=torch.float64, sh_degree=2,

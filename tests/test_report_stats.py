@@ -17,7 +17,7 @@ from gsbench.report.aggregate import leaderboard
 from gsbench.report.build import write_report
 from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, verdict
 from gsbench.report.collect import label_variants, load_manifests, load_runs
-from gsbench.report.metrics import PAPERS_METRIC, metric_specs
+from gsbench.report.metrics import PAPERS_METRIC, metric_specs, reported
 from gsbench.report.stats import (MIN_WILCOXON, comparisons, paired_test, sign_test_p, significance_ranks,
                                   t_half_width, t_interval)
 from gsbench.suites import load_suite, suite_names
@@ -154,7 +154,7 @@ def test_equal_distributions_are_not_separable_and_share_a_rank(tmp_path):
 def test_equal_distributions_reject_at_about_the_nominal_rate():
     rng = np.random.default_rng(3)
     rejected = sum(paired_test(rng.normal(0, 1, 12) - rng.normal(0, 1, 12), False).significant for _ in range(400))
-    assert rejected / 400 <= 0.09
+    assert 0.01 <= rejected / 400 <= 0.09  # a test that never rejects fails too
 
 
 def test_verdicts():
@@ -196,16 +196,20 @@ def test_ablation_cells_differing_from_the_baseline_are_marked(tmp_path):
 
 def test_claims_use_the_papers_metric_and_name_their_source():
     from gsbench.config import config_root
-    from gsbench.sweep import _label, _rows
 
     for claim in CLAIMS:
         assert claim.metric == PAPERS_METRIC[claim.dataset], claim
         assert claim.relation in RELATIONS and claim.source and " vs " in claim.paper, claim
         if claim.sweep:  # the labels are rows of the shipped sweep that repeats the ablation
-            sweep = load_sweep(config_root() / "sweeps" / f"{claim.sweep}.yaml")
-            labels = set(sweep.get("variants", {})) or {_label(None, row) for row in _rows(sweep["grid"])}
+            labels = {r.label for r in expand(load_sweep(config_root() / "sweeps" / f"{claim.sweep}.yaml"))}
             assert {claim.better, claim.worse} <= labels, claim
-    assert PAPERS_METRIC == {"dtu": "chamfer", "tnt": "f1_centroids"}
+
+
+def test_claims_between_methods_quote_the_methods_reported_means():
+    """A claim's paper numbers are the two methods' REPORTED means (one source, so they cannot drift apart)."""
+    for claim in (c for c in CLAIMS if not c.sweep):
+        sides = [reported(name, claim.dataset, []) for name in (claim.better, claim.worse)]
+        assert [float(x) for x in claim.paper.split(" vs ")] == [side.mean for side in sides], claim
 
 
 # ---------------------------------------------------------------- suites
