@@ -48,6 +48,8 @@ import math
 import statistics
 from dataclasses import dataclass
 
+import numpy as np
+
 ALPHA = 0.05
 CONFIDENCE = 0.95
 MIN_WILCOXON = 6  # non-zero differences below which the sign test is used (module docstring)
@@ -112,13 +114,14 @@ class PairedTest:
 
 
 def sign_test_p(positive: int, negative: int) -> float:
-    """Exact two-sided sign test: min(1, 2 · P[B ≤ min(k, n − k)]), B ~ Binomial(n, 1/2); 1 when n = 0."""
+    """Exact two-sided sign test, ``scipy.stats.binomtest(positive, n, 1/2)``: min(1, 2 · P[B ≤ min(k, n − k)]),
+    B ~ Binomial(n, 1/2); 1 when n = 0."""
     n = positive + negative
     if n == 0:
         return 1.0
-    k = min(positive, negative)
-    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2**n
-    return min(1.0, 2 * tail)
+    from scipy.stats import binomtest  # noqa: PLC0415
+
+    return float(binomtest(positive, n, 0.5).pvalue)
 
 
 def wilcoxon_p(differences) -> float:
@@ -150,8 +153,10 @@ def paired_test(differences, higher_is_better: bool) -> PairedTest:
 
 def _signed_rank_sum(differences: list[float]) -> float:
     """W+ − W−: the ranks of |d| (ties: mid-ranks) summed with the signs of d."""
-    ranks = _ranks({str(i): abs(x) for i, x in enumerate(differences)}, higher_is_better=False)
-    return sum(ranks[str(i)] * (1 if x > 0 else -1) for i, x in enumerate(differences))
+    from scipy.stats import rankdata  # noqa: PLC0415
+
+    d = np.asarray(differences, dtype=float)
+    return float(np.sign(d) @ rankdata(np.abs(d)))
 
 
 def pair_values(runs_a, runs_b, metric: str) -> list[tuple[tuple, float, float]]:
@@ -195,18 +200,11 @@ def comparisons(board) -> dict[tuple[str, str], PairedTest]:
 
 
 def _ranks(values: dict[str, float], higher_is_better: bool) -> dict[str, float]:
-    """1 = best; ties share the mean of the ranks they span."""
-    ordered = sorted(values.items(), key=lambda kv: -kv[1] if higher_is_better else kv[1])
-    ranks: dict[str, float] = {}
-    i = 0
-    while i < len(ordered):
-        j = i
-        while j + 1 < len(ordered) and ordered[j + 1][1] == ordered[i][1]:
-            j += 1
-        for name, _ in ordered[i:j + 1]:
-            ranks[name] = (i + j) / 2 + 1
-        i = j + 1
-    return ranks
+    """1 = best; ties share the mean of the ranks they span (``scipy.stats.rankdata``, method "average")."""
+    from scipy.stats import rankdata  # noqa: PLC0415
+
+    sign = -1.0 if higher_is_better else 1.0
+    return dict(zip(values, (float(r) for r in rankdata([sign * v for v in values.values()]))))
 
 
 def scene_ranks(board) -> dict[str, dict[str, float]]:
