@@ -97,14 +97,17 @@ def leaderboard_table(board: Board) -> Table:
             f"NOT comparable with synthetic scenes or CPU budgets; they show the scale only. Sources: "
             + "; ".join(f"{m}: {r.source}" for m, r in sources) + "."
         )
-    companion = board.spec.name in COMPANIONS.get(board.dataset, ())
-    anchor = f"leaderboard-{_slug(board.dataset)}" + (f"-{_slug(board.spec.name)}" if companion else "")
-    return Table(anchor, board.title, header, rows, notes)
+    return Table(_board_anchor(board, "leaderboard"), board.title, header, rows, notes)
 
 
 def p_text(p: float) -> str:
     """A p-value to 3 decimals; ``<0.001`` below that."""
     return "<0.001" if p < 0.001 else f"{p:.3f}"
+
+
+def _star(test: PairedTest | None) -> str:
+    """`` *`` after a significant paired test's text, else nothing."""
+    return " *" if test is not None and test.significant else ""
 
 
 def _rank_text(rank: float | None) -> str:
@@ -167,8 +170,7 @@ def paired_table(board: Board, tests: dict[tuple[str, str], PairedTest] | None =
             if test.p is None:
                 cells.append(TCell("no pairs"))
                 continue
-            star = " *" if test.significant else ""
-            text = f"{test.mean_diff:+.3f}, {test.wins}/{test.n} better, p={p_text(test.p)}{star}"
+            text = f"{test.mean_diff:+.3f}, {test.wins}/{test.n} better, p={p_text(test.p)}{_star(test)}"
             cells.append(TCell(text, test.mean_diff, "best" if test.a_better else ("bad" if test.b_better else "")))
         rows.append(cells)
     notes = [
@@ -268,8 +270,7 @@ def _paired_text(test: PairedTest) -> TCell:
     """``p (n pairs)``, starred when significant; ``–`` without pairs."""
     if test.p is None:
         return TCell(MISSING)
-    star = " *" if test.significant else ""
-    return TCell(f"{p_text(test.p)} ({test.n}){star}", test.p, "best" if test.a_better else "")
+    return TCell(f"{p_text(test.p)} ({test.n}){_star(test)}", test.p, "best" if test.a_better else "")
 
 
 def ablation_table(board: Board) -> Table:
@@ -302,8 +303,7 @@ def ablation_table(board: Board) -> Table:
                                "best" if row.name in best["mean"] else ""))
         delta = value - first if complete and first_complete and value is not None and first is not None else None
         test = compare_rows(board, row, baseline) if row is not baseline else None
-        star = " *" if test is not None and test.significant else ""
-        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}{star}", delta))
+        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}{_star(test)}", delta))
         cells.append(_paired_text(test) if test is not None else TCell(MISSING))
         cells += _row_speed_cells(row)
         cells.append(plain(status_text(row.counts)))
@@ -333,7 +333,7 @@ def _grid_table(board: Board, anchor: str, notes: list[str]) -> Table:
         tests = [compare_rows(board, row, baseline) for row in board.rows[1:]]
         rows.append([plain(f"paired vs {_value_text(board.grid_values[0])}: Δ, p (pairs)")] + [TCell(MISSING)] +
                     [TCell(MISSING if t.p is None else
-                           f"{t.mean_diff:+.3f}, {p_text(t.p)} ({t.n}){' *' if t.significant else ''}",
+                           f"{t.mean_diff:+.3f}, {p_text(t.p)} ({t.n}){_star(t)}",
                            t.p, "best" if t.a_better else "") for t in tests])
     speed = [_row_speed_cells(row) for row in board.rows]
     rows.append([plain("train (s)")] + [cells[0] for cells in speed])
