@@ -94,7 +94,6 @@ def neighbour_views(cameras, views, k: int, max_angle: float, min_dis: float, ma
 class MultiViewContext:
     """One step's neighbour and warp, shared by ``pgsr_geo`` and ``pgsr_ncc`` (`gsbench.methods.pgsr_terms`)."""
 
-    neighbour: int
     warp: pgsr_terms.Warp
     ncc_index: torch.Tensor
     ref_gray: torch.Tensor
@@ -171,6 +170,7 @@ class PGSR(Method):
         self.scale = 1.0
         self.multiview_seconds = 0.0
         self._cache: tuple | None = None
+        self._edge_weights: dict[int, torch.Tensor] = {}
 
     # ---- configuration ------------------------------------------------------------------------
     def check_params(self) -> None:
@@ -191,7 +191,6 @@ class PGSR(Method):
                 raise ConfigError(f"method.{key} is out of range (got {getattr(p, key)}); see docs/methods/pgsr.md §7")
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
-        self.configure(cfg)
         self.exposure = torch.nn.Parameter(torch.zeros(len(scene.cameras), 2))
         super().setup(scene, cfg)
         p = self.params
@@ -224,7 +223,8 @@ class PGSR(Method):
 
     # ---- what the loss terms read -------------------------------------------------------------
     def loss_state(self) -> dict:
-        return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview}
+        return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview,
+                "edge_weight": self._edge_weight}
 
     def _view(self, batch: Batch) -> int | None:
         return self.view_of.get(id(batch.camera))
@@ -236,6 +236,16 @@ class PGSR(Method):
             return None
         view = self._view(batch)
         return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
+
+    def _edge_weight(self, batch: Batch, dtype: torch.dtype) -> torch.Tensor:
+        """`pgsr_terms.image_gradient_weight` of the batch's GT image, computed once per view (it reads only the GT)."""
+        view = self._view(batch)
+        cached = self._edge_weights.get(view)
+        if cached is None or cached.dtype != dtype:
+            cached = pgsr_terms.image_gradient_weight(batch.image.to(dtype))
+            if view is not None:
+                self._edge_weights[view] = cached
+        return cached
 
     def _multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
         """This step's neighbour render and warp, computed on first use and shared by the terms (module docstring)."""
@@ -270,7 +280,7 @@ class PGSR(Method):
         if index.numel() > p.multi_view_sample_num:
             index = index[torch.randperm(index.numel())[:p.multi_view_sample_num]]
         ref_gray = pgsr_terms.gray(batch.image.to(torch.float32)) if view is None else self.gray[view]
-        return MultiViewContext(neighbour=nb, warp=warp, ncc_index=index, ref_gray=ref_gray,
+        return MultiViewContext(warp=warp, ncc_index=index, ref_gray=ref_gray,
                                 nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half)
 
     # ---- mesh ---------------------------------------------------------------------------------

@@ -161,7 +161,7 @@ def _term_inputs(grazing: bool, textureless: bool):
     warp = T.warp_to_neighbour((leaves[0], leaves[1]), ref, (leaves[2], leaves[3]), nb, near=0.1, threshold=1.0)
     gray_ref = T.gray(image)
     gray_nb = T.gray(torch.full((24, 32, 3), 0.5) if textureless else torch.rand(24, 32, 3, generator=gen))
-    ctx = MultiViewContext(neighbour=1, warp=warp, ncc_index=torch.nonzero(warp.mask).flatten(), ref_gray=gray_ref,
+    ctx = MultiViewContext(warp=warp, ncc_index=torch.nonzero(warp.mask).flatten(), ref_gray=gray_ref,
                            nb_gray=gray_nb, patch_half=3)
     state = {"pgsr_multiview": lambda r, b: ctx}
     return render, Batch(image, None, ref, 7000), state, leaves
@@ -292,3 +292,13 @@ def test_exposure_is_learned_and_resumes_exactly(tiny_spot, tmp_path, monkeypatc
 def test_quick_end_to_end_run(tiny_spot, tmp_path):
     record = quick_run("pgsr", tiny_spot, tmp_path)
     assert record.timings["train.multiview"] > 0
+
+
+def test_the_edge_weight_is_computed_once_per_view(tiny_spot):
+    """PGSR hands pgsr_normal a per-view cache of `image_gradient_weight` (it reads only the GT image)."""
+    m, scene, cfg = setup_method("pgsr", tiny_spot)
+    image = torch.as_tensor(np.asarray(scene.images[1], dtype=np.float32))
+    batch = Batch(image, None, scene.cameras[1], 7001)
+    edge_weight = m.loss_state()["edge_weight"]
+    first = edge_weight(batch, torch.float32)
+    assert torch.equal(first, T.image_gradient_weight(image)) and edge_weight(batch, torch.float32) is first
