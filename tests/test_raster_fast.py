@@ -98,8 +98,9 @@ def test_fast_matches_reference(kernel, outs, reference_runs):
     errs = _grad_errors(gf, None, _loss(ref, w), gr)
     bad = {p: e for p, e in errs.items() if not e <= GRAD_RTOL}
     assert not bad, f"{kernel}/{outs}: relative gradient errors {bad}"
-    # densification statistics (the reference has the exact means2d gradient; raymax uses GOF's proxy)
-    if kernel != "raymax":
+    # densification statistics (the reference has the exact means2d gradient; raymax uses GOF's proxy and
+    # surfel 2DGS's shortcut, each tested against its own formula below)
+    if kernel not in ("raymax", "surfel"):
         gm_ref = torch.autograd.grad(_loss(ref, w), ref.means2d, retain_graph=True, allow_unused=True)[0]
         gm_ref = torch.zeros_like(ref.means2d) if gm_ref is None else gm_ref
         gm = out.means2d.grad.double()
@@ -153,6 +154,34 @@ def test_raymax_densification_proxy_is_gofs_conic_formula():
     torch.testing.assert_close(out.means2d.grad[0].double(), expected, rtol=1e-6, atol=1e-9)
     expected_abs = (per_pixel[blended].abs() * torch.tensor([16.0, 12.0], dtype=torch.float64)).sum()
     torch.testing.assert_close(out.extras["absgrad"][0].double(), expected_abs, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("outs", [("rgb",), ("rgb", "depth", "normal", "distortion")])
+def test_surfel_densification_statistic_is_2dgs_shortcut(outs):
+    """docs/methods/2dgs.md §3.6: the surfel statistic is ∂L/∂(screen position of the centre) at fixed depth through
+    the ray-splat intersection, (∂L/∂μ·R e_x·μz/fx, ∂L/∂μ·R e_y·μz/fy) with μ the camera-space centre. With the
+    low-pass filter off the intersection is the only path, so it is the derivative of the reference's loss for a
+    world-space move of the means along the camera's x and y axes (SH degree 0: no view-dependent colour, whose
+    direction also moves with the mean)."""
+    from gsbench.raster.projection import camera_tensors  # noqa: PLC0415
+
+    cam, g32 = _scene("surfel", seed=5, n=80, W=40, H=32, sh_degree=0)
+    settings = RasterSettings(sh_degree=0, surfel_filter=0.0)
+    g64 = _cast(g32, torch.float64)
+    gr = with_grad(g64)
+    ref = reference.render(gr, cam, kernel="surfel", outputs=outs, settings=settings)
+    w = _weights(ref, outs)
+    grad_means = torch.autograd.grad(_loss(ref, w), gr.means)[0]
+    R, t, _ = camera_tensors(cam, torch.float64)
+    z = (g64.means @ R.T + t)[:, 2]
+    expected = torch.stack([grad_means @ R[0] * z / cam.fx, grad_means @ R[1] * z / cam.fy], -1)
+    expected = torch.where(ref.visible[:, None], expected, torch.zeros_like(expected))
+    out = rasterize(with_grad(g64), cam, kernel="surfel", outputs=outs, settings=settings)
+    _loss(out, w).backward()
+    assert float(expected.abs().max()) > 1e-3  # the scene exercises the statistic
+    torch.testing.assert_close(out.means2d.grad, expected, rtol=1e-7, atol=1e-10)
+    g_ndc, _ = out.densify_grads()
+    torch.testing.assert_close(g_ndc, expected * torch.tensor([cam.width / 2, cam.height / 2], dtype=torch.float64))
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
@@ -242,7 +271,7 @@ def test_plane_distance_native_matches_reference(kernel, dtype):
         errs = _grad_errors(gf, None, loss_ref, gr)  # one reverse pass of the reference: fills its absgrad
         bad = {p: e for p, e in errs.items() if not e <= grad_tol}
         assert not bad, f"{kernel}/{outs}: relative gradient errors {bad}"
-        if kernel != "raymax":  # raymax's densification statistics are GOF's proxy (tested above)
+        if kernel not in ("raymax", "surfel"):  # their densification statistics are GOF's proxy / 2DGS's shortcut
             a, b = out.extras["absgrad"].double(), ref.extras["absgrad"]
             assert float((a - b).norm()) <= grad_tol * float(b.norm())
             gm_ref = torch.autograd.grad(loss_ref, ref.means2d)[0]

@@ -127,6 +127,7 @@ class _State:
         self.pairs_fwd = 0
         self.pairs_bwd = 0
         self.profiled = profile is not None
+        self.centre_z = None  # surfel: the centres' camera z, for the 2DGS densification shortcut
 
 
 class _RasterFn(torch.autograd.Function):
@@ -225,12 +226,34 @@ class _RasterFn(torch.autograd.Function):
         if state.profiled:  # a render made while the timers were off (PGSR's neighbour view) stays out of them
             _prof("raster_bwd", time.perf_counter() - t0)
         # densification statistics
-        m2g = proxy if state.kernel == "raymax" else gp[:, :2]
+        if state.kernel == "raymax":
+            m2g = proxy
+        elif state.kernel == "surfel":
+            m2g = surfel_shortcut_grad(gp, s["params"], state.centre_z.to(dt), a.fx, a.fy)
+        else:
+            m2g = gp[:, :2]
         leaf = state.m2d_leaf
         m2g = m2g.to(leaf.dtype)
         leaf.grad = m2g.clone() if leaf.grad is None else leaf.grad + m2g
         state.absgrad += absg.to(state.absgrad.dtype)
         return gp, g_plane_d, None
+
+
+def surfel_shortcut_grad(grad_params: torch.Tensor, params: torch.Tensor, centre_z: torch.Tensor, fx: float,
+                         fy: float) -> torch.Tensor:
+    """2DGS's densification statistic for surfels, in pixels (N,2) (docs/methods/2dgs.md §3.6).
+
+    2DGS takes ``(∂L/∂Tu.z·Tw.z, ∂L/∂Tv.z·Tw.z)`` (then × W/2, H/2 to NDC): the gradient of the loss for a
+    screen-space move of the centre at fixed depth, through the ray-splat intersection only (the low-pass
+    filter's ∂L/∂means2d is left out). Tu.z = fx·μx + cx·μz, so a move of δ pixels in x is μ += (δ·μz/fx) e_x
+    with the frame fixed. The payload holds the plane n·x = d and the local offsets b_u = μ·a_u,
+    b_v = μ·a_v (d = n·μ), so with g the gradient of those columns
+    ``∂L/∂μ = g_d n + g_bu a_u + g_bv a_v`` and the statistic is ``(∂L/∂μx·μz/fx, ∂L/∂μy·μz/fy)``.
+    """
+    x = params[:, 9:21]  # n (3), d, a_u (3), b_u, a_v (3), b_v  (csrc/raster.cpp surfel payload)
+    g = grad_params[:, 9:21]
+    dmu = g[:, 3:4] * x[:, 0:3] + g[:, 7:8] * x[:, 4:7] + g[:, 11:12] * x[:, 8:11]
+    return torch.stack([dmu[:, 0] * centre_z / fx, dmu[:, 1] * centre_z / fy], -1)
 
 
 def _background(background, settings: RasterSettings, dtype) -> torch.Tensor:
@@ -395,6 +418,8 @@ def rasterize(
     a.want_plane = int(want["plane_distance"])
     state = _State(lib, a, kernel, n, m2d_leaf, absgrad, H, W, dtype, (bounds, depth_key, offsets, tile_list, rect))
     state.want = want
+    if kernel == "surfel":
+        state.centre_z = proj.depth
 
     empty = torch.empty(0, dtype=dtype)
     plane_in = empty if plane_d is None else plane_d
