@@ -29,6 +29,20 @@ def test_phases_add_up_to_the_step_and_every_term_is_timed(tiny_spot, name, term
     assert name in format_table({"results": [result]})
 
 
+def test_pgsr_neighbour_render_is_timed_as_rasterizer_inside_its_term(tiny_spot):
+    """PGSR's neighbour render (docs/methods/pgsr.md §4.3) is rasterizer work made inside ``pgsr_geo``'s forward and
+    backward: its timers are kept apart and counted as rasterizer in the share."""
+    result = bench_workload("pgsr", WORKLOADS["pgsr"], steps=2, warmup=1, probe_steps=1, threads=1,
+                            scene_name=str(tiny_spot))
+    ms = result["phases_ms"]
+    nb_fwd = sum(ms[f"neighbour.{k}"] for k in ("projection", "sort_bin", "raster_fwd"))
+    assert nb_fwd > 0 and ms["neighbour.raster_bwd"] > 0
+    assert nb_fwd <= ms["fwd.pgsr_geo"]  # measured inside the term's forward
+    raster = sum(ms[k] for k in RASTER_PHASES) + ms["backward_rest"]
+    assert result["non_raster_share"] == pytest.approx(1 - (raster + ms["neighbour_raster"]) / result["step_ms"])
+    assert "(nb.raster)" in format_table({"results": [result]})
+
+
 def test_unknown_workload_is_an_error_listing_the_workloads():
     with pytest.raises(ConfigError, match="3dgs-random-100k"):
         run_train_benchmark(["3dgs-random-1m"])

@@ -22,16 +22,17 @@ Phases, milliseconds per step (mean over the timed steps):
   kept) so the timed steps are untouched;
 - PGSR's multi-view terms render a neighbouring view themselves (docs/methods/pgsr.md §4.3): that render and its
   backward are in the first active one of the two terms (``fwd.pgsr_geo`` / ``bwd.pgsr_geo``; ``pgsr_ncc``'s when
-  ``pgsr_geo`` has weight 0) and kept out of the
-  rasterizer timers above, which time the step's own render;
+  ``pgsr_geo`` has weight 0), not in the rasterizer timers above, which time the step's own render;
+  ``neighbour.<phase>`` are the neighbour's rasterizer timers (`gsbench.raster.profile_as`), ``neighbour_raster``
+  their sum: parts of those two terms, not more phases of the step;
 - ``backward_rest`` = Trainer ``backward`` − raster_bwd − Σ bwd.<term>: the autograd glue and the
   projection's backward (not timed on its own: the fused projections run inside autograd);
 - ``optimizer``, ``densify``, ``checks``: the Trainer's phases; ``other``: the step's wall time minus
   every Trainer phase (schedules, camera sampling).
 
-``non_raster_share`` = 1 − (projection + sort_bin + raster_fwd + raster_bwd + backward_rest) / step:
-what is neither rasterizer nor projection, counting all of ``backward_rest`` as projection (so the
-share is a lower bound).
+``non_raster_share`` = 1 − (projection + sort_bin + raster_fwd + raster_bwd + neighbour_raster +
+backward_rest) / step: what is neither rasterizer nor projection, counting all of ``backward_rest`` as
+projection (so the share is a lower bound; the neighbour projection's backward stays in ``bwd.pgsr_geo``).
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ WORKLOADS = {
     "3dgs-visible-adam": Workload("3dgs", ("train.optimizer=visible_adam",)),
 }
 RASTER_PHASES = ("projection", "sort_bin", "raster_fwd", "raster_bwd")
+NEIGHBOUR = "neighbour."  # the profile tag of PGSR's neighbour render (methods/pgsr.py)
 
 
 class _TermClock:
@@ -176,7 +178,9 @@ def _phases_ms(name, workload, per_step, phases, prof, term_fwd, probe, gaussian
     for k in ("optimizer", "densify", "checks"):
         ms[k] = trainer_ms[k]
     ms["other"] = step_ms - sum(trainer_ms.values())
-    raster_ms = sum(ms[k] for k in RASTER_PHASES) + ms["backward_rest"]
+    ms.update({NEIGHBOUR + k: 1e3 * prof.get(NEIGHBOUR + k, 0.0) / n for k in RASTER_PHASES})
+    ms["neighbour_raster"] = sum(ms[NEIGHBOUR + k] for k in RASTER_PHASES)
+    raster_ms = sum(ms[k] for k in RASTER_PHASES) + ms["neighbour_raster"] + ms["backward_rest"]
     return {"workload": name, "method": workload.method, "overrides": list(workload.overrides),
             "scene": SCENE, "preset": "cpu", "first_timed_step": first_timed, "steps": n,
             "step_ms": step_ms, "step_ms_median": 1e3 * statistics.median(per_step), "it_per_s": 1e3 / step_ms,
@@ -202,9 +206,10 @@ def run_train_benchmark(workloads=None, *, steps: int = STEPS, warmup: int = WAR
 
 
 def format_table(result: dict) -> str:
-    """Rows: workloads; columns: ms/step, it/s, the rasterizer phases, loss terms (fwd+bwd), the rest."""
+    """Rows: workloads; columns: ms/step, it/s, the rasterizer phases, loss terms (fwd+bwd; in brackets the
+    neighbour render's rasterizer share of them), the rest."""
     header = ["workload", "N", "ms/step", "it/s", "proj", "sort", "r.fwd", "r.bwd", "bwd.rest", "render.rest",
-              "terms", "optim", "densify", "checks", "other", "non-raster"]
+              "terms", "(nb.raster)", "optim", "densify", "checks", "other", "non-raster"]
     rows = [header]
     for r in result["results"]:
         p = r["phases_ms"]
@@ -212,7 +217,8 @@ def format_table(result: dict) -> str:
         rows.append([r["workload"], str(r["gaussians"]["timed_start"]), f"{r['step_ms']:.1f}", f"{r['it_per_s']:.2f}",
                      *(f"{p[k]:.1f}" for k in ("projection", "sort_bin", "raster_fwd", "raster_bwd",
                                                  "backward_rest", "render_rest")),
-                     f"{terms:.1f}", *(f"{p[k]:.1f}" for k in ("optimizer", "densify", "checks", "other")),
+                     f"{terms:.1f}", f"({p['neighbour_raster']:.1f})",
+                     *(f"{p[k]:.1f}" for k in ("optimizer", "densify", "checks", "other")),
                      f"{100 * r['non_raster_share']:.0f}%"])
     widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     lines = ["  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in rows]

@@ -11,6 +11,7 @@ composites them with the C++/OpenMP tile kernel (``csrc/raster.cpp``, compiled o
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import time
@@ -39,12 +40,27 @@ __all__ = [
 KERNEL_ID = {"ewa": 0, "rade": 1, "raymax": 2, "surfel": 3}
 _EMPTY = {}
 
-# Phase timings (seconds) of the most recent calls, filled when `profile` is enabled (used by bench.py).
+# Phase timings (seconds) of the most recent calls, filled when `profile` is enabled (used by bench.py),
+# under ``profile_tag + phase`` (`profile_as`).
 profile: dict | None = None
+profile_tag = ""
 
 
-def _prof(key: str, dt: float) -> None:
+@contextlib.contextmanager
+def profile_as(tag: str):
+    """Record the timers of the renders made inside (and of their backward) as ``tag + phase`` (PGSR's
+    neighbour view: ``"neighbour."``), apart from the step's own render."""
+    global profile_tag
+    saved, profile_tag = profile_tag, tag
+    try:
+        yield
+    finally:
+        profile_tag = saved
+
+
+def _prof(key: str, dt: float, tag: str | None = None) -> None:
     if profile is not None:
+        key = (profile_tag if tag is None else tag) + key
         profile[key] = profile.get(key, 0.0) + dt
 
 
@@ -127,6 +143,7 @@ class _State:
         self.pairs_fwd = 0
         self.pairs_bwd = 0
         self.profiled = profile is not None
+        self.profile_tag = profile_tag  # the backward runs after `profile_as` has ended
         self.centre_z = None  # surfel: the centres' camera z, for the 2DGS densification shortcut
 
 
@@ -223,8 +240,8 @@ class _RasterFn(torch.autograd.Function):
             if rc != 0:
                 raise RuntimeError(f"gsbench rasterizer backward failed (code {rc})")
             state.pairs_bwd = int(a.pairs)
-        if state.profiled:  # a render made while the timers were off (PGSR's neighbour view) stays out of them
-            _prof("raster_bwd", time.perf_counter() - t0)
+        if state.profiled:  # a render made while the timers were off stays out of them
+            _prof("raster_bwd", time.perf_counter() - t0, state.profile_tag)
         # densification statistics
         if state.kernel == "raymax":
             m2g = proxy
