@@ -25,8 +25,6 @@ constexpr int64_t MIN_PARALLEL = 4096;
 constexpr int PERMS_3D[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
 constexpr int PERMS_2D[2][3] = {{0, 1, 2}, {1, 0, 2}};
 
-int threads(int64_t n, int64_t nthreads) { return n < MIN_PARALLEL ? 1 : static_cast<int>(nthreads < 1 ? 1 : nthreads); }
-
 inline double det3(const double m[9]) {
     return m[0] * (m[4] * m[8] - m[5] * m[7]) - m[1] * (m[3] * m[8] - m[5] * m[6]) + m[2] * (m[3] * m[7] - m[4] * m[6]);
 }
@@ -34,7 +32,7 @@ inline double det3(const double m[9]) {
 template <typename P>
 void align(int64_t N, bool surfel, const double* V, const P* previous, int64_t* perm, double* signs, int64_t nthreads) {
     const int count = surfel ? 2 : 6;
-#pragma omp parallel for schedule(static) num_threads(threads(N, nthreads))
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
         const double* v = V + 9 * i;
         const P* prev = previous + 9 * i;
@@ -80,7 +78,7 @@ void align(int64_t N, bool surfel, const double* V, const P* previous, int64_t* 
 }
 
 void to_quaternion(int64_t N, const double* R, double* q, int64_t nthreads) {
-#pragma omp parallel for schedule(static) num_threads(threads(N, nthreads))
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
         const double* m = R + 9 * i;
         const double tr = m[0] + m[4] + m[8];

@@ -22,8 +22,6 @@ namespace {
 // Neighbourhoods fewer than this run on the calling thread.
 constexpr int64_t MIN_PARALLEL = 2048;
 
-int threads(int64_t n, int64_t nthreads) { return n < MIN_PARALLEL ? 1 : static_cast<int>(nthreads < 1 ? 1 : nthreads); }
-
 // Row of member j (0 <= j < n) of neighbourhood i.
 inline int64_t member(const int64_t* index, int64_t K, bool self, int64_t i, int64_t j) {
     return self ? (j == 0 ? i : index[i * K + j - 1]) : index[i * K + j];
@@ -50,7 +48,7 @@ template <typename T>
 void forward(int64_t N, int64_t K, bool self, const T* x, const int64_t* index, double jitter, double* C,
              int64_t nthreads) {
     const int64_t n = K + (self ? 1 : 0);
-#pragma omp parallel for schedule(static) num_threads(threads(N, nthreads))
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
         double m[3], s[9] = {0.0};
         centroid(x, index, K, self, n, i, m);
@@ -70,7 +68,7 @@ void backward(int64_t N, int64_t K, bool self, const T* x, const int64_t* index,
               int64_t nthreads) {
     const int64_t n = K + (self ? 1 : 0);
     std::vector<double> per_member(static_cast<size_t>(N * n * 3));
-#pragma omp parallel for schedule(static) num_threads(threads(N, nthreads))
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
         double m[3], S[9];
         centroid(x, index, K, self, n, i, m);

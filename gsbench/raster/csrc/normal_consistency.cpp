@@ -44,7 +44,6 @@ struct View {
         for (int64_t c = 0; c < W; ++c) rx[c] = (c + 0.5 - cx) / fx;
         for (int64_t r = 0; r < H; ++r) ry[r] = (r + 0.5 - cy) / fy;
     }
-    int threads(int64_t nthreads) const { return H * W < MIN_PARALLEL ? 1 : static_cast<int>(nthreads < 1 ? 1 : nthreads); }
     bool interior(int64_t r, int64_t c) const { return r >= 1 && r <= H - 2 && c >= 1 && c <= W - 2; }
     void ray(int64_t r, int64_t c, double out[3]) const {
         out[0] = rx[c];
@@ -126,7 +125,7 @@ template <typename T>
 double forward(const View& v, const T* n, const T* d1, const T* d2, const T* alpha, double w1, double w2,
                bool normalize, int64_t nthreads) {
     double total = 0.0;
-#pragma omp parallel for schedule(static) reduction(+ : total) num_threads(v.threads(nthreads))
+#pragma omp parallel for schedule(static) reduction(+ : total) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (v.H * v.W >= MIN_PARALLEL)
     for (int64_t r = 0; r < v.H; ++r) {
         double row = 0.0;
         for (int64_t c = 0; c < v.W; ++c) {
@@ -148,7 +147,7 @@ double forward(const View& v, const T* n, const T* d1, const T* d2, const T* alp
 template <typename T>
 void pixel_gradients(const View& v, const T* n, const T* const maps[2], const double weights[2], const bool want[2],
                      const T* alpha, bool normalize, double G, T* gn, double* const buf[2], int64_t nthreads) {
-#pragma omp parallel for schedule(static) num_threads(v.threads(nthreads))
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (v.H * v.W >= MIN_PARALLEL)
     for (int64_t r = 0; r < v.H; ++r) {
         for (int64_t c = 0; c < v.W; ++c) {
             const int64_t p = r * v.W + c;
@@ -193,7 +192,7 @@ void pixel_gradients(const View& v, const T* n, const T* const maps[2], const do
 // Pass 2: dL/dD(q) = ray(q) · (+g_dx above − g_dx below + g_dy left − g_dy right).
 template <typename T>
 void gather_depth_gradient(const View& v, const double* buf, T* gD, int64_t nthreads) {
-#pragma omp parallel for schedule(static) num_threads(v.threads(nthreads))
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (v.H * v.W >= MIN_PARALLEL)
     for (int64_t r = 0; r < v.H; ++r) {
         for (int64_t c = 0; c < v.W; ++c) {
             double gX[3] = {0.0, 0.0, 0.0};

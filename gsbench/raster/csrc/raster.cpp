@@ -278,8 +278,7 @@ void forward_impl(GsArgs& A) {
     const T* __restrict DK = (const T*)A.depth_key;
     const T fx = (T)A.fx, fy = (T)A.fy, cx = (T)A.cx, cy = (T)A.cy, nearz = (T)A.near_z, farz = (T)A.far_z,
             surfel_k = (T)A.surfel_k;
-    const bool w_rgb = A.want_rgb, w_depth = A.want_depth, w_med = A.want_median, w_nrm = A.want_normal,
-               w_dist = A.want_dist;
+    const bool w_rgb = A.want_rgb, w_depth = A.want_depth, w_med = A.want_median, w_nrm = A.want_normal;
     T* o_rgb = (T*)A.out_rgb;
     T* o_alpha = (T*)A.out_alpha;
     T* o_depth = (T*)A.out_depth;
@@ -429,7 +428,7 @@ void forward_impl(GsArgs& A) {
                             o_nrm[pix * 3 + 1] = n1[i];
                             o_nrm[pix * 3 + 2] = n2[i];
                         }
-                        if (DIST && w_dist) {
+                        if constexpr (DIST) {  // MODE 2 is chosen exactly when the distortion is wanted
                             const T Wt = T(1) - Tr[i];
                             o_dist[pix] = std::max(Wt * m2[i] - m1[i] * m1[i], T(0));
                             o_M1[pix] = m1[i];
@@ -907,9 +906,6 @@ int64_t bin_entries(int64_t M, RectOf rect_of, IdOf id_of, int64_t tiles_x, int6
 extern "C" {
 
 int gs_abi_version() { return 1; }
-
-// Present since GsArgs carries the plane_distance fields (want_plane .. grad_plane; docs/methods/pgsr.md §3.1).
-int gs_plane_distance_abi() { return 1; }
 
 int gs_forward(GsArgs* A) {
     if (A->n_params != (A->kernel == K_EWA ? 13 : A->kernel == K_RADE ? 15 : A->kernel == K_RAYMAX ? 24 : 21)) return -2;
