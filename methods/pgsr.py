@@ -47,7 +47,7 @@ from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo
 from gsbench.mesh.tsdf import tsdf_fusion
 from gsbench.raster.types import RenderOutput
 from gsbench.strategies.base import Strategy
-from gsbench.strategies.default import DefaultStrategy
+from gsbench.strategies.absgrad import AbsGradStatistics
 from gsbench.train import scale_step, split_views
 
 
@@ -102,23 +102,14 @@ class MultiViewContext:
 
 
 @dataclass(frozen=True)
-class PGSRStrategy(DefaultStrategy):
+class PGSRStrategy(AbsGradStatistics):
     """PGSR's densification (docs/methods/pgsr.md §5): `DefaultStrategy` (3DGS) with clones sampled at μ + R(s ⊙ ε)
     and, besides g >= ``grad_threshold``, a split of the Gaussians with s_max > percent_dense·extent, a max
     screen radius > ``abs_split_radius`` px and g_abs >= ``abs_grad_threshold``, g_abs the mean NDC
-    abs-gradient Σ_pixels |g_x| + |g_y| (`RenderOutput.densify_grads`)."""
+    abs-gradient (`AbsGradStatistics`)."""
 
     abs_grad_threshold: float = 0.0008
     abs_split_radius: float = 20.0
-
-    def init_state(self, n: int) -> dict:
-        return {**super().init_state(n), "absgrad": torch.zeros(n)}
-
-    def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
-        visible = super()._accumulate(state, out)
-        _, absgrad = out.densify_grads()
-        state["absgrad"][visible] += absgrad.detach().to(state["absgrad"].dtype)[visible]
-        return visible
 
     def _refine(self, gaussians, optimizer, state: dict, step: int) -> dict:
         state["_big"] = gaussians.scales.detach().max(-1).values > self.percent_dense * self.scene_extent
@@ -129,16 +120,9 @@ class PGSRStrategy(DefaultStrategy):
 
     def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
         standard, grads = super()._select(state)
-        absgrads = torch.nan_to_num(state["absgrad"] / state["count"], nan=0.0, posinf=0.0)
+        absgrads = self._mean_absgrad(state)
         extra = (absgrads >= self.abs_grad_threshold) & (state["radii"] > self.abs_split_radius) & state["_big"]
         return standard | extra, torch.maximum(grads, absgrads)
-
-    def _clones(self, gaussians, clone: torch.Tensor) -> dict:
-        from gsbench.strategies.base import _sample_offsets  # noqa: PLC0415
-
-        rows = super()._clones(gaussians, clone)
-        rows["means"] = rows["means"] + _sample_offsets(rows, self._orientations(rows))
-        return rows
 
 
 class PGSR(Method):

@@ -17,7 +17,33 @@ from gsbench.strategies.default import DefaultStrategy
 
 
 @dataclass(frozen=True)
-class AbsGradStrategy(DefaultStrategy):
+class AbsGradStatistics(DefaultStrategy):
+    """What the densifications of GOF / RaDe-GS and PGSR add to `DefaultStrategy` alike: the mean abs-gradient
+    g_abs = mean Σ_pixels (|∂L_pix/∂m_x| + |∂L_pix/∂m_y|) (`RenderOutput.densify_grads`, NDC units) over the
+    same visible renders as g (``state["absgrad"]``), and clones sampled at μ + R (s ⊙ ε), ε ~ N(0, I)."""
+
+    def init_state(self, n: int) -> dict:
+        return {**super().init_state(n), "absgrad": torch.zeros(n)}
+
+    def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
+        visible = super()._accumulate(state, out)
+        _, absgrad = out.densify_grads()
+        values = absgrad.detach().to(state["absgrad"].dtype)
+        state["absgrad"].add_(torch.where(visible, values, torch.zeros((), dtype=values.dtype)))
+        return visible
+
+    def _mean_absgrad(self, state: dict) -> torch.Tensor:
+        """g_abs (N,): the accumulated abs-gradient over the visible count (0 where never seen)."""
+        return torch.nan_to_num(state["absgrad"] / state["count"], nan=0.0, posinf=0.0)
+
+    def _clones(self, gaussians: Gaussians, clone: torch.Tensor) -> dict:
+        rows = super()._clones(gaussians, clone)
+        rows["means"] = rows["means"] + _sample_offsets(rows, self._orientations(rows))
+        return rows
+
+
+@dataclass(frozen=True)
+class AbsGradStrategy(AbsGradStatistics):
     """GOF / RaDe-GS densification (docs/methods/gof.md §5, docs/methods/radegs.md §2.2, docs/methods/radegs.md §2.2) with the 3D filter (docs/methods/gof.md §2.4).
 
     `DefaultStrategy` (window, interval, pruning, opacity-reset schedule, budget) with these changes:
@@ -53,9 +79,6 @@ class AbsGradStrategy(DefaultStrategy):
         """`DefaultStrategy.scaled` plus ``iterations = total_iterations`` (the filter's end guard)."""
         return dataclasses.replace(super().scaled(total_iterations), iterations=int(total_iterations))
 
-    def init_state(self, n: int) -> dict:
-        return {**super().init_state(n), "absgrad": torch.zeros(n)}
-
     def step_post_backward(self, gaussians, optimizer, state, step, render_out) -> dict:
         info = super().step_post_backward(gaussians, optimizer, state, step, render_out)
         if (self.filter3d is not None and step > self.refine_stop and step % self.filter_every == 0
@@ -63,23 +86,11 @@ class AbsGradStrategy(DefaultStrategy):
             self.filter3d.update(gaussians.means)
         return info
 
-    def _accumulate(self, state: dict, out: RenderOutput) -> torch.Tensor:
-        visible = super()._accumulate(state, out)
-        _, absgrad = out.densify_grads()
-        values = absgrad.detach().to(state["absgrad"].dtype)
-        state["absgrad"].add_(torch.where(visible, values, torch.zeros((), dtype=values.dtype)))
-        return visible
-
     def _select(self, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
         standard, grads = super()._select(state)
-        absgrads = torch.nan_to_num(state["absgrad"] / state["count"], nan=0.0, posinf=0.0)
+        absgrads = self._mean_absgrad(state)
         threshold = matched_threshold(absgrads, float(standard.sum()) / max(len(standard), 1))
         return standard | ((absgrads.double() >= threshold) & (absgrads > 0)), absgrads
-
-    def _clones(self, gaussians: Gaussians, clone: torch.Tensor) -> dict:
-        rows = super()._clones(gaussians, clone)
-        rows["means"] = rows["means"] + _sample_offsets(rows, self._orientations(rows))
-        return rows
 
     def _refine(self, gaussians, optimizer, state, step) -> dict:
         info = super()._refine(gaussians, optimizer, state, step)
