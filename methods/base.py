@@ -362,16 +362,21 @@ class Method:
 
     def _tsdf_mesh(self, scene: Scene, cfg: RunConfig, views: list[int]):
         """TSDF fusion of ``mesh.depth`` rendered from the training ``views`` (module docstring)."""
-        depth_key = DEPTH_OUTPUTS[cfg.mesh.depth]
         depths, colors, alphas = [], [], []
         for i in tqdm(views, desc="extract", unit="view", disable=None, leave=False):
-            out = self.render(scene.cameras[i], {depth_key, "alpha", "rgb"})
-            depths.append(getattr(out, depth_key).numpy())
+            depth, out = self._mesh_depth(scene.cameras[i], cfg)
+            depths.append(depth.numpy())
             colors.append(out.rgb.clamp(0, 1).numpy())
             alphas.append(out.alpha.numpy())
         masks = [scene.masks[i] for i in views] if cfg.data.use_masks and scene.masks is not None else None
         return tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
                            alphas=alphas, masks=masks)
+
+    def _mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
+        """The depth (H, W) the TSDF fuses for ``camera`` (``mesh.depth``) and the render holding its rgb and alpha."""
+        key = DEPTH_OUTPUTS[cfg.mesh.depth]
+        out = self.render(camera, {key, "alpha", "rgb"})
+        return getattr(out, key), out
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 import gsbench.raster as raster
 from gsbench.config import RunConfig
@@ -44,7 +43,6 @@ from gsbench.errors import ConfigError
 from gsbench.losses import Batch, depth_to_normal, pixel_rays
 from gsbench.methods import pgsr_terms
 from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo
-from gsbench.mesh.tsdf import tsdf_fusion
 from gsbench.raster.types import RenderOutput
 from gsbench.strategies.base import Strategy
 from gsbench.strategies.absgrad import AbsGradStatistics
@@ -265,29 +263,16 @@ class PGSR(Method):
                                 nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half)
 
     # ---- mesh ---------------------------------------------------------------------------------
-    def _tsdf_mesh(self, scene: Scene, cfg: RunConfig, views: list[int]):
-        """TSDF fusion of ``mesh.depth`` (``unbiased``: D / (−N·r̃), docs/methods/pgsr.md §6); with
+    def _mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
+        """``mesh.depth`` for the TSDF (``unbiased``: D / (−N·r̃), docs/methods/pgsr.md §6); with
         ``tsdf_max_view_angle`` > 0, pixels whose depth normal is farther than that from the viewing ray are
         dropped (PGSR ``--use_depth_filter``)."""
-        if cfg.mesh.depth != "unbiased" and self.params.tsdf_max_view_angle <= 0:
-            return super()._tsdf_mesh(scene, cfg, views)
-        depths, colors, alphas = [], [], []
-        for i in tqdm(views, desc="extract", unit="view", disable=None, leave=False):
-            camera = scene.cameras[i]
-            if cfg.mesh.depth == "unbiased":
-                out = self.render(camera, {"plane_distance", "normal", "alpha", "rgb"})
-                depth = pgsr_terms.render_depth(out, camera)
-            else:
-                key = DEPTH_OUTPUTS[cfg.mesh.depth]
-                out = self.render(camera, {key, "alpha", "rgb"})
-                depth = getattr(out, key)
-            depth = self._view_angle_filter(depth, camera)
-            depths.append(depth.numpy())
-            colors.append(out.rgb.clamp(0, 1).numpy())
-            alphas.append(out.alpha.numpy())
-        masks = [scene.masks[i] for i in views] if cfg.data.use_masks and scene.masks is not None else None
-        return tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
-                           alphas=alphas, masks=masks)
+        if cfg.mesh.depth == "unbiased":
+            out = self.render(camera, {"plane_distance", "normal", "alpha", "rgb"})
+            depth = pgsr_terms.render_depth(out, camera)
+        else:
+            depth, out = super()._mesh_depth(camera, cfg)
+        return self._view_angle_filter(depth, camera), out
 
     def _view_angle_filter(self, depth: torch.Tensor, camera) -> torch.Tensor:
         limit = self.params.tsdf_max_view_angle
