@@ -45,12 +45,14 @@ ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), docs/methods/sugar.md Â
 @dataclass
 class Batch:
     """The ground truth of one training view: ``image`` (H,W,3) float in [0,1], ``mask`` (H,W) bool or
-    None, the `Camera` it was taken with, and the training ``step``."""
+    None, the `Camera` it was taken with, the training ``step`` and ``view``, the camera's index in the
+    scene (None when the camera is not one of the scene's)."""
 
     image: torch.Tensor
     mask: torch.Tensor | None
     camera: Camera
     step: int
+    view: int | None = None
 
 
 @dataclass(frozen=True)

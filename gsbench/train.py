@@ -314,7 +314,7 @@ class Trainer:
         t1 = clock()
         phases["render"] += t1 - t
         t = t1
-        loss, values = total_loss(active, render, Batch(self.images[idx], self.masks[idx], camera, step),
+        loss, values = total_loss(active, render, Batch(self.images[idx], self.masks[idx], camera, step, idx),
                                   m.loss_state())
         t1 = clock()
         phases["loss"] += t1 - t

@@ -177,7 +177,6 @@ class PGSR(Method):
         super().setup(scene, cfg)
         p = self.params
         self.cameras = list(scene.cameras)
-        self.view_of = {id(c): i for i, c in enumerate(self.cameras)}
         views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
         self.neighbours = neighbour_views(self.cameras, views, p.multi_view_num, p.multi_view_max_angle,
                                           p.multi_view_min_dis * scene.radius, p.multi_view_max_dis * scene.radius)
@@ -208,20 +207,17 @@ class PGSR(Method):
         return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview,
                 "edge_weight": self._edge_weight}
 
-    def _view(self, batch: Batch) -> int | None:
-        return self.view_of.get(id(batch.camera))
-
     def _exposure_of(self, batch: Batch):
         """(a_v, b_v) of the batch's view when exposure compensation is on and past its start, else None."""
         p = self.params
         if not p.exposure_compensation or self.step <= scale_step(p.exposure_from, self.scale):
             return None
-        view = self._view(batch)
+        view = batch.view
         return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
 
     def _edge_weight(self, batch: Batch, dtype: torch.dtype) -> torch.Tensor:
         """`pgsr_terms.image_gradient_weight` of the batch's GT image, computed once per view (it reads only the GT)."""
-        view = self._view(batch)
+        view = batch.view
         cached = self._edge_weights.get(view)
         if cached is None or cached.dtype != dtype:
             cached = pgsr_terms.image_gradient_weight(batch.image.to(dtype))
@@ -245,7 +241,7 @@ class PGSR(Method):
 
     def _build_multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
         p = self.params
-        view = self._view(batch)
+        view = batch.view
         candidates = self.neighbours.get(view, []) if view is not None else []
         if not candidates:
             return None

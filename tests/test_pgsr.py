@@ -298,7 +298,7 @@ def test_the_edge_weight_is_computed_once_per_view(tiny_spot):
     """PGSR hands pgsr_normal a per-view cache of `image_gradient_weight` (it reads only the GT image)."""
     m, scene, cfg = setup_method("pgsr", tiny_spot)
     image = torch.as_tensor(np.asarray(scene.images[1], dtype=np.float32))
-    batch = Batch(image, None, scene.cameras[1], 7001)
+    batch = Batch(image, None, scene.cameras[1], 7001, view=1)
     edge_weight = m.loss_state()["edge_weight"]
     first = edge_weight(batch, torch.float32)
     assert torch.equal(first, T.image_gradient_weight(image)) and edge_weight(batch, torch.float32) is first

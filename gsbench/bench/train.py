@@ -102,7 +102,7 @@ def _term_backward_seconds(trainer, step: int) -> dict[str, float]:
             setattr(render, key, value.detach().requires_grad_(True))
             leaves.append(getattr(render, key))
     inputs = leaves + [p for p in m.gaussians.params.values() if p.requires_grad]
-    batch = Batch(trainer.images[idx], trainer.masks[idx], trainer.scene.cameras[idx], step)
+    batch = Batch(trainer.images[idx], trainer.masks[idx], trainer.scene.cameras[idx], step, idx)
     seconds = {}
     for term in active:
         value = term.spec(render, batch, m.loss_state())
