@@ -58,7 +58,7 @@ import torch.nn.functional as F
 from gsbench.errors import ConfigError
 from gsbench.losses import Batch, register_term
 from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
-from gsbench.geometry.neighbours import nearest_other
+from gsbench.geometry.neighbours import nearest_other, rows
 from gsbench.raster.projection import quat_to_rotmat
 from gsbench.raster.types import RenderOutput
 
@@ -130,12 +130,6 @@ class GaussianFrames:
     def min_scales(self) -> torch.Tensor:
         """(N,) the smallest scale of every Gaussian."""
         return self.scales.min(-1).values
-
-
-def rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """``values[index]`` for an integer ``index`` of any shape, by ``index_select`` on the flattened index
-    (its backward is an index_add, much cheaper on the CPU than the index_put of advanced indexing)."""
-    return values.index_select(0, index.reshape(-1)).reshape(*index.shape, *values.shape[1:])
 
 
 @dataclass

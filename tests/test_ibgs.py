@@ -140,6 +140,26 @@ def test_eigvec_term_is_invariant_to_eigenvector_signs_and_masks_flat_or_degener
         eigval_term(None, None, {"gaussians": None})
 
 
+def test_eigvec_term_is_the_double_sum_of_its_formula_in_value_and_gradient():
+    """L = mean over (i, j ∈ N(i)) of γ_i·[γ_i >= 1e-3]·valid_i·valid_j·(1 − |v3,i·v3,j|), written as a plain loop."""
+    gen = torch.Generator().manual_seed(5)
+    n, k = 12, 4
+    vectors = torch.linalg.qr(torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))[0].requires_grad_(True)
+    lam = torch.sort(torch.rand(n, 3, generator=gen, dtype=torch.float64), dim=1, descending=True).values
+    valid = torch.rand(n, generator=gen) > 0.2
+    index = torch.stack([torch.randperm(n, generator=gen)[:k] for _ in range(n)])
+    geometry = LocalGeometry(lam, vectors, valid, index)
+    value = eigvec_term(None, None, {"local_geometry": geometry, "scene_radius": 1.0})
+    gamma = (lam[:, 1] - lam[:, 2]) / lam[:, 0]
+    terms = [gamma[i] * (gamma[i] >= 1e-3) * valid[i] * valid[j] * (1 - (vectors[i, :, 2] @ vectors[j, :, 2]).abs())
+             for i in range(n) for j in index[i].tolist()]
+    expected = torch.stack(terms).mean()
+    assert torch.allclose(value.double(), expected, atol=1e-7)
+    (grad,) = torch.autograd.grad(value, vectors)
+    (grad_expected,) = torch.autograd.grad(expected.float(), vectors)
+    assert torch.allclose(grad, grad_expected, atol=1e-7)
+
+
 def test_coincident_and_collinear_neighbourhoods_give_finite_values_and_gradients():
     coincident = torch.zeros(6, 3, dtype=torch.float64)
     line = torch.linspace(0, 1, 6, dtype=torch.float64)[:, None] * torch.tensor([[1.0, 2.0, 0.5]], dtype=torch.float64)
