@@ -209,7 +209,7 @@ class _FusedProjectFn(torch.autograd.Function):
         g_quats = torch.empty_like(quats)
         g_scales = torch.empty_like(scales)
         g_opac = torch.empty_like(opac)
-        g_sh = torch.zeros_like(sh)
+        g_sh = torch.empty_like(sh)  # every row written by the C++ backward
         args.means, args.quats, args.scales, args.opac, args.sh = (t.data_ptr() for t in (means, quats, scales, opac, sh))
         args.filter3d = None if filter3d is None else filter3d.data_ptr()
         args.g_params = g_params.data_ptr()

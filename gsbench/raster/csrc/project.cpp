@@ -46,7 +46,7 @@ struct ProjArgs {
     void* g_quats;         // (N, 4)
     void* g_scales;        // (N, 3)
     void* g_opac;          // (N,)
-    void* g_sh;            // (N, K, 3) (zero-initialised by the caller; first (deg+1)² rows written)
+    void* g_sh;            // (N, K, 3) every row written (zero past the first (deg+1)²)
     // appended after build.py's ProjArgs (projection.py `_ProjArgsX` adds it): read only for surfel
     double surfel_k;       // settings.surfel_filter (low-pass k; 0 = off)
 };
@@ -535,6 +535,8 @@ void project_backward(const ProjArgs& A) {
         T* gsh = (T*)A.g_sh + i * A.sh_k * 3;
         D graw[3];
         for (int ch = 0; ch < 3; ++ch) graw[ch] = (f.raw[ch] + 0.5 >= 0.0) ? g[6 + ch] : 0.0;
+        // the rows past the active degree get no gradient (written here: the caller does not zero the buffer)
+        for (int64_t k = 3 * (int64_t)(deg + 1) * (deg + 1); k < A.sh_k * 3; ++k) gsh[k] = T(0);
         if (deg == 0) {
             for (int ch = 0; ch < 3; ++ch) gsh[ch] = (T)(SH0 * graw[ch]);
         } else {
