@@ -157,5 +157,7 @@ class Gaussians(torch.nn.Module):
     def raster_input(self, sh_degree: int, filter3d: torch.Tensor | None = None) -> RasterGaussians:
         """Activated parameters for `gsbench.raster.rasterize`, SH truncated to the active degree."""
         k = (min(sh_degree, self.max_sh_degree) + 1) ** 2
+        dc, rest = self.params["sh_dc"], self.params["sh_rest"]
+        sh = dc if k == 1 else torch.cat([dc, rest[:, :k - 1]], dim=1)  # only the active rows are copied
         return RasterGaussians(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
-                               sh=self.sh[:, :k], filter3d=filter3d)
+                               sh=sh, filter3d=filter3d)
