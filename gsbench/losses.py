@@ -188,13 +188,31 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
     return (x * m).sum() / count.clamp(min=1)
 
 
+class _MeanAbsDifference(torch.autograd.Function):
+    """mean |x − y| with ∂/∂x = sign(x − y)/n (0 where x = y, as autograd's abs), y constant: one saved
+    difference and one elementwise pass each way instead of autograd's chain of sub, abs and mean."""
+
+    @staticmethod
+    def forward(ctx, x, y):
+        diff = x - y
+        ctx.save_for_backward(diff)
+        return diff.abs().mean()
+
+    @staticmethod
+    def backward(ctx, grad):
+        (diff,) = ctx.saved_tensors
+        return torch.sign(diff).mul_(grad / diff.numel()), None
+
+
 def l1_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = False) -> torch.Tensor:
     """L1 = mean |rgb − image| over H×W×3 (docs/methods/3dgs.md §4.1, ``l1_loss``).
 
     ``use_mask``: the mean over ``batch.mask`` pixels only (0 for an empty mask); off in 3DGS/2DGS.
     """
-    diff = (render.rgb - batch.image.to(render.rgb.dtype)).abs()
-    return _masked_mean(diff, batch.mask if use_mask else None)
+    image = batch.image.to(render.rgb.dtype)
+    if not use_mask or batch.mask is None:
+        return _MeanAbsDifference.apply(render.rgb, image)
+    return _masked_mean((render.rgb - image).abs(), batch.mask)
 
 
 def dssim_term(render: RenderOutput, batch: Batch, state: dict, use_mask: bool = False) -> torch.Tensor:

@@ -243,3 +243,26 @@ def test_total_loss_gradients_finite_through_reference_render():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
     for p in gaussians.params.values():
         assert p.grad is None or torch.isfinite(p.grad).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_l1_term_equals_autograds_mean_abs_difference_with_ties(dtype):
+    """The hand-written backward of `l1_term` against autograd through (rgb − image).abs().mean(); a quarter of
+    the pixels equal the image (|x| has gradient 0 there), and a float64 gradcheck."""
+    from gsbench.raster.types import RenderOutput  # noqa: PLC0415
+
+    gen = torch.Generator().manual_seed(2)
+    image = torch.rand(12, 10, 3, generator=gen, dtype=dtype)
+    rgb = torch.where(torch.rand(12, 10, 3, generator=gen) < 0.25, image, torch.rand(12, 10, 3, generator=gen,
+                                                                                       dtype=dtype))
+    batch = Batch(image, None, None, 1)
+    x = rgb.clone().requires_grad_(True)
+    value = losses.l1_term(RenderOutput(rgb=x), batch, {})
+    (grad,) = torch.autograd.grad(value, x)
+    y = rgb.clone().requires_grad_(True)
+    expected = (y - image).abs().mean()
+    (grad_expected,) = torch.autograd.grad(expected, y)
+    assert torch.equal(value, expected) and torch.equal(grad, grad_expected)
+    if dtype == torch.float64:
+        away = (rgb + 0.05 * torch.sign(rgb - image + 1e-3)).requires_grad_(True)  # no tie within the step
+        assert torch.autograd.gradcheck(lambda t: losses.l1_term(RenderOutput(rgb=t), batch, {}), (away,))
