@@ -190,12 +190,16 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, seed: int):
         raise ValueError("mesh has zero total area")
     rng = np.random.default_rng(seed)
     face = rng.choice(len(faces), size=n, p=area / total)
-    uv = rng.random((n, 2))
+    return uniform_in_triangles(vertices[faces[face]], rng), normals[face]
+
+
+def uniform_in_triangles(tri: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One uniform random point in each triangle of ``tri`` (M, 3, 3): (u, v) uniform on the unit square,
+    folded into the triangle (u + v > 1 -> 1 − u, 1 − v), at p0 + u (p1 − p0) + v (p2 − p0)."""
+    uv = rng.random((len(tri), 2))
     fold = uv.sum(axis=1) > 1
     uv[fold] = 1 - uv[fold]
-    tri = vertices[faces[face]]
-    pts = tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
-    return pts, normals[face]
+    return tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
 
 
 def area_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: int, oversample: float = 4.0,
@@ -257,11 +261,7 @@ def voxel_area_samples(vertices: np.ndarray, faces: np.ndarray, voxel: float, se
         lo, hi = np.searchsorted(ends, [start, min(total, start + chunk)], side="right")
         face = np.repeat(np.arange(lo, min(hi + 1, len(faces))), counts[lo:min(hi + 1, len(faces))])
         face = face[max(0, start - (ends[lo - 1] if lo else 0)):][: min(chunk, total - start)]
-        uv = rng.random((len(face), 2))
-        fold = uv.sum(1) > 1
-        uv[fold] = 1 - uv[fold]
-        t = tri[face]
-        pts = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
+        pts = uniform_in_triangles(tri[face], rng)
         cell = np.clip(np.floor(pts / voxel).astype(np.int64) - origin, 0, span - 1)
         key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
         keys, inverse = np.unique(key, return_inverse=True)

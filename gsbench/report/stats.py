@@ -66,15 +66,6 @@ def t_half_width(values, confidence: float = CONFIDENCE) -> float | None:
     return float(t.ppf(0.5 + confidence / 2, n - 1)) * statistics.stdev(values) / math.sqrt(n)
 
 
-def t_interval(values, confidence: float = CONFIDENCE) -> tuple[float, float] | None:
-    """(low, high) of the Student t-interval of the mean of ``values``; None for fewer than two."""
-    half = t_half_width(values, confidence)
-    if half is None:
-        return None
-    mean = statistics.fmean(float(v) for v in values)
-    return mean - half, mean + half
-
-
 @dataclass(frozen=True)
 class PairedTest:
     """The paired comparison of row a against row b (module docstring).
