@@ -24,6 +24,7 @@ them as ``extra`` to `active_terms`.
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -236,6 +237,22 @@ def edge_weights(image: torch.Tensor) -> torch.Tensor:
     return F.pad(torch.exp(-g), (1, 1, 1, 1))
 
 
+# edge_weights by id of the GT image tensor (an entry leaves with its tensor) and dtype: the map reads only the
+# image, which training never changes
+_EDGE_WEIGHTS: dict[int, dict[torch.dtype, torch.Tensor]] = {}
+
+
+def image_edge_weights(image: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """`edge_weights` of ``image`` in ``dtype``, computed once per image tensor (a training view's GT)."""
+    per_dtype = _EDGE_WEIGHTS.get(id(image))
+    if per_dtype is None:
+        per_dtype = _EDGE_WEIGHTS[id(image)] = {}
+        weakref.finalize(image, _EDGE_WEIGHTS.pop, id(image), None)
+    if dtype not in per_dtype:
+        per_dtype[dtype] = edge_weights(image.to(dtype))
+    return per_dtype[dtype]
+
+
 def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict, normalize: bool = False,
                           edge_aware: bool = False) -> torch.Tensor:
     """L_d = mean over pixels of the distortion map Σ_i Σ_{j<i} w_i w_j (m_i − m_j)² (docs/methods/2dgs.md §3.5, §4.2).
@@ -248,7 +265,7 @@ def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict, norma
     if normalize:
         distortion = distortion / (render.alpha.detach() ** 2 + DISTORTION_EPS)
     if edge_aware:
-        distortion = distortion * edge_weights(batch.image.to(distortion.dtype))
+        distortion = distortion * image_edge_weights(batch.image, distortion.dtype)
     return distortion.mean()
 
 
