@@ -27,18 +27,35 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
 
     Of the four candidate forms (from 1 + tr, 1 + 2R₀₀ − tr, 1 + 2R₁₁ − tr, 1 + 2R₂₂ − tr) the one with
     the largest radicand is used, so the square root is of at least 1 and the gradient is bounded.
-    Without a gradient to carry (R not requiring grad, or grad disabled) and for CPU float64 R, by
-    ``gs_rotmat_to_quat`` (csrc/frames.cpp, the same steps in one loop); `rotmat_to_quat_reference` otherwise.
+    For CPU float64 R by ``gs_rotmat_to_quat`` (csrc/frames.cpp, the same steps in one loop) with the
+    hand-written backward ``gs_rotmat_to_quat_backward``; `rotmat_to_quat_reference` otherwise.
     """
-    if (R.requires_grad and torch.is_grad_enabled()) or R.device.type != "cpu" or R.dtype != torch.float64:
+    if R.device.type != "cpu" or R.dtype != torch.float64:
         return rotmat_to_quat_reference(R)
+    return _FusedRotmatToQuat.apply(R)
 
-    m = R.detach().contiguous()
-    q = torch.empty(m.shape[0], 4, dtype=torch.float64)
-    rc = load_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), omp_threads())
-    if rc != 0:
-        raise RuntimeError(f"gsbench rotmat_to_quat failed (code {rc})")
-    return q
+
+class _FusedRotmatToQuat(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, R):
+        m = R.detach().contiguous()
+        q = torch.empty(m.shape[0], 4, dtype=torch.float64)
+        rc = load_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), omp_threads())
+        if rc != 0:
+            raise RuntimeError(f"gsbench rotmat_to_quat failed (code {rc})")
+        ctx.save_for_backward(m)
+        return q
+
+    @staticmethod
+    def backward(ctx, grad_q):
+        (m,) = ctx.saved_tensors
+        g = grad_q.to(torch.float64).contiguous()
+        grad_R = torch.empty_like(m)
+        rc = load_library().gs_rotmat_to_quat_backward(m.shape[0], m.data_ptr(), g.data_ptr(), grad_R.data_ptr(),
+                                                       omp_threads())
+        if rc != 0:
+            raise RuntimeError(f"gsbench rotmat_to_quat backward failed (code {rc})")
+        return grad_R
 
 
 def rotmat_to_quat_reference(R: torch.Tensor) -> torch.Tensor:

@@ -231,5 +231,7 @@ def load_library() -> ctypes.CDLL:
         lib.gs_frame_alignment.restype = ctypes.c_int
         lib.gs_rotmat_to_quat.argtypes = [ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64]
         lib.gs_rotmat_to_quat.restype = ctypes.c_int
+        lib.gs_rotmat_to_quat_backward.argtypes = [ctypes.c_int64] + [ctypes.c_void_p] * 3 + [ctypes.c_int64]
+        lib.gs_rotmat_to_quat_backward.restype = ctypes.c_int
         _lib = lib
         return lib

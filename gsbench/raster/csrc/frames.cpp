@@ -102,6 +102,61 @@ void to_quaternion(int64_t N, const double* R, double* q, int64_t nthreads) {
     }
 }
 
+// dL/dR (N, 3, 3) from dL/dq (N, 4) through `to_quaternion`, the branch and the sign held (piecewise derivative,
+// as autograd through the reference): q = σ q̃/|q̃| gives dq̃ = σ (g − q (q·g))/|q̃|; q̃_c = s/4 and the other three
+// components a_k/s (a_k the differences / sums of the off-diagonal pairs of branch c) give ds = dq̃_c/4 − Σ dq̃_k a_k/s²
+// and da_k = dq̃_k/s; s = 2√r (r the branch's radicand, above 1e-12) gives dr = 2 ds/s, spread on the diagonal
+// with the radicand's signs.
+void to_quaternion_backward(int64_t N, const double* R, const double* gq, double* gR, int64_t nthreads) {
+    // radicand signs on (m00, m11, m22) and the three off-diagonal combinations of each branch: {index into
+    // (d21, d02, d10, s01, s02, s12), quaternion component}
+    constexpr double DIAG[4][3] = {{1, 1, 1}, {1, -1, -1}, {-1, 1, -1}, {-1, -1, 1}};
+    constexpr int PAIRS[4][3][2] = {{{0, 1}, {1, 2}, {2, 3}}, {{0, 0}, {3, 2}, {4, 3}},
+                                    {{1, 0}, {3, 1}, {5, 3}}, {{2, 0}, {4, 1}, {5, 2}}};
+#pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
+    for (int64_t i = 0; i < N; ++i) {
+        const double* m = R + 9 * i;
+        const double tr = m[0] + m[4] + m[8];
+        const double rad[4] = {1 + tr, 1 + 2 * m[0] - tr, 1 + 2 * m[4] - tr, 1 + 2 * m[8] - tr};
+        int c = 0;
+        for (int j = 1; j < 4; ++j)
+            if (rad[j] > rad[c]) c = j;
+        const bool inside = rad[c] > 1e-12;
+        const double s = 2 * std::sqrt(inside ? rad[c] : 1e-12);
+        const double a[6] = {m[7] - m[5], m[2] - m[6], m[3] - m[1], m[1] + m[3], m[2] + m[6], m[5] + m[7]};
+        double qt[4];
+        qt[c] = s / 4;
+        for (const auto& pk : PAIRS[c]) qt[pk[1]] = a[pk[0]] / s;
+        const double sign = qt[0] < 0 ? -1.0 : 1.0;
+        const double norm = std::sqrt(qt[0] * qt[0] + qt[1] * qt[1] + qt[2] * qt[2] + qt[3] * qt[3]);
+        const double den = norm > 1e-12 ? norm : 1e-12;
+        const double* g = gq + 4 * i;
+        double q[4], qg = 0;
+        for (int j = 0; j < 4; ++j) {
+            q[j] = sign * qt[j] / den;
+            qg += q[j] * g[j];
+        }
+        double dqt[4];
+        for (int j = 0; j < 4; ++j) dqt[j] = norm > 1e-12 ? sign * (g[j] - q[j] * qg) / den : sign * g[j] / den;
+        double ds = dqt[c] / 4, da[6] = {0, 0, 0, 0, 0, 0};
+        for (const auto& pk : PAIRS[c]) {
+            ds -= dqt[pk[1]] * a[pk[0]] / (s * s);
+            da[pk[0]] = dqt[pk[1]] / s;
+        }
+        const double dr = inside ? 2 * ds / s : 0.0;
+        double* o = gR + 9 * i;
+        o[0] = dr * DIAG[c][0];
+        o[4] = dr * DIAG[c][1];
+        o[8] = dr * DIAG[c][2];
+        o[7] = da[0] + da[5];   // d21 = m21 − m12, s12 = m12 + m21
+        o[5] = -da[0] + da[5];
+        o[2] = da[1] + da[4];   // d02 = m02 − m20, s02 = m02 + m20
+        o[6] = -da[1] + da[4];
+        o[3] = da[2] + da[3];   // d10 = m10 − m01, s01 = m01 + m10
+        o[1] = -da[2] + da[3];
+    }
+}
+
 }  // namespace
 
 extern "C" {
@@ -119,6 +174,13 @@ int gs_frame_alignment(int64_t N, int64_t surfel, const double* V, const void* p
 int gs_rotmat_to_quat(int64_t N, const double* R, double* q, int64_t nthreads) {
     if (N < 0) return 1;
     to_quaternion(N, R, q, nthreads);
+    return 0;
+}
+
+// gR (N, 3, 3) = dL/dR of `gs_rotmat_to_quat` given gq = dL/dq (N, 4) (to_quaternion_backward).
+int gs_rotmat_to_quat_backward(int64_t N, const double* R, const double* gq, double* gR, int64_t nthreads) {
+    if (N < 0) return 1;
+    to_quaternion_backward(N, R, gq, gR, nthreads);
     return 0;
 }
 
