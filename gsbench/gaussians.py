@@ -154,10 +154,9 @@ class Gaussians(torch.nn.Module):
                 raise NumericalError(f"parameter '{name}' has {len(rows)} non-finite rows (first at index "
                                      f"{int(rows[0])}); lower the learning rate or resume from an earlier checkpoint")
 
-    def raster_input(self, sh_degree: int, filter3d: torch.Tensor | None = None) -> RasterGaussians:
-        """Activated parameters for `gsbench.raster.rasterize`, SH truncated to the active degree."""
-        k = (min(sh_degree, self.max_sh_degree) + 1) ** 2
-        dc, rest = self.params["sh_dc"], self.params["sh_rest"]
-        sh = dc if k == 1 else torch.cat([dc, rest[:, :k - 1]], dim=1)  # only the active rows are copied
+    def raster_input(self, filter3d: torch.Tensor | None = None) -> RasterGaussians:
+        """Activated parameters for `gsbench.raster.rasterize`; the SH as its two parameters (sh_dc, sh_rest), not
+        concatenated: every row of sh_rest gets a gradient, zero past the render's SH degree (as in 3DGS)."""
+        rest = self.params["sh_rest"]
         return RasterGaussians(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
-                               sh=sh, filter3d=filter3d)
+                               sh=self.params["sh_dc"], filter3d=filter3d, sh_rest=rest if rest.shape[1] else None)

@@ -337,7 +337,7 @@ class Method:
 
     def raster_input(self) -> RasterGaussians:
         """The activated Gaussians the kernel renders (active SH degree, the method's 3D filter)."""
-        return self.gaussians.raster_input(self.sh_degree, self.filter3d())
+        return self.gaussians.raster_input(self.filter3d())
 
     def render(self, camera, outputs) -> RenderOutput:
         """Rasterize the current Gaussians with the method's kernel; only ``outputs`` are computed."""

@@ -34,8 +34,9 @@ def test_activations_and_sh_round_trip_colour():
     np.testing.assert_allclose((g.sh[:, 0] * SH_C0 + 0.5).detach().numpy(), colors, atol=1e-6)
     np.testing.assert_allclose(g.opacities.detach().numpy(), 0.1, atol=1e-6)
     assert torch.allclose(g.quats, torch.tensor([[1.0, 0, 0, 0]] * 2))
-    r = g.raster_input(sh_degree=1)
-    assert r.sh.shape == (2, 4, 3) and r.scales.shape == (2, 3)
+    r = g.raster_input()
+    assert r.sh.shape == (2, 1, 3) and r.sh_rest.shape == (2, 15, 3) and r.scales.shape == (2, 3)
+    assert torch.equal(r.all_sh(), g.sh)
 
 
 def test_surfels_have_two_scales_and_random_unit_rotations():

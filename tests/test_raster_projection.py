@@ -226,3 +226,28 @@ def test_depth_order_and_binning_match_torch_sort(dtype):
         got_b = lib.gs_bin_sorted(m, _ptr(order), _ptr(rs), tx, ty, _ptr(off_b), _ptr(lb), cap.value, threads)
         assert got_a == got_b == cap.value
         assert torch.equal(off_a, off_b) and torch.equal(la, lb)
+
+
+@pytest.mark.parametrize("kernel", FUSED_KERNELS)
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_sh_kept_apart_equals_sh_concatenated(kernel, degree):
+    """`RasterGaussians.sh_rest` (the training parameters' layout: sh (N,1,3) and the other rows apart): the same
+    payload and gradients as one (N,16,3) sh, the rows past the render's degree with gradient exactly 0."""
+    cam = make_camera(40, 30)
+    g = random_gaussians(60, kernel, seed=4, camera=cam, dtype=torch.float64, sh_degree=3)
+    settings = RasterSettings(sh_degree=degree)
+    whole = with_grad(g)
+    dc = g.sh[:, :1].clone().requires_grad_(True)
+    rest = g.sh[:, 1:].clone().requires_grad_(True)
+    apart = RasterGaussians(*(x.detach().clone().requires_grad_(True) for x in (g.means, g.quats, g.scales,
+                                                                               g.opacities)), dc, sh_rest=rest)
+    pa, pb = project_fused(whole, cam, kernel, settings), project_fused(apart, cam, kernel, settings)
+    assert torch.equal(pa.params, pb.params)
+    w = torch.rand(pa.params.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    (pa.params * w).sum().backward()
+    (pb.params * w).sum().backward()
+    assert torch.equal(whole.sh.grad[:, :1], dc.grad) and torch.equal(whole.sh.grad[:, 1:], rest.grad)
+    assert float(rest.grad[:, (degree + 1) ** 2 - 1:].abs().sum()) == 0.0
+    assert float(rest.grad.abs().max()) > 0 or degree == 0
+    for name in ("means", "quats", "scales", "opacities"):
+        assert torch.equal(getattr(whole, name).grad, getattr(apart, name).grad), name

@@ -101,11 +101,13 @@ def validate_gaussians(g: RasterGaussians, kernel: str) -> None:
     need = 2 if kernel == "surfel" else 3
     if g.scales.dim() != 2 or g.scales.shape[0] != n or g.scales.shape[1] < need:
         raise ValueError(f"gaussians.scales must be (N, {need}) for kernel '{kernel}', got {tuple(g.scales.shape)}")
-    if g.sh.dim() != 3 or g.sh.shape[0] != n or g.sh.shape[2] != 3:
-        raise ValueError(f"gaussians.sh must be (N, K, 3), got {tuple(g.sh.shape)}")
+    for name in ("sh", "sh_rest"):
+        t = getattr(g, name)
+        if t is not None and (t.dim() != 3 or t.shape[0] != n or t.shape[2] != 3):
+            raise ValueError(f"gaussians.{name} must be (N, K, 3), got {tuple(t.shape)}")
     if g.filter3d is not None and g.filter3d.numel() != n:
         raise ValueError(f"gaussians.filter3d must be (N,), got {tuple(g.filter3d.shape)}")
-    for name in ("means", "quats", "scales", "opacities", "sh", "filter3d"):
+    for name in ("means", "quats", "scales", "opacities", "sh", "filter3d", "sh_rest"):
         _check_finite(f"gaussians.{name}", getattr(g, name))
 
 

@@ -93,7 +93,8 @@ class ProjArgs(ctypes.Structure):
             "params", "means2d", "radii", "visible", "depth", "bounds", "rect", "rect_radius",
             "g_params", "g_means", "g_quats", "g_scales", "g_opac", "g_sh",
         )
-    ] + [("surfel_k", ctypes.c_double)]
+    ] + [("surfel_k", ctypes.c_double), ("sh_rest_k", ctypes.c_int64), ("sh_rest", ctypes.c_void_p),
+         ("g_sh_rest", ctypes.c_void_p)]
 
 
 def cache_dir() -> Path:

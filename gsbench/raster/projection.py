@@ -165,15 +165,16 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
 
 
 class _FusedProjectFn(torch.autograd.Function):
-    """Fused projection (csrc/project.cpp): (means, quats, scales (N,3), opacities, sh) -> payload.
+    """Fused projection (csrc/project.cpp): (means, quats, scales (N,3), opacities, sh, sh_rest or None) -> payload.
 
     For surfel the third scale column is padding (never read; its gradient is 0)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, sh, cfg):  # noqa: D401
+    def forward(ctx, means, quats, scales, opacities, sh, sh_rest, cfg):  # noqa: D401
         lib, args, n, npar, filter3d = cfg
         dtype = means.dtype
         ins = [t.detach().contiguous() for t in (means, quats, scales, opacities, sh)]
+        rest = None if sh_rest is None else sh_rest.detach().contiguous()
         params = torch.empty(n, npar, dtype=dtype)
         means2d = torch.empty(n, 2, dtype=dtype)
         radii = torch.empty(n, dtype=torch.int64)
@@ -183,6 +184,7 @@ class _FusedProjectFn(torch.autograd.Function):
         rect = torch.empty(n, 4, dtype=torch.int32)
         rect_radius = torch.empty(n, 4, dtype=torch.int32)
         args.means, args.quats, args.scales, args.opac, args.sh = (t.data_ptr() for t in ins)
+        args.sh_rest = None if rest is None else rest.data_ptr()
         args.filter3d = None if filter3d is None else filter3d.data_ptr()
         args.params, args.means2d, args.radii, args.visible = (
             params.data_ptr(), means2d.data_ptr(), radii.data_ptr(), visible.data_ptr())
@@ -193,6 +195,7 @@ class _FusedProjectFn(torch.autograd.Function):
             raise RuntimeError(f"gsbench fused projection forward failed (code {rc})")
         ctx.cfg = cfg
         ctx.ins = ins
+        ctx.rest = rest
         ctx.set_materialize_grads(False)
         ctx.mark_non_differentiable(means2d, radii, visible, depth, bounds, rect, rect_radius)
         return params, means2d, radii, visible, depth, bounds, rect, rect_radius
@@ -200,9 +203,10 @@ class _FusedProjectFn(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_params, *_unused):
         if g_params is None:
-            return None, None, None, None, None, None
+            return None, None, None, None, None, None, None
         lib, args, n, npar, filter3d = ctx.cfg
         means, quats, scales, opac, sh = ctx.ins
+        rest = ctx.rest
         dtype = means.dtype
         g_params = g_params.to(dtype).contiguous()
         g_means = torch.empty_like(means)
@@ -210,7 +214,10 @@ class _FusedProjectFn(torch.autograd.Function):
         g_scales = torch.empty_like(scales)
         g_opac = torch.empty_like(opac)
         g_sh = torch.empty_like(sh)  # every row written by the C++ backward
+        g_rest = None if rest is None else torch.empty_like(rest)
         args.means, args.quats, args.scales, args.opac, args.sh = (t.data_ptr() for t in (means, quats, scales, opac, sh))
+        args.sh_rest = None if rest is None else rest.data_ptr()
+        args.g_sh_rest = None if g_rest is None else g_rest.data_ptr()
         args.filter3d = None if filter3d is None else filter3d.data_ptr()
         args.g_params = g_params.data_ptr()
         args.g_means, args.g_quats, args.g_scales, args.g_opac, args.g_sh = (
@@ -219,7 +226,7 @@ class _FusedProjectFn(torch.autograd.Function):
         if rc != 0:
             raise RuntimeError(f"gsbench fused projection backward failed (code {rc})")
         need = ctx.needs_input_grad
-        grads = (g_means, g_quats, g_scales, g_opac, g_sh)
+        grads = (g_means, g_quats, g_scales, g_opac, g_sh, g_rest)
         return tuple(g if need[k] else None for k, g in enumerate(grads)) + (None,)
 
 
@@ -235,14 +242,17 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
     dtype = gaussians.means.dtype
     n = len(gaussians)
     sh = gaussians.sh.to(dtype)
+    sh_rest = None if gaussians.sh_rest is None else gaussians.sh_rest.to(dtype)
+    k_have = sh.shape[1] + (0 if sh_rest is None else sh_rest.shape[1])
     k_need = (settings.sh_degree + 1) ** 2
-    if sh.shape[1] < k_need:
-        raise ValueError(f"sh has {sh.shape[1]} coefficients per colour, degree {settings.sh_degree} needs {k_need}")
+    if k_have < k_need or sh.shape[1] < 1:
+        raise ValueError(f"sh has {k_have} coefficients per colour, degree {settings.sh_degree} needs {k_need}")
     W, H = int(camera.width), int(camera.height)
     ts = int(settings.tile_size)
     a = ProjArgs()
     a.n, a.dtype, a.kernel = n, 0 if dtype == torch.float32 else 1, FUSED_KERNELS.index(kernel)
     a.sh_degree, a.sh_k = int(settings.sh_degree), int(sh.shape[1])
+    a.sh_rest_k = 0 if sh_rest is None else int(sh_rest.shape[1])
     a.width, a.height, a.tile = W, H, ts
     a.gx, a.gy = (W + ts - 1) // ts, (H + ts - 1) // ts
     a.nthreads = omp_threads()
@@ -268,7 +278,7 @@ def project_fused(gaussians: RasterGaussians, camera: Camera, kernel: str, setti
         scales = gaussians.scales[:, :3].to(dtype)
     params, means2d, radii, visible, depth, bounds, rect, rect_radius = _FusedProjectFn.apply(
         gaussians.means, gaussians.quats.to(dtype), scales,
-        gaussians.opacities.reshape(-1).to(dtype), sh, (lib, a, n, npar, f3),
+        gaussians.opacities.reshape(-1).to(dtype), sh, sh_rest, (lib, a, n, npar, f3),
     )
     return Projection(params=params, means2d=means2d, radii=radii, visible=visible, depth=depth, bounds=bounds,
                       rect=rect, rect_radius=rect_radius)
@@ -305,7 +315,7 @@ def project_torch(
 
     # SH colour at the world viewing direction.
     dirs = F.normalize(means - center, dim=-1)
-    rgb = sh_to_rgb(gaussians.sh, dirs, settings.sh_degree)
+    rgb = sh_to_rgb(gaussians.all_sh(), dirs, settings.sh_degree)
 
     u = mu[:, 0] / zs
     v = mu[:, 1] / zs

@@ -317,7 +317,7 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
 
     # SH colour (docs/methods/3dgs.md §2.4), world-space direction from the camera centre.
     dirs = _safe_normalize(gaussians.means - cam_centre)
-    color = torch.clamp(eval_sh(gaussians.sh, dirs, settings.sh_degree) + 0.5, min=0.0)
+    color = torch.clamp(eval_sh(gaussians.all_sh(), dirs, settings.sh_degree) + 0.5, min=0.0)
 
     fields: dict = {}
     if kernel == "surfel":

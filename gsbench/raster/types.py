@@ -82,7 +82,9 @@ class RasterGaussians:
     means (N,3); quats (N,4) as (w, x, y, z), normalised inside the rasterizer; scales (N,3) positive
     for 3D kernels, (N,2) or (N,3) for ``surfel`` (only the first two are used); opacities (N,) in
     (0, 1); sh (N, K, 3) with K = (degree+1)² >= (settings.sh_degree+1)²; filter3d optional (N,)
-    variance σ_f² of the Mip-Splatting 3D filter (no gradient).
+    variance σ_f² of the Mip-Splatting 3D filter (no gradient); sh_rest optional (N, K_r, 3): the SH rows
+    after those of ``sh``, when the caller keeps them apart (the training parameters sh_dc / sh_rest: the
+    fused projection reads both without concatenating them); then K + K_r counts as K above.
     """
 
     means: torch.Tensor
@@ -91,9 +93,14 @@ class RasterGaussians:
     opacities: torch.Tensor
     sh: torch.Tensor
     filter3d: torch.Tensor | None = None
+    sh_rest: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
+
+    def all_sh(self) -> torch.Tensor:
+        """Every SH row (N, K + K_r, 3): ``sh`` followed by ``sh_rest``."""
+        return self.sh if self.sh_rest is None else torch.cat([self.sh, self.sh_rest.to(self.sh.dtype)], 1)
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,7 @@
 
 extern "C" {
 
-// Keep in sync with build.py (ProjArgs) + projection.py (_ProjArgsX, the fields after g_sh): 8-byte scalars and
-// fixed double arrays only.
+// Keep in sync with build.py (ProjArgs): 8-byte scalars and fixed double arrays only.
 struct ProjArgs {
     int64_t n, dtype, kernel, sh_degree, sh_k, has_filter, width, height, tile, gx, gy, nthreads;
     double fx, fy, cx, cy, near_z, eps2d, aa, limx, limy;
@@ -46,9 +45,13 @@ struct ProjArgs {
     void* g_quats;         // (N, 4)
     void* g_scales;        // (N, 3)
     void* g_opac;          // (N,)
-    void* g_sh;            // (N, K, 3) every row written (zero past the first (deg+1)²)
-    // appended after build.py's ProjArgs (projection.py `_ProjArgsX` adds it): read only for surfel
-    double surfel_k;       // settings.surfel_filter (low-pass k; 0 = off)
+    void* g_sh;            // (N, K, 3) every row written (zero past the first (deg+1)², with g_sh_rest)
+    double surfel_k;       // settings.surfel_filter (low-pass k; 0 = off); read only for surfel
+    // the SH rows after the sh_k rows of sh, when the caller keeps them apart (as the training parameters
+    // sh_dc / sh_rest): (N, sh_rest_k, 3) or null with sh_rest_k = 0; g_sh_rest likewise
+    int64_t sh_rest_k;
+    const void* sh_rest;
+    void* g_sh_rest;
 };
 
 }  // extern "C"
@@ -64,6 +67,17 @@ constexpr D SH2[5] = {1.0925484305920792, -1.0925484305920792, 0.315391565252520
                       0.5462742152960396};
 constexpr D SH3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
                       -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+
+// SH coefficient row k (3 values) of Gaussian i: row k of sh for k < sh_k, else row k − sh_k of sh_rest.
+template <typename T>
+inline const T* sh_row(const ProjArgs& A, int64_t i, int k) {
+    return k < A.sh_k ? (const T*)A.sh + (i * A.sh_k + k) * 3 : (const T*)A.sh_rest + (i * A.sh_rest_k + k - A.sh_k) * 3;
+}
+
+template <typename T>
+inline T* g_sh_row(const ProjArgs& A, int64_t i, int k) {
+    return k < A.sh_k ? (T*)A.g_sh + (i * A.sh_k + k) * 3 : (T*)A.g_sh_rest + (i * A.sh_rest_k + k - A.sh_k) * 3;
+}
 
 template <int KER>
 constexpr int nparams() { return KER == K_EWA ? 13 : KER == K_RADE ? 15 : KER == K_RAYMAX ? 24 : 21; }
@@ -190,8 +204,8 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
     }
     // SH colour
     const int deg = (int)A.sh_degree;
-    const T* sh = (const T*)A.sh + i * A.sh_k * 3;
     if (deg == 0) {
+        const T* sh = sh_row<T>(A, i, 0);
         for (int ch = 0; ch < 3; ++ch) f.raw[ch] = SH0 * (D)sh[ch];
     } else {
         for (int k = 0; k < 3; ++k) f.dv[k] = f.m[k] - A.C[k];
@@ -201,11 +215,12 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         D bs[16];
         sh_basis(deg, f.dir[0], f.dir[1], f.dir[2], bs, nullptr);
         const int nb = (deg + 1) * (deg + 1);
-        for (int ch = 0; ch < 3; ++ch) {
-            D acc = 0;
-            for (int k = 0; k < nb; ++k) acc += bs[k] * (D)sh[3 * k + ch];
-            f.raw[ch] = acc;
+        D acc[3] = {0, 0, 0};
+        for (int k = 0; k < nb; ++k) {
+            const T* row = sh_row<T>(A, i, k);
+            for (int ch = 0; ch < 3; ++ch) acc[ch] += bs[k] * (D)row[ch];
         }
+        for (int ch = 0; ch < 3; ++ch) f.raw[ch] = acc[ch];
     }
     for (int ch = 0; ch < 3; ++ch) f.rgb[ch] = std::max(f.raw[ch] + 0.5, 0.0);
 
@@ -531,13 +546,15 @@ void project_backward(const ProjArgs& A) {
 
         // SH colour
         const int deg = (int)A.sh_degree;
-        const T* sh = (const T*)A.sh + i * A.sh_k * 3;
-        T* gsh = (T*)A.g_sh + i * A.sh_k * 3;
         D graw[3];
         for (int ch = 0; ch < 3; ++ch) graw[ch] = (f.raw[ch] + 0.5 >= 0.0) ? g[6 + ch] : 0.0;
-        // the rows past the active degree get no gradient (written here: the caller does not zero the buffer)
-        for (int64_t k = 3 * (int64_t)(deg + 1) * (deg + 1); k < A.sh_k * 3; ++k) gsh[k] = T(0);
+        // the rows past the active degree get no gradient (written here: the caller does not zero the buffers)
+        for (int k = (deg + 1) * (deg + 1); k < A.sh_k + A.sh_rest_k; ++k) {
+            T* grow = g_sh_row<T>(A, i, k);
+            grow[0] = grow[1] = grow[2] = T(0);
+        }
         if (deg == 0) {
+            T* gsh = g_sh_row<T>(A, i, 0);
             for (int ch = 0; ch < 3; ++ch) gsh[ch] = (T)(SH0 * graw[ch]);
         } else {
             D bs[16], db[16][3];
@@ -545,10 +562,12 @@ void project_backward(const ProjArgs& A) {
             const int nb = (deg + 1) * (deg + 1);
             D gdir[3] = {0, 0, 0};
             for (int k = 0; k < nb; ++k) {
+                const T* row = sh_row<T>(A, i, k);
+                T* grow = g_sh_row<T>(A, i, k);
                 D s = 0;
                 for (int ch = 0; ch < 3; ++ch) {
-                    gsh[3 * k + ch] = (T)(bs[k] * graw[ch]);
-                    s += (D)sh[3 * k + ch] * graw[ch];
+                    grow[ch] = (T)(bs[k] * graw[ch]);
+                    s += (D)row[ch] * graw[ch];
                 }
                 gdir[0] += db[k][0] * s;
                 gdir[1] += db[k][1] * s;
