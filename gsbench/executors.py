@@ -26,6 +26,7 @@ import sys
 import tempfile
 import threading
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from concurrent.futures import wait as wait_for
 
 from tqdm import tqdm
@@ -87,10 +88,23 @@ class LocalExecutor(ProcessPoolExecutor):
         """Replace an exited worker, unless the executor is shut down: with ``max_tasks_per_child`` a worker exits
         after each run, and when that exit reaches the pool's manager thread after ``shutdown(wait=False)``
         (a Ctrl-C while a run ends), CPython (3.11) replaces it from ``_processes``, which the shutdown set to
-        None; the TypeError killed the manager thread, the running futures never ended and the sweep hung."""
-        if self._processes is None:
+        None; the TypeError killed the manager thread, the running futures never ended and the sweep hung.
+
+        Once shut down, when the last worker has exited, the tasks already handed to the call queue (their
+        futures "running", so the shutdown cannot cancel them) would never run and the manager thread would
+        wait for their results forever (a run that stops cleanly on SIGTERM leaves no broken worker to end
+        them): they end with `BrokenProcessPool`. This runs in the manager thread, which owns that table."""
+        if self._processes is not None:
+            super()._adjust_process_count()
             return
-        super()._adjust_process_count()
+        manager = threading.current_thread()
+        if any(process.is_alive() for process in getattr(manager, "processes", {}).values()):
+            return
+        orphans = getattr(manager, "pending_work_items", {})
+        for work_item in orphans.values():
+            if not work_item.future.done():
+                work_item.future.set_exception(BrokenProcessPool("the pool was shut down before this task ran"))
+        orphans.clear()
 
     if sys.version_info < (3, 14):
         def terminate_workers(self) -> None:

@@ -6,8 +6,10 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 from concurrent.futures import CancelledError
+from pathlib import Path
 
 import pytest
 
@@ -71,6 +73,31 @@ def test_a_run_ending_after_shutdown_leaves_the_pool_working():
         time.sleep(0.01)
     executor.shutdown(wait=False)
     assert short.result(timeout=30) is None and long.result(timeout=30) is None
+
+
+def sleep_until_sigterm(seconds: float, ready: str) -> str:
+    """A task that stops cleanly on SIGTERM, as a run does (it records "interrupted" and returns); it touches
+    ``ready`` once its handler is in place."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    Path(ready).touch()
+    stop.wait(seconds)
+    return "stopped" if stop.is_set() else "slept"
+
+
+def test_terminate_workers_ends_the_queued_task_when_the_running_one_stops_cleanly(tmp_path):
+    """The running task returns on SIGTERM (no broken worker) and the next one is already in the pool's call
+    queue, where nothing will run it: its future must still end (the sweep hung on it at a Ctrl-C)."""
+    executor = LocalExecutor(1, 1)
+    ready = tmp_path / "ready"
+    running, queued = executor.submit(sleep_until_sigterm, 60, str(ready)), executor.submit(time.sleep, 60)
+    deadline = time.perf_counter() + 60
+    while not ready.exists() and time.perf_counter() < deadline:
+        time.sleep(0.01)
+    assert ready.exists()
+    executor.terminate_workers()
+    assert running.result(timeout=30) == "stopped"
+    assert ending(queued) in ("cancelled", "BrokenProcessPool")
 
 
 def ending(future) -> str:
