@@ -77,82 +77,81 @@ void align(int64_t N, bool surfel, const double* V, const P* previous, int64_t* 
     }
 }
 
+// The three off-diagonal combinations of each Shepperd branch: {index into a = (d21, d02, d10, s01, s02, s12),
+// quaternion component}; and the signs of (m00, m11, m22) in each branch's radicand.
+constexpr int PAIRS[4][3][2] = {{{0, 1}, {1, 2}, {2, 3}}, {{0, 0}, {3, 2}, {4, 3}},
+                                {{1, 0}, {3, 1}, {5, 3}}, {{2, 0}, {4, 1}, {5, 2}}};
+constexpr double DIAG[4][3] = {{1, 1, 1}, {1, -1, -1}, {-1, 1, -1}, {-1, -1, 1}};
+
+// Shepperd's unnormalised quaternion of m (header): branch c (the first largest radicand), s = 2√max(r_c, 1e-12),
+// a = (m21 − m12, m02 − m20, m10 − m01, m01 + m10, m02 + m20, m12 + m21), q̃ (q̃_c = s/4, the other three a_k/s),
+// the sign that makes w >= 0 and |q̃|.
+struct Shepperd {
+    int c;
+    bool inside;  // r_c > 1e-12 (s depends on m)
+    double s, a[6], qt[4], sign, norm;
+};
+
+inline Shepperd shepperd(const double* m) {
+    Shepperd h;
+    const double tr = m[0] + m[4] + m[8];
+    const double rad[4] = {1 + tr, 1 + 2 * m[0] - tr, 1 + 2 * m[4] - tr, 1 + 2 * m[8] - tr};
+    h.c = 0;
+    for (int j = 1; j < 4; ++j)
+        if (rad[j] > rad[h.c]) h.c = j;
+    h.inside = rad[h.c] > 1e-12;
+    h.s = 2 * std::sqrt(h.inside ? rad[h.c] : 1e-12);
+    const double a[6] = {m[7] - m[5], m[2] - m[6], m[3] - m[1], m[1] + m[3], m[2] + m[6], m[5] + m[7]};
+    for (int k = 0; k < 6; ++k) h.a[k] = a[k];
+    h.qt[h.c] = h.s / 4;
+    for (const auto& pk : PAIRS[h.c]) h.qt[pk[1]] = a[pk[0]] / h.s;
+    h.sign = h.qt[0] < 0 ? -1.0 : 1.0;
+    h.norm = std::sqrt(h.qt[0] * h.qt[0] + h.qt[1] * h.qt[1] + h.qt[2] * h.qt[2] + h.qt[3] * h.qt[3]);
+    return h;
+}
+
 void to_quaternion(int64_t N, const double* R, double* q, int64_t nthreads) {
 #pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
-        const double* m = R + 9 * i;
-        const double tr = m[0] + m[4] + m[8];
-        const double rad[4] = {1 + tr, 1 + 2 * m[0] - tr, 1 + 2 * m[4] - tr, 1 + 2 * m[8] - tr};
-        int c = 0;
-        for (int j = 1; j < 4; ++j)
-            if (rad[j] > rad[c]) c = j;
-        const double s = 2 * std::sqrt(rad[c] > 1e-12 ? rad[c] : 1e-12);
-        const double d21 = m[7] - m[5], d02 = m[2] - m[6], d10 = m[3] - m[1];
-        const double s01 = m[1] + m[3], s02 = m[2] + m[6], s12 = m[5] + m[7];
-        const double quarter = s / 4;
-        double out[4];
-        if (c == 0) { out[0] = quarter; out[1] = d21 / s; out[2] = d02 / s; out[3] = d10 / s; }
-        else if (c == 1) { out[0] = d21 / s; out[1] = quarter; out[2] = s01 / s; out[3] = s02 / s; }
-        else if (c == 2) { out[0] = d02 / s; out[1] = s01 / s; out[2] = quarter; out[3] = s12 / s; }
-        else { out[0] = d10 / s; out[1] = s02 / s; out[2] = s12 / s; out[3] = quarter; }
-        const double sign = out[0] < 0 ? -1.0 : 1.0;
-        const double norm = std::sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2] + out[3] * out[3]);
-        const double den = norm > 1e-12 ? norm : 1e-12;
-        for (int j = 0; j < 4; ++j) q[4 * i + j] = sign * out[j] / den;
+        const Shepperd h = shepperd(R + 9 * i);
+        const double den = h.norm > 1e-12 ? h.norm : 1e-12;
+        for (int j = 0; j < 4; ++j) q[4 * i + j] = h.sign * h.qt[j] / den;
     }
 }
 
 // dL/dR (N, 3, 3) from dL/dq (N, 4) through `to_quaternion`, the branch and the sign held (piecewise derivative,
 // as autograd through the reference): q = σ q̃/|q̃| gives dq̃ = σ (g − q (q·g))/|q̃|; q̃_c = s/4 and the other three
-// components a_k/s (a_k the differences / sums of the off-diagonal pairs of branch c) give ds = dq̃_c/4 − Σ dq̃_k a_k/s²
-// and da_k = dq̃_k/s; s = 2√r (r the branch's radicand, above 1e-12) gives dr = 2 ds/s, spread on the diagonal
-// with the radicand's signs.
+// components a_k/s give ds = dq̃_c/4 − Σ dq̃_k a_k/s² and da_k = dq̃_k/s; s = 2√r (r the branch's radicand, above
+// 1e-12) gives dr = 2 ds/s, spread on the diagonal with the radicand's signs.
 void to_quaternion_backward(int64_t N, const double* R, const double* gq, double* gR, int64_t nthreads) {
-    // radicand signs on (m00, m11, m22) and the three off-diagonal combinations of each branch: {index into
-    // (d21, d02, d10, s01, s02, s12), quaternion component}
-    constexpr double DIAG[4][3] = {{1, 1, 1}, {1, -1, -1}, {-1, 1, -1}, {-1, -1, 1}};
-    constexpr int PAIRS[4][3][2] = {{{0, 1}, {1, 2}, {2, 3}}, {{0, 0}, {3, 2}, {4, 3}},
-                                    {{1, 0}, {3, 1}, {5, 3}}, {{2, 0}, {4, 1}, {5, 2}}};
 #pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
-        const double* m = R + 9 * i;
-        const double tr = m[0] + m[4] + m[8];
-        const double rad[4] = {1 + tr, 1 + 2 * m[0] - tr, 1 + 2 * m[4] - tr, 1 + 2 * m[8] - tr};
-        int c = 0;
-        for (int j = 1; j < 4; ++j)
-            if (rad[j] > rad[c]) c = j;
-        const bool inside = rad[c] > 1e-12;
-        const double s = 2 * std::sqrt(inside ? rad[c] : 1e-12);
-        const double a[6] = {m[7] - m[5], m[2] - m[6], m[3] - m[1], m[1] + m[3], m[2] + m[6], m[5] + m[7]};
-        double qt[4];
-        qt[c] = s / 4;
-        for (const auto& pk : PAIRS[c]) qt[pk[1]] = a[pk[0]] / s;
-        const double sign = qt[0] < 0 ? -1.0 : 1.0;
-        const double norm = std::sqrt(qt[0] * qt[0] + qt[1] * qt[1] + qt[2] * qt[2] + qt[3] * qt[3]);
-        const double den = norm > 1e-12 ? norm : 1e-12;
+        const Shepperd h = shepperd(R + 9 * i);
+        const int c = h.c;
+        const double den = h.norm > 1e-12 ? h.norm : 1e-12;
         const double* g = gq + 4 * i;
         double q[4], qg = 0;
         for (int j = 0; j < 4; ++j) {
-            q[j] = sign * qt[j] / den;
+            q[j] = h.sign * h.qt[j] / den;
             qg += q[j] * g[j];
         }
         double dqt[4];
-        for (int j = 0; j < 4; ++j) dqt[j] = norm > 1e-12 ? sign * (g[j] - q[j] * qg) / den : sign * g[j] / den;
+        for (int j = 0; j < 4; ++j) dqt[j] = h.norm > 1e-12 ? h.sign * (g[j] - q[j] * qg) / den : h.sign * g[j] / den;
         double ds = dqt[c] / 4, da[6] = {0, 0, 0, 0, 0, 0};
         for (const auto& pk : PAIRS[c]) {
-            ds -= dqt[pk[1]] * a[pk[0]] / (s * s);
-            da[pk[0]] = dqt[pk[1]] / s;
+            ds -= dqt[pk[1]] * h.a[pk[0]] / (h.s * h.s);
+            da[pk[0]] = dqt[pk[1]] / h.s;
         }
-        const double dr = inside ? 2 * ds / s : 0.0;
+        const double dr = h.inside ? 2 * ds / h.s : 0.0;
         double* o = gR + 9 * i;
         o[0] = dr * DIAG[c][0];
         o[4] = dr * DIAG[c][1];
         o[8] = dr * DIAG[c][2];
-        o[7] = da[0] + da[5];   // d21 = m21 − m12, s12 = m12 + m21
+        o[7] = da[0] + da[5];  // d21 = m21 − m12, s12 = m12 + m21
         o[5] = -da[0] + da[5];
-        o[2] = da[1] + da[4];   // d02 = m02 − m20, s02 = m02 + m20
+        o[2] = da[1] + da[4];  // d02 = m02 − m20, s02 = m02 + m20
         o[6] = -da[1] + da[4];
-        o[3] = da[2] + da[3];   // d10 = m10 − m01, s01 = m01 + m10
+        o[3] = da[2] + da[3];  // d10 = m10 − m01, s01 = m01 + m10
         o[1] = -da[2] + da[3];
     }
 }
