@@ -67,7 +67,11 @@ template <typename T>
 void backward(int64_t N, int64_t K, bool self, const T* x, const int64_t* index, const double* gC, double* g_means,
               int64_t nthreads) {
     const int64_t n = K + (self ? 1 : 0);
-    std::vector<double> per_member(static_cast<size_t>(N * n * 3));
+    // every entry is written below: the calling thread's buffer, kept between calls (no zero fill, no fresh
+    // pages each step); the OpenMP threads write through the pointer (their own thread_local would be empty)
+    static thread_local std::vector<double> buffer;
+    if (buffer.size() < static_cast<size_t>(N * n * 3)) buffer.resize(static_cast<size_t>(N * n * 3));
+    double* const per_member = buffer.data();
 #pragma omp parallel for schedule(static) num_threads(nthreads < 1 ? 1 : (int)nthreads) if (N >= MIN_PARALLEL)
     for (int64_t i = 0; i < N; ++i) {
         double m[3], S[9];
