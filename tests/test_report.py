@@ -166,6 +166,22 @@ def test_memory_is_the_training_high_water_mark_not_the_evaluators(tmp_path):
     assert run.train_peak_rss_bytes is None
 
 
+def test_plots_of_an_earlier_report_are_removed(tmp_path):
+    """out/plots is the report's own: a figure an earlier report drew there and this one does not is removed,
+    the others are (re)written; files that are not PNGs stay."""
+    out = tmp_path / "out"
+    (out / "plots").mkdir(parents=True)
+    (out / "plots" / "sweep-gone-dtu.png").write_bytes(b"old")
+    (out / "plots" / "notes.txt").write_text("mine")
+    written = write_report(RUNS, out, generated="2026-01-01T00:00:00+00:00")
+    pngs = sorted(p.name for p in (out / "plots").glob("*.png"))
+    assert pngs and "sweep-gone-dtu.png" not in pngs
+    assert pngs == sorted(p.name for p in written if p.suffix == ".png")
+    assert (out / "plots" / "notes.txt").read_text() == "mine"
+    write_report(RUNS, out, plots=False)
+    assert not list((out / "plots").glob("*.png"))
+
+
 def test_no_records_is_a_clear_error(tmp_path):
     with pytest.raises(GsbenchError, match=f"no run records .* under '{tmp_path}'"):
         write_report(tmp_path, tmp_path / "out")

@@ -167,7 +167,8 @@ def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict
 
 
 def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = None, warn=None) -> list[Path]:
-    """Write the report of every record below ``runs_dir`` into ``out``; return the written files.
+    """Write the report of every record below ``runs_dir`` into ``out``; return the written files. PNGs in
+    ``out/plots`` that this report did not draw (an earlier report's) are removed.
 
     ``plots=False`` skips matplotlib (no PNGs, no figures in the page); ``generated`` is the time shown
     in the HTML (default: now, UTC); ``warn(message)`` is called with each warning the report carries
@@ -218,6 +219,10 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     for plot in made.made:
         (out / "plots" / plot.name).write_bytes(plot.png)
         written.append(out / "plots" / plot.name)
+    # plots/ is the report's own: figures of an earlier report into the same folder that this one did not
+    # draw (a sweep no longer there, plots=False) would sit there as if they belonged to it
+    for stale in sorted(set((out / "plots").glob("*.png")) - set(written)):
+        stale.unlink()
     page_sections = sections + [Section("runs", "All runs", [], [runs_table(runs, primary, sweep_labels)])]
     generated = generated or datetime.now(timezone.utc).isoformat(timespec="seconds")
     page = document_html(TITLE, [*intro, f"Runs folder: {runs_dir}"], page_sections, warnings, generated)
