@@ -237,20 +237,21 @@ def edge_weights(image: torch.Tensor) -> torch.Tensor:
     return F.pad(torch.exp(-g), (1, 1, 1, 1))
 
 
-# edge_weights by id of the GT image tensor (an entry leaves with its tensor) and dtype: the map reads only the
-# image, which training never changes
-_EDGE_WEIGHTS: dict[int, dict[torch.dtype, torch.Tensor]] = {}
+# maps computed from a GT image alone, by id of the image tensor (an entry leaves with its tensor), the map's
+# function and the dtype: training never changes its GT images, so each view's map is computed once
+_IMAGE_MAPS: dict[int, dict[tuple, torch.Tensor]] = {}
 
 
-def image_edge_weights(image: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """`edge_weights` of ``image`` in ``dtype``, computed once per image tensor (a training view's GT)."""
-    per_dtype = _EDGE_WEIGHTS.get(id(image))
-    if per_dtype is None:
-        per_dtype = _EDGE_WEIGHTS[id(image)] = {}
-        weakref.finalize(image, _EDGE_WEIGHTS.pop, id(image), None)
-    if dtype not in per_dtype:
-        per_dtype[dtype] = edge_weights(image.to(dtype))
-    return per_dtype[dtype]
+def image_map(fn: Callable[[torch.Tensor], torch.Tensor], image: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``fn(image.to(dtype))`` for a map ``fn`` that reads only the image (an edge weight), computed once per image
+    tensor, ``fn`` and ``dtype``."""
+    maps = _IMAGE_MAPS.get(id(image))
+    if maps is None:
+        maps = _IMAGE_MAPS[id(image)] = {}
+        weakref.finalize(image, _IMAGE_MAPS.pop, id(image), None)
+    if (fn, dtype) not in maps:
+        maps[(fn, dtype)] = fn(image.to(dtype))
+    return maps[(fn, dtype)]
 
 
 def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict, normalize: bool = False,
@@ -265,7 +266,7 @@ def depth_distortion_term(render: RenderOutput, batch: Batch, state: dict, norma
     if normalize:
         distortion = distortion / (render.alpha.detach() ** 2 + DISTORTION_EPS)
     if edge_aware:
-        distortion = distortion * image_edge_weights(batch.image, distortion.dtype)
+        distortion = distortion * image_map(edge_weights, batch.image, distortion.dtype)
     return distortion.mean()
 
 

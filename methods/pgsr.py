@@ -152,7 +152,6 @@ class PGSR(Method):
         self.scale = 1.0
         self.multiview_seconds = 0.0
         self._cache: tuple | None = None
-        self._edge_weights: dict[int, torch.Tensor] = {}
 
     # ---- configuration ------------------------------------------------------------------------
     def check_params(self) -> None:
@@ -204,8 +203,7 @@ class PGSR(Method):
 
     # ---- what the loss terms read -------------------------------------------------------------
     def loss_state(self) -> dict:
-        return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview,
-                "edge_weight": self._edge_weight}
+        return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview}
 
     def _exposure_of(self, batch: Batch):
         """(a_v, b_v) of the batch's view when exposure compensation is on and past its start, else None."""
@@ -214,16 +212,6 @@ class PGSR(Method):
             return None
         view = batch.view
         return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
-
-    def _edge_weight(self, batch: Batch, dtype: torch.dtype) -> torch.Tensor:
-        """`pgsr_terms.image_gradient_weight` of the batch's GT image, computed once per view (it reads only the GT)."""
-        view = batch.view
-        cached = self._edge_weights.get(view)
-        if cached is None or cached.dtype != dtype:
-            cached = pgsr_terms.image_gradient_weight(batch.image.to(dtype))
-            if view is not None:
-                self._edge_weights[view] = cached
-        return cached
 
     def _multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
         """This step's neighbour render and warp, computed on first use and shared by the terms (module docstring)."""

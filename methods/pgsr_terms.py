@@ -39,7 +39,7 @@ import torch.nn.functional as F
 
 from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
-from gsbench.losses import Batch, depth_to_normal, pixel_rays, register_term
+from gsbench.losses import Batch, depth_to_normal, image_map, pixel_rays, register_term
 from gsbench.raster.types import RenderOutput
 from gsbench.ssim import ssim
 
@@ -281,13 +281,11 @@ def l1_exposure_term(render: RenderOutput, batch: Batch, state: dict) -> torch.T
 def pgsr_normal_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
     """L_svgeo = mean over H×W of w · Σ_c |N_d·stopgrad(α) − N| (docs/methods/pgsr.md §4.2): N the rendered normal
     (Σ wᵢnᵢ, not normalised), N_d the unit normal of the unbiased depth's central differences
-    (`gsbench.losses.depth_to_normal`), w = `image_gradient_weight` of the GT image (``state["edge_weight"]``, the
-    method's per-view cache of it, when given)."""
+    (`gsbench.losses.depth_to_normal`), w = `image_gradient_weight` of the GT image (computed once per view,
+    `gsbench.losses.image_map`)."""
     depth = render_depth(render, batch.camera)
     n_d = depth_to_normal(depth, batch.camera) * render.alpha.detach()[..., None]
-    edge_weight = state.get("edge_weight")
-    weight = (edge_weight(batch, depth.dtype) if edge_weight is not None
-              else image_gradient_weight(batch.image.to(depth.dtype)))
+    weight = image_map(image_gradient_weight, batch.image, depth.dtype)
     return (weight * (n_d - render.normal).abs().sum(-1)).mean()
 
 

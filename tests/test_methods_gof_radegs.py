@@ -15,7 +15,8 @@ import gsbench.config as config
 import gsbench.methods.base as method_base
 from gsbench.errors import ConfigError
 from gsbench import losses
-from gsbench.losses import Batch, active_terms, depth_to_normal, edge_weights, image_edge_weights
+from gsbench.losses import Batch, active_terms, depth_to_normal, edge_weights, image_map
+from gsbench.methods.pgsr_terms import image_gradient_weight
 from gsbench.raster.types import RenderOutput
 from gsbench.registry import METHODS
 from gsbench.runner import resolve_run
@@ -143,16 +144,17 @@ def test_depth_distortion_normalised_and_edge_aware():
                            {"depth_distortion": {"normalize": True, "edge_aware": True}})
     interior = 14 * 18 - 2 * 14 + 2 * 14 * math.exp(-0.3)  # two columns of 14 interior pixels see the edge
     assert rade.spec(out, batch, {}).item() == pytest.approx(value * interior / (16 * 20))
-    # the map is computed once per GT image and dtype (it reads only the image)
-    assert image_edge_weights(image, torch.float64) is image_edge_weights(image, torch.float64)
-    assert torch.equal(image_edge_weights(image, torch.float32), weights.float())
+    # a GT map is computed once per image, map and dtype (it reads only the image)
+    assert image_map(edge_weights, image, torch.float64) is image_map(edge_weights, image, torch.float64)
+    assert torch.equal(image_map(edge_weights, image, torch.float32), weights.float())
+    assert torch.equal(image_map(image_gradient_weight, image, torch.float64), image_gradient_weight(image))
     other = image.clone()
     other[:, :5] = 0.6  # another image is another entry; a freed image takes its entry with it
-    assert not torch.equal(image_edge_weights(other, torch.float64), weights)
+    assert not torch.equal(image_map(edge_weights, other, torch.float64), weights)
     key = id(other)
-    assert key in losses._EDGE_WEIGHTS
+    assert key in losses._IMAGE_MAPS
     del other
-    assert key not in losses._EDGE_WEIGHTS
+    assert key not in losses._IMAGE_MAPS
 
 
 # ---- the 3D filter in the method -----------------------------------------------------------------

@@ -292,13 +292,3 @@ def test_exposure_is_learned_and_resumes_exactly(tiny_spot, tmp_path, monkeypatc
 def test_quick_end_to_end_run(tiny_spot, tmp_path):
     record = quick_run("pgsr", tiny_spot, tmp_path)
     assert record.timings["train.multiview"] > 0
-
-
-def test_the_edge_weight_is_computed_once_per_view(tiny_spot):
-    """PGSR hands pgsr_normal a per-view cache of `image_gradient_weight` (it reads only the GT image)."""
-    m, scene, cfg = setup_method("pgsr", tiny_spot)
-    image = torch.as_tensor(np.asarray(scene.images[1], dtype=np.float32))
-    batch = Batch(image, None, scene.cameras[1], 7001, view=1)
-    edge_weight = m.loss_state()["edge_weight"]
-    first = edge_weight(batch, torch.float32)
-    assert torch.equal(first, T.image_gradient_weight(image)) and edge_weight(batch, torch.float32) is first
