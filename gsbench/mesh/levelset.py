@@ -258,8 +258,7 @@ def levelset_mesh(gaussians: RasterGaussians, cameras: Sequence[Camera], setting
                f"density_quantile={cfg.poisson_density_quantile})")
     if not bool(keep.any()):
         raise MeshError(f"poisson extraction has no Gaussian to mesh {context}; train longer")
-    kept = RasterGaussians(**{k: None if getattr(gaussians, k) is None else getattr(gaussians, k).detach()[keep]
-                              for k in ("means", "quats", "scales", "opacities", "sh", "filter3d", "sh_rest")})
+    kept = gaussians.map(lambda t: t.detach()[keep])
     field = DensityField.of(kept)
     per_view = cfg.poisson_points // max(len(cameras), 1) + 1
     rng = np.random.default_rng(seed)

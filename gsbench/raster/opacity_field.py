@@ -86,9 +86,7 @@ class OpacityField:
         self.dtype = gaussians.means.dtype
         self.settings = settings
         self.cell = math.gcd(CELL, settings.tile_size)
-        g = type(gaussians)(*(None if x is None else x.detach() for x in (
-            gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh, gaussians.filter3d,
-            gaussians.sh_rest)))
+        g = gaussians.map(torch.Tensor.detach)
         self._views = [self._bin_view(g, cam, kernel) for cam in cameras]  # keeps the buffers alive
         self._cams = torch.tensor([[*map(float, torch.as_tensor(c.R, dtype=torch.float64).reshape(-1)),
                                     *map(float, torch.as_tensor(c.t, dtype=torch.float64).reshape(-1)),

@@ -67,6 +67,7 @@ gradient (N,2) (pixel gradient × (W/2, H/2)) and the abs-gradient (N,) Σ_pixel
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import torch
@@ -97,6 +98,11 @@ class RasterGaussians:
 
     def __len__(self) -> int:
         return int(self.means.shape[0])
+
+    def map(self, fn) -> RasterGaussians:
+        """A copy with ``fn`` applied to every tensor field (fields that are None stay None)."""
+        return RasterGaussians(**{f.name: None if getattr(self, f.name) is None else fn(getattr(self, f.name))
+                                  for f in dataclasses.fields(self)})
 
     def all_sh(self) -> torch.Tensor:
         """Every SH row (N, K + K_r, 3): ``sh`` followed by ``sh_rest``."""
