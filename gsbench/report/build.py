@@ -190,11 +190,11 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     without_gt = _without_gt(runs)
     ordered = sorted([*boards, *companions], key=lambda b: b.dataset)
     ranked = [leaderboard_table(b) for b in ordered]
+    tests = {id(board): comparisons(board) for board in ordered}  # each board's paired tests, once (tables, CSV)
     significance = Section("ranks", "Ranks and paired comparisons", [RANKS_NOTE, PAIRED_NOTE], [])
     for board in ordered:
         if board.spec.name in (primary[board.dataset].name, PAPERS_METRIC.get(board.dataset)):
-            tests = comparisons(board)
-            significance.blocks += [ranks_table(board, tests), paired_table(board, tests)]
+            significance.blocks += [ranks_table(board, tests[id(board)]), paired_table(board, tests[id(board)])]
     specs = metric_specs()
     claims = Section("papers-orderings", "The papers' orderings, tested", [*CLAIMS_NOTES, PAIRED_NOTE],
                      claims_tables(evaluate_claims(runs, manifests, specs), specs))
@@ -209,9 +209,10 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     intro = [_summary(runs)]
 
     out.mkdir(parents=True, exist_ok=True)
+    csv_boards = [*boards, *companions]
     written = []
     for name, text in (("leaderboard.md", document_markdown(TITLE, intro, sections, warnings)),
-                       ("leaderboard.csv", leaderboard_csv([*boards, *companions]))):
+                       ("leaderboard.csv", leaderboard_csv(csv_boards, [tests[id(b)] for b in csv_boards]))):
         (out / name).write_text(text)
         written.append(out / name)
     if made.made:
