@@ -156,7 +156,10 @@ class Gaussians(torch.nn.Module):
 
     def raster_input(self, filter3d: torch.Tensor | None = None) -> RasterGaussians:
         """Activated parameters for `gsbench.raster.rasterize`; the SH as its two parameters (sh_dc, sh_rest), not
-        concatenated: every row of sh_rest gets a gradient, zero past the render's SH degree (as in 3DGS)."""
+        concatenated: every row of sh_rest gets a gradient, zero past the render's SH degree (as in 3DGS). The
+        quaternions go in raw: every projection normalises them itself (`gsbench.raster.types`), and q/|q| is
+        idempotent, so normalising them here first (a PyTorch pass and its backward each step) changed nothing
+        but the rounding."""
         rest = self.params["sh_rest"]
-        return RasterGaussians(means=self.means, quats=self.quats, scales=self.scales, opacities=self.opacities,
+        return RasterGaussians(means=self.means, quats=self.params["quats"], scales=self.scales, opacities=self.opacities,
                                sh=self.params["sh_dc"], filter3d=filter3d, sh_rest=rest if rest.shape[1] else None)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from gsbench.errors import ConfigError
-from gsbench.optim import VisibleAdam, make_adam
+from gsbench.optim import FusedAdam, VisibleAdam, make_adam
 from gsbench.train import Trainer
 from tests.method_setup import setup_method, straight_and_resumed
 
@@ -35,6 +35,38 @@ def test_every_row_visible_is_adam_and_none_is_adam_bit_for_bit():
     unset = _run(VisibleAdam(groups(c := _params()), lr=0.0, eps=1e-15), c)
     assert all(torch.allclose(x, y, rtol=1e-6, atol=1e-7) for x, y in zip(reference, all_rows))
     assert all(torch.equal(x, y) for x, y in zip(reference, unset))
+
+
+def test_fused_adam_is_torchs_fused_step_bit_for_bit():
+    """The lean step (one fused call per group) against torch's own fused step: same parameters and moments
+    over steps with a group that has no gradient, rows added to the state between steps (as densification
+    does) and a float64 group beside float32 ones."""
+    def make(cls, **kw):
+        ps = _params() + [torch.randn(7, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(2)).requires_grad_(True)]
+        groups = [{"params": [p], "lr": 1e-2 * (i + 1)} for i, p in enumerate(ps)]
+        return cls(groups, lr=0.0, eps=1e-15, **kw), ps
+
+    (ours, a), (torchs, b) = make(FusedAdam), make(torch.optim.Adam, fused=True)
+    gen = torch.Generator().manual_seed(1)
+    for step in range(6):
+        for x, y in zip(a, b):
+            g = None if step == 2 and x.dim() == 3 else torch.randn(x.shape, generator=gen, dtype=x.dtype)
+            x.grad, y.grad = g, None if g is None else g.clone()
+        if step == 3:  # grow the first parameter and its moments by 5 rows (densification's surgery)
+            for opt, ps in ((ours, a), (torchs, b)):
+                old = ps[0]
+                state = opt.state.pop(old)
+                new = torch.cat([old.detach(), old.detach()[:5]]).requires_grad_(True)
+                new.grad = torch.cat([old.grad, old.grad[:5]])
+                opt.param_groups[0]["params"] = [new]
+                opt.state[new] = {k: v if k == "step" else torch.cat([v, v[:5]]) for k, v in state.items()}
+                ps[0] = new
+        ours.step()
+        torchs.step()
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(ours.state[x][key], torchs.state[y][key])
 
 
 def test_unseen_rows_keep_their_parameters_and_moments():

@@ -279,10 +279,12 @@ def _background(background, settings: RasterSettings, dtype) -> torch.Tensor:
     bg = settings.background if background is None else background
     if isinstance(bg, torch.Tensor):
         bgt = bg.to(dtype).reshape(3)
-    else:
-        bgt = torch.as_tensor(np.asarray(bg, dtype=np.float64).reshape(3), dtype=dtype)
-    _check_finite("background", bgt.reshape(1, 3))
-    return bgt
+        _check_finite("background", bgt.reshape(1, 3))
+        return bgt
+    values = np.asarray(bg, dtype=np.float64).reshape(3)
+    if not np.isfinite(values).all():  # three numbers: checked here, not by a tensor reduction
+        _check_finite("background", torch.as_tensor(values).reshape(1, 3))
+    return torch.tensor(values.tolist(), dtype=dtype)
 
 
 # Binning of ewa/rade: True = exact ellipse/tile overlap, False = every tile of the bounding rectangle (the
