@@ -136,10 +136,6 @@ class Gaussians(torch.nn.Module):
     def opacities(self) -> torch.Tensor:
         return torch.sigmoid(self.params["opacity_logits"])
 
-    @property
-    def sh(self) -> torch.Tensor:
-        return torch.cat([self.params["sh_dc"], self.params["sh_rest"]], dim=1)
-
     def check_finite(self) -> None:
         """Raise `NumericalError` naming the first parameter group that holds NaN or Inf.
 

@@ -264,7 +264,8 @@ def test_strategy_densifies_during_the_warm_up_only(tiny_spot):
 def adam_step(m) -> None:
     m.optimizer.zero_grad()
     g = m.gaussians
-    (g.means.square().sum() + g.scales.sum() + g.opacities.sum() + g.sh.square().sum() + g.quats.sum()).backward()
+    (g.means.square().sum() + g.scales.sum() + g.opacities.sum() + g.params["sh_dc"].square().sum()
+     + g.params["sh_rest"].square().sum() + g.quats.sum()).backward()
     m.optimizer.step()
 
 
