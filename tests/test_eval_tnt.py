@@ -5,7 +5,7 @@ import pytest
 
 import eval_fixtures as F
 from gsbench.errors import EvaluationError
-from gsbench.evaluators.tnt_f1 import SETS, TnTF1, precision_recall, tnt_gt_files, uniform_rate
+from gsbench.evaluators.tnt_f1 import SETS, TnTF1, precision_recall, tnt_gt_files
 
 TAU = F.TNT_TAU
 WORLD = F.similarity(0.7, [0, 1, 1], 1.1, [2.0, -1.0, 3.0])  # an arbitrary reconstruction frame
