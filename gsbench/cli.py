@@ -176,6 +176,16 @@ def cmd_bench(args) -> int:
     return run_benchmark(args)
 
 
+def cmd_depth(args) -> int:
+    from gsbench.depth_check import check_run_depth, format_rows
+
+    rows = check_run_depth(Path(args.run_dir), args.views)
+    print(f"{args.run_dir}: the depth the TSDF fuses against the scene's exact depth on the object mask "
+          "(e = (d − d*) / d*; e > 0: behind the surface)")
+    print(format_rows(rows))
+    return 0
+
+
 def cmd_report(args) -> int:
     from gsbench.report.build import write_report
 
@@ -299,6 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--gt-points", type=int, default=2_000_000, help="GT size (eval)")
     bench.add_argument("--json", default=None, help="also write the result as JSON")
     bench.set_defaults(func=cmd_bench)
+
+    depth = sub.add_parser("depth", help="a finished run's depth against its synthetic scene's exact depth, per view")
+    depth.add_argument("run_dir", metavar="RUN_DIR", help="the run's folder (<out>/<dataset>/<scene>/<method>/<run_id>)")
+    depth.add_argument("--views", type=int, nargs="+", default=[0, 10, 20, 30, 40], help="view indices (default: 0 10 20 30 40)")
+    depth.set_defaults(func=cmd_depth)
 
     report = sub.add_parser("report", help="leaderboard tables, speed-vs-error plots and sweep ablations from run records")
     report.add_argument("runs_dir", metavar="RUNS_DIR", help="runs folder (searched recursively for record.json)")

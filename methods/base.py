@@ -364,7 +364,7 @@ class Method:
         """TSDF fusion of ``mesh.depth`` rendered from the training ``views`` (module docstring)."""
         depths, colors, alphas = [], [], []
         for i in tqdm(views, desc="extract", unit="view", disable=None, leave=False):
-            depth, out = self._mesh_depth(scene.cameras[i], cfg)
+            depth, out = self.mesh_depth(scene.cameras[i], cfg)
             depths.append(depth.numpy())
             colors.append(out.rgb.clamp(0, 1).numpy())
             alphas.append(out.alpha.numpy())
@@ -372,7 +372,7 @@ class Method:
         return tsdf_fusion(depths, [scene.cameras[i] for i in views], cfg.mesh, scene.radius, colors=colors,
                            alphas=alphas, masks=masks)
 
-    def _mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
+    def mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
         """The depth (H, W) the TSDF fuses for ``camera`` (``mesh.depth``) and the render holding its rgb and alpha."""
         key = DEPTH_OUTPUTS[cfg.mesh.depth]
         out = self.render(camera, {key, "alpha", "rgb"})

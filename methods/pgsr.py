@@ -247,7 +247,7 @@ class PGSR(Method):
                                 nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half)
 
     # ---- mesh ---------------------------------------------------------------------------------
-    def _mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
+    def mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
         """``mesh.depth`` for the TSDF (``unbiased``: D / (−N·r̃), docs/methods/pgsr.md §6); with
         ``tsdf_max_view_angle`` > 0, pixels whose depth normal is farther than that from the viewing ray are
         dropped (PGSR ``--use_depth_filter``)."""
@@ -255,7 +255,7 @@ class PGSR(Method):
             out = self.render(camera, {"plane_distance", "normal", "alpha", "rgb"})
             depth = pgsr_terms.render_depth(out, camera)
         else:
-            depth, out = super()._mesh_depth(camera, cfg)
+            depth, out = super().mesh_depth(camera, cfg)
         return self._view_angle_filter(depth, camera), out
 
     def _view_angle_filter(self, depth: torch.Tensor, camera) -> torch.Tensor:

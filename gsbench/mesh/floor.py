@@ -27,8 +27,9 @@ from gsbench.data.camera import Scene
 from gsbench.errors import DataError
 
 
-def exact_depth_maps(scene: Scene) -> list[np.ndarray]:
-    """Camera-z depth of every camera of ``scene`` (normalised frame, the scene's loaded resolution)."""
+def exact_depth_maps(scene: Scene, views=None) -> list[np.ndarray]:
+    """Camera-z depth of the cameras ``views`` of ``scene`` (default: all; normalised frame, the scene's loaded
+    resolution)."""
     from gsbench.data.meta import read_meta  # noqa: PLC0415
     from gsbench.data.render import Renderer  # noqa: PLC0415
     from gsbench.data.synthetic import plan_scene  # noqa: PLC0415
@@ -40,7 +41,7 @@ def exact_depth_maps(scene: Scene) -> list[np.ndarray]:
     plan = plan_scene(meta["builtin"], fmt=meta["format"], res=tuple(meta["resolution"]), seed=meta["seed"])
     factor = scene.cameras[0].width / plan.cameras[0].width
     renderer = Renderer(plan.rendered, specular=plan.spec.specular)  # the object and its surroundings
-    cameras = [c.scaled(factor) for c in plan.cameras]
+    cameras = [plan.cameras[i].scaled(factor) for i in (range(len(plan.cameras)) if views is None else views)]
     return [renderer.depth(cam) * plan.depth_scale
             for cam in tqdm(cameras, desc="exact depth", unit="view", disable=None, leave=False)]
 

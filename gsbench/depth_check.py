@@ -1,0 +1,85 @@
+"""`gsbench depth`: a trained run's depth against the exact depth of its synthetic scene, view by view.
+
+For a run folder (``config.yaml`` and ``checkpoint-final.pt``) on a built-in synthetic scene, the depth the
+TSDF fuses (the method's ``mesh_depth``: its ``mesh.depth`` output, PGSR's unbiased depth) is rendered from the final checkpoint in the chosen
+views and compared with the scene's exact camera-z depth at the same pixel centres
+(`gsbench.mesh.floor.exact_depth_maps`) on the object mask (the pixels whose first hit is the object). Per
+pixel the relative error is
+
+    e = (d − d*) / d*        (d the rendered depth, d* the exact one; e > 0: the rendered surface lies behind)
+
+and each view reports the median of e and the fractions of pixels with |e| > 1% and > 5%. A Chamfer distance
+says how far the mesh is from the surface; this says whether the depth the mesh was fused from was already
+wrong (training) or was right and the fusion lost it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from gsbench.errors import ConfigError, GsbenchError
+
+TOLERANCES = (0.01, 0.05)
+
+
+def depth_errors(depth: np.ndarray, exact: np.ndarray, mask: np.ndarray) -> dict:
+    """Median relative error and the fractions over `TOLERANCES` (module docstring) on ``mask & exact > 0``;
+    NaN where the mask is empty. A non-finite rendered depth counts as over every tolerance."""
+    keep = np.asarray(mask, bool) & (exact > 0)
+    if not keep.any():
+        return {"pixels": 0, "median_rel": float("nan"), **{f"over_{t:g}": float("nan") for t in TOLERANCES}}
+    rel = (depth[keep] - exact[keep]) / exact[keep]
+    finite = np.isfinite(rel)
+    out = {"pixels": int(keep.sum()), "median_rel": float(np.median(rel[finite])) if finite.any() else float("nan")}
+    for t in TOLERANCES:
+        out[f"over_{t:g}"] = float(np.mean(~finite | (np.abs(np.where(finite, rel, 0.0)) > t)))
+    return out
+
+
+def check_run_depth(folder: Path, views) -> list[dict]:
+    """One `depth_errors` row per view of the run in ``folder`` (module docstring), with ``view`` added."""
+    from gsbench.mesh.floor import exact_depth_maps  # noqa: PLC0415
+    from gsbench.registry import METHODS  # noqa: PLC0415
+    from gsbench.runner import load_run_scene, resolve_run  # noqa: PLC0415
+    from gsbench.train import FINAL_CHECKPOINT, load_checkpoint  # noqa: PLC0415
+
+    folder = Path(folder)
+    config, final = folder / "config.yaml", folder / FINAL_CHECKPOINT
+    for path in (config, final):
+        if not path.is_file():
+            raise GsbenchError(f"{path} not found: `gsbench depth` reads a finished run's folder "
+                               f"(config.yaml and {FINAL_CHECKPOINT}); fix: pass <out>/<dataset>/<scene>/<method>/<run_id> "
+                               "of a run whose training finished")
+    import yaml  # noqa: PLC0415
+
+    resolved = yaml.safe_load(config.read_text())
+    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(config,))
+    scene = load_run_scene(cfg)
+    views = list(views)
+    bad = [v for v in views if not 0 <= v < len(scene.cameras)]
+    if bad:
+        raise ConfigError(f"views {bad} out of range: {cfg.scene} has {len(scene.cameras)} views (0..{len(scene.cameras) - 1})")
+    exact = exact_depth_maps(scene, views)
+    method = METHODS.get(cfg.method["name"])()
+    method.setup(scene, cfg)
+    method.load_state_dict(load_checkpoint(final)["method"])
+    rows = []
+    for view, d_exact in zip(views, exact):
+        with torch.no_grad():
+            depth, _ = method.mesh_depth(scene.cameras[view], cfg)
+        depth = depth.double().numpy().reshape(d_exact.shape)
+        mask = np.asarray(scene.masks[view], bool) if scene.masks is not None else np.ones(d_exact.shape, bool)
+        rows.append({"view": view, **depth_errors(depth, d_exact, mask)})
+    return rows
+
+
+def format_rows(rows: list[dict]) -> str:
+    """A text table of `check_run_depth`'s rows."""
+    head = ["view", "pixels", "median e %"] + [f"|e| > {100 * t:g}%" for t in TOLERANCES]
+    body = [[str(r["view"]), str(r["pixels"]), f"{100 * r['median_rel']:+.2f}"]
+            + [f"{r[f'over_{t:g}']:.3f}" for t in TOLERANCES] for r in rows]
+    widths = [max(len(x) for x in col) for col in zip(head, *body)]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths)) for line in [head, *body])
