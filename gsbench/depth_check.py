@@ -1,9 +1,10 @@
 """`gsbench depth`: a trained run's depth against the exact depth of its synthetic scene, view by view.
 
 For a run folder (``config.yaml`` and ``checkpoint-final.pt``) on a built-in synthetic scene, the depth the
-TSDF fuses (the method's ``mesh_depth``: its ``mesh.depth`` output, PGSR's unbiased depth) is rendered from the final checkpoint in the chosen
-views and compared with the scene's exact camera-z depth at the same pixel centres
-(`gsbench.mesh.floor.exact_depth_maps`) on the object mask (the pixels whose first hit is the object). Per
+TSDF fuses (the method's ``mesh_depth``: its ``mesh.depth`` output, PGSR's unbiased depth) is rendered from
+the final checkpoint in the chosen views and compared with the scene's exact camera-z depth at the same pixel centres
+(`gsbench.mesh.floor.exact_depth_maps`) on the object mask (the pixels whose first hit is the object; the whole
+image, less the pixels without a surface, for a scene without masks). Per
 pixel the relative error is
 
     e = (d − d*) / d*        (d the rendered depth, d* the exact one; e > 0: the rendered surface lies behind)
@@ -56,6 +57,10 @@ def check_run_depth(folder: Path, views) -> list[dict]:
     import yaml  # noqa: PLC0415
 
     resolved = yaml.safe_load(config.read_text())
+    if not (isinstance(resolved, dict) and isinstance(resolved.get("method"), dict) and "name" in resolved["method"]
+            and "scene" in resolved and "preset" in resolved):
+        raise GsbenchError(f"{config}: not a run's resolved config (needs method.name, scene and preset); fix: pass the "
+                           "folder gsbench run wrote, whose config.yaml it wrote itself")
     cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(config,))
     scene = load_run_scene(cfg)
     views = list(views)

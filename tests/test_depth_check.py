@@ -61,7 +61,10 @@ def test_depth_of_a_finished_run_against_the_exact_depth(tiny_spot, tmp_path, ca
         check_run_depth(folder, [999])
 
 
-def test_depth_names_the_missing_checkpoint(tmp_path, capsys):
+def test_depth_names_the_missing_checkpoint_and_a_foreign_config(tmp_path, capsys):
     (tmp_path / "config.yaml").write_text("scene: synthetic/spot\n")
     assert main(["depth", str(tmp_path)]) == 2
     assert "checkpoint-final.pt not found" in capsys.readouterr().err
+    (tmp_path / "checkpoint-final.pt").write_bytes(b"")
+    assert main(["depth", str(tmp_path)]) == 2
+    assert "not a run's resolved config" in capsys.readouterr().err
