@@ -216,10 +216,9 @@ def mean_ranks(board, ranks: dict[str, dict[str, float]] | None = None) -> dict[
             for name, r in ranks.items()}
 
 
-def significance_ranks(board, tests: dict[tuple[str, str], PairedTest] | None = None) -> dict[str, int]:
-    """Row name -> 1 + the number of complete rows significantly better in the paired test, for the rows
-    with a value on every scene (module docstring)."""
-    tests = comparisons(board) if tests is None else tests
+def significance_ranks(board, tests: dict[tuple[str, str], PairedTest]) -> dict[str, int]:
+    """Row name -> 1 + the number of complete rows significantly better in the paired test (``tests``, the
+    board's `comparisons`), for the rows with a value on every scene (module docstring)."""
     complete = [row.name for row in board.rows if board.mean(row)[1]]
     return {name: 1 + sum(1 for other in complete if other != name and tests[(other, name)].a_better)
             for name in complete}

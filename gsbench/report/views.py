@@ -492,11 +492,11 @@ def _csv_number(value) -> str:
     return "" if value is None else f"{value:.6g}"
 
 
-def leaderboard_csv(boards: list[Board], tests: list[dict[tuple[str, str], PairedTest]] | None = None) -> str:
+def leaderboard_csv(boards: list[Board], tests: list[dict[tuple[str, str], PairedTest]]) -> str:
     """Long format: one line per (dataset, row, scene) and one ``scene=mean`` line per row. ``ci95_low`` /
     ``ci95_high``: the 95% t-interval of a cell's mean over seeds (n ≥ 2); ``rank``: the rank on the scene,
     or on the mean line the mean rank; ``rank_paired``: the significance rank (`gsbench.report.stats`) from
-    ``tests``, each board's paired tests when the caller has them (computed here otherwise)."""
+    ``tests``, each board's paired tests (`comparisons`), in the order of ``boards``."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)
@@ -505,7 +505,7 @@ def leaderboard_csv(boards: list[Board], tests: list[dict[tuple[str, str], Paire
         best = {column: board.best(column) for column in [*board.scenes, "mean"]}
         per_scene = scene_ranks(board)
         mean_rank = mean_ranks(board, per_scene)
-        shared = significance_ranks(board, None if tests is None else tests[k])
+        shared = significance_ranks(board, tests[k])
         for row in board.rows:
             variant = row.runs[0].variant if row.runs else ""
             method = row.methods[0] if len(row.methods) == 1 else ";".join(row.methods)
