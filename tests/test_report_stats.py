@@ -18,8 +18,8 @@ from gsbench.report.build import write_report
 from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, verdict
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.metrics import PAPERS_METRIC, metric_specs, reported
-from gsbench.report.stats import (MIN_WILCOXON, comparisons, paired_test, sign_test_p, significance_ranks,
-                                  t_half_width)
+from gsbench.report.stats import (MIN_WILCOXON, comparisons, paired_test, pairs_to_decide, sign_test_p,
+                                  significance_ranks, t_half_width)
 from gsbench.suites import load_suite, suite_names
 from gsbench.sweep import expand, load_sweep, with_suite
 
@@ -129,7 +129,7 @@ def test_a_known_difference_is_significant(tmp_path):
     assert "| gof | **-0.102, 9/9 better, p=0.004 \\*** | – |" in matrix
     assert "| 2dgs | – | +0.102, 0/9 better, p=0.004 \\* |" in matrix
     claims = md[md.index("## The papers' orderings"):md.index("## Speed")]
-    assert "| gof better than 2dgs | 0.74 vs 0.80 |" in claims and "| 0.004 (wilcoxon) | **agrees** |" in claims
+    assert "| gof better than 2dgs | 0.74 vs 0.80 |" in claims and "| 0.004 (wilcoxon) | **agrees** | – |" in claims
     assert 'id="paired-dtu"' in (tmp_path / "out" / "index.html").read_text()
 
 
@@ -149,12 +149,34 @@ def test_equal_distributions_are_not_separable_and_share_a_rank(tmp_path):
     assert set(significance_ranks(board, tests).values()) == {1}
     outcomes = {o.claim.text: o for o in evaluate_claims(label_variants(load_runs(runs)[0]), [], metric_specs())}
     assert outcomes["ibgs at least as good as radegs"].verdict == "agrees (not separable)"
+    write_report(runs, tmp_path / "out", plots=False)
+    claims = (tmp_path / "out" / "leaderboard.md").read_text().split("## The papers' orderings")[1]
+    line = next(x for x in claims.splitlines() if x.startswith("| ibgs at least as good as radegs |"))
+    assert line.endswith(f"| {pairs_to_decide(tests[('ibgs', 'radegs')])} (have 9) |")
 
 
 def test_equal_distributions_reject_at_about_the_nominal_rate():
     rng = np.random.default_rng(3)
     rejected = sum(paired_test(rng.normal(0, 1, 12) - rng.normal(0, 1, 12), False).significant for _ in range(400))
     assert 0.01 <= rejected / 400 <= 0.09  # a test that never rejects fails too
+
+
+def test_pairs_to_decide_reaches_the_stated_power():
+    rng = np.random.default_rng(4)
+    z = rng.normal(0, 1, 50)
+    measured = paired_test(-0.1 + 0.2 * (z - z.mean()) / z.std(ddof=1), higher_is_better=False)  # d̄ = -0.1, s_d = 0.2
+    n = pairs_to_decide(measured)
+    assert n == 33  # ((1.960 + 0.842) * 0.2 / 0.1)² = 31.40, / (3/π) = 32.9
+    power = {size: sum(paired_test(rng.normal(-0.1, 0.2, size), False).a_better for _ in range(500)) / 500
+             for size in (n, n // 3)}
+    assert 0.72 <= power[n] <= 0.88 and power[n // 3] < 0.5, power
+
+
+def test_pairs_to_decide_needs_a_difference_and_a_spread():
+    assert pairs_to_decide(paired_test([-0.1], False)) is None  # one pair: no spread
+    assert pairs_to_decide(paired_test([-0.1, 0.1], False)) is None  # no mean difference
+    assert pairs_to_decide(paired_test([-0.1, -0.1], False)) == MIN_WILCOXON  # no spread: the tests' floor
+    assert pairs_to_decide(paired_test([-0.1, -0.3, 0.1], False)) > pairs_to_decide(paired_test([-0.2, -0.3, -0.1], False))
 
 
 def test_verdicts():

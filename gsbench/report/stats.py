@@ -40,6 +40,17 @@ mean over the board's scenes, for rows with a value on every scene. The *signifi
 a complete row is 1 + the number of complete rows that are significantly better than it in the paired
 test: rows that no other row beats significantly share rank 1, and rows the test cannot separate
 from the same rows share a rank.
+
+**Pairs to decide** (`pairs_to_decide`). How many pairs a comparison that is not separable would need,
+if the true paired differences had the measured mean d̄ and standard deviation s_d: the
+normal-approximation size of a two-sided test at level α with power 1 − β,
+
+    n_t = ((z_{1−α/2} + z_{1−β}) · s_d / |d̄|)²          (α = 0.05, 1 − β = `POWER` = 0.8)
+
+divided by 3/π ≈ 0.955, the asymptotic relative efficiency of the Wilcoxon signed-rank test to the
+t-test for normal differences (Hodges and Lehmann 1956), and at least `MIN_WILCOXON`. It is a
+projection, not a measurement: a measured |d̄| that happens to be large makes it too small, and pairs
+from new scenes may spread more than the seeds of the scenes measured.
 """
 
 from __future__ import annotations
@@ -52,6 +63,8 @@ import numpy as np
 
 ALPHA = 0.05
 CONFIDENCE = 0.95
+POWER = 0.8
+WILCOXON_ARE = 3 / math.pi  # Wilcoxon signed-rank vs t-test, normal differences (module docstring)
 MIN_WILCOXON = 6  # non-zero differences below which the sign test is used (module docstring)
 
 
@@ -74,7 +87,8 @@ class PairedTest:
     is better / worse (ties are neither); ``p``: two-sided p-value (None without pairs); ``test``:
     ``wilcoxon``, ``sign`` or ``""`` (no pairs); ``direction``: +1 when the test's statistic leans
     towards a being better, −1 towards b, 0 neither (Wilcoxon: the sign of the signed-rank sum
-    W+ − W− read in the metric's direction; sign test: wins − losses)."""
+    W+ − W− read in the metric's direction; sign test: wins − losses); ``sd_diff``: the sample
+    standard deviation of a − b (None for fewer than 2 pairs)."""
 
     n: int
     mean_diff: float | None
@@ -83,6 +97,7 @@ class PairedTest:
     p: float | None
     test: str
     direction: int = 0
+    sd_diff: float | None = None
 
     @property
     def significant(self) -> bool:
@@ -101,7 +116,7 @@ class PairedTest:
     def swapped(self) -> PairedTest:
         """The same comparison read as b against a."""
         mean = None if self.mean_diff is None else -self.mean_diff
-        return PairedTest(self.n, mean, self.losses, self.wins, self.p, self.test, -self.direction)
+        return PairedTest(self.n, mean, self.losses, self.wins, self.p, self.test, -self.direction, self.sd_diff)
 
 
 def sign_test_p(positive: int, negative: int) -> float:
@@ -139,7 +154,22 @@ def paired_test(differences, higher_is_better: bool) -> PairedTest:
         p, test = wilcoxon_p(nonzero), "wilcoxon"
         lean = sign * _signed_rank_sum(nonzero)
     direction = (lean > 0) - (lean < 0)
-    return PairedTest(len(d), statistics.fmean(d), wins, losses, p, test, direction)
+    sd = statistics.stdev(d) if len(d) >= 2 else None
+    return PairedTest(len(d), statistics.fmean(d), wins, losses, p, test, direction, sd)
+
+
+def pairs_to_decide(test: PairedTest, power: float = POWER) -> int | None:
+    """Pairs at which the paired test would find the measured mean difference significant with probability
+    ``power``, were it and the measured spread the true ones (module docstring):
+    max(`MIN_WILCOXON`, ⌈((z_{1−α/2} + z_power) · s_d / |d̄|)² / (3/π)⌉); `MIN_WILCOXON` when s_d = 0.
+    None for fewer than 2 pairs or d̄ = 0 (nothing to project from)."""
+    if test.sd_diff is None or not test.mean_diff:
+        return None
+    from scipy.stats import norm  # noqa: PLC0415
+
+    z = float(norm.ppf(1 - ALPHA / 2) + norm.ppf(power))
+    n_t = (z * test.sd_diff / abs(test.mean_diff)) ** 2
+    return max(MIN_WILCOXON, math.ceil(n_t / WILCOXON_ARE))
 
 
 def _signed_rank_sum(differences: list[float]) -> float:

@@ -16,8 +16,8 @@ from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
 from gsbench.report.collect import Run
 from gsbench.report.metrics import COMPANIONS, NO_GT, REAL_DATASETS, MetricSpec
 from gsbench.report.pareto import COSTS, cost_points
-from gsbench.report.stats import ALPHA, PairedTest, comparisons, compare_rows, mean_ranks, scene_ranks, \
-    significance_ranks
+from gsbench.report.stats import ALPHA, POWER, PairedTest, comparisons, compare_rows, mean_ranks, pairs_to_decide, \
+    scene_ranks, significance_ranks
 from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
@@ -182,15 +182,23 @@ def paired_table(board: Board, tests: dict[tuple[str, str], PairedTest] | None =
     return Table(_board_anchor(board, "paired"), f"Paired comparisons: {board.title}", header, rows, notes)
 
 
+PAIRS_NOTE = (
+    f"Pairs to decide: where the test did not separate the rows, the (scene, seed) pairs at which it would with "
+    f"{POWER:.0%} probability if the measured mean difference and its spread were the true ones "
+    f"(((1.96 + 0.84) · s_d / |Δ|)² / (3/π), at least 6); a projection: a Δ that is large by chance makes it too "
+    f"small.")
+
+
 def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
     """One table per group of claims (`gsbench.report.claims`), one line per claim: the ordering, the
-    paper's numbers and source, the rows compared, the mean paired difference, the pairs won, the p-value
-    and the verdict."""
+    paper's numbers and source, the rows compared, the mean paired difference, the pairs won, the p-value,
+    the verdict and, where the test did not separate the rows, the pairs it would take
+    (`gsbench.report.stats.pairs_to_decide`)."""
     groups: dict[str, list] = {}
     for outcome in outcomes:
         groups.setdefault(outcome.claim.group, []).append(outcome)
     header = ["claim", "paper", "source", "rows compared", "Δ (claimed better − other)", "better on", "p (test)",
-              "verdict"]
+              "verdict", f"pairs to decide ({POWER:.0%} power at this Δ)"]
     tables = []
     for group, members in groups.items():
         rows = []
@@ -206,13 +214,19 @@ def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
                 plain(f"{t.wins}/{t.n} pairs" if measured else MISSING),
                 TCell(f"{p_text(t.p)} ({t.test})" if measured else MISSING, t.p if measured else None),
                 TCell(o.verdict, None, style),
+                _pairs_to_decide_cell(t) if measured and not t.significant else plain(MISSING),
             ])
         first = members[0].claim
         spec = specs.get(first.metric)
         metric = spec.label + f", {spec.direction}" if spec else first.metric
         anchor = f"claims-{_slug(first.sweep or f'{first.dataset}-{first.metric}')}"
-        tables.append(Table(anchor, f"{group} ({first.dataset}: {metric})", header, rows))
+        tables.append(Table(anchor, f"{group} ({first.dataset}: {metric})", header, rows, [PAIRS_NOTE]))
     return tables
+
+
+def _pairs_to_decide_cell(test) -> TCell:
+    n = pairs_to_decide(test)
+    return TCell(MISSING if n is None else f"{n} (have {test.n})", n)
 
 
 def fronts(board: Board) -> dict[str, set[str]]:
