@@ -8,7 +8,10 @@ views trained and held out, masks, the initial Gaussian count), eval protocols, 
 evaluators with the reason each could not score the scene, timings per stage in seconds (``load``, ``train``, ``extract``,
 ``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of each part of
 the training step, ``render``, ``loss``, ``backward``, ``densify``, ``optimizer``, ``checks``, and
-of method-specific phases inside them, e.g. IBGS ``train.knn``; gsbench/train.py "Phases"), iterations/s, Gaussian count, peak RSS per
+of method-specific phases inside them, e.g. IBGS ``train.knn``; gsbench/train.py "Phases"), iterations/s, Gaussian count,
+``densify_budget`` (``max_gaussians``, ``first_cut_step``: the first step at which the budget left
+densification candidates out, null if never, ``candidates_cut``; gsbench/train.py "Budget"; empty in
+records of runs trained before it was tracked), peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
 threads, OS, host, UTC start/end).
 """
@@ -56,6 +59,7 @@ class RunRecord:
     timings: dict = field(default_factory=dict)
     it_per_s: float | None = None
     num_gaussians: int | None = None
+    densify_budget: dict = field(default_factory=dict)
     peak_rss_bytes: dict = field(default_factory=dict)
     mesh: dict = field(default_factory=dict)
     environment: dict = field(default_factory=dict)

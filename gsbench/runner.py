@@ -31,6 +31,7 @@ when stderr is not a terminal.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import threading
@@ -238,7 +239,7 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
         stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
         result = Trainer(method, scene, cfg, folder).fit()
         stages.done("train", result.seconds, it_per_s=result.it_per_s, num_gaussians=result.num_gaussians,
-                    steps=result.steps, phases=result.phases)
+                    steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
     elif not (mesh_path.is_file() and report is not None):
         method.load_state_dict(load_checkpoint(final)["method"])
 
@@ -260,6 +261,7 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     record.metrics = _flatten_metrics(report)
     record.eval_protocol = {n: r["protocol"] for n, r in report["results"].items()}
     record.it_per_s, record.num_gaussians = train["it_per_s"], train["num_gaussians"]
+    record.densify_budget = train.get("budget", {})  # stages written before the budget was tracked: none
     record.mesh = {"path": str(mesh_path), "sha256": sha256_file(mesh_path), "checkpoint": str(final),
                    "vertices": extract["vertices"], "faces": extract["faces"]}
     return report

@@ -56,6 +56,12 @@ is reported as ``step.<name>`` instead. Method phases run *inside* the step phas
 eigen-decomposition within ``render`` and ``backward``), so the two sets overlap and must not be
 added together. The runner (gsbench/runner.py) records every entry as ``train.<name>``.
 
+Budget: with ``train.max_gaussians`` > 0 a refinement may leave densification candidates out
+(`DefaultStrategy` clone/split candidates, IBGS's SADC pairs: the info's ``budget_cut``).
+`DensifyBudget` keeps the first step at which one did and how many it left out in all; it is part of
+the checkpoint and of `TrainResult`, and the runner records it as ``densify_budget``, so a report can
+say which methods' geometry was made under a binding budget and from when.
+
 Progress: the tqdm bar draws itself only on a terminal; when stderr is not one (a run logged to a
 file), `gsbench.progress.ProgressLines` prints a line with the step, it/s, the latest total loss, N
 and the ETA every `Trainer.progress_interval` seconds (30 by default) and a final line at the end.
@@ -200,6 +206,23 @@ class CameraSampler:
 
 
 @dataclass
+class DensifyBudget:
+    """How ``train.max_gaussians`` bound densification (module docstring, "Budget"): the first step at
+    which a refinement left candidates out (None: never) and the candidates left out over the run."""
+
+    max_gaussians: int = 0
+    first_cut_step: int | None = None
+    candidates_cut: int = 0
+
+    def add(self, step: int, info: dict) -> None:
+        """Count a refinement's ``budget_cut`` (the strategies' info) at ``step``."""
+        cut = int(info.get("budget_cut", 0))
+        if cut:
+            self.first_cut_step = step if self.first_cut_step is None else self.first_cut_step
+            self.candidates_cut += cut
+
+
+@dataclass
 class TrainResult:
     """What training produced: steps done in total, seconds spent (over all resumes), it/s, final N, and
     the seconds per phase within training: the Trainer's step phases (`STEP_PHASES`) and the method's
@@ -211,6 +234,7 @@ class TrainResult:
     num_gaussians: int
     resumed_from: int = 0
     phases: dict = dataclasses.field(default_factory=dict)
+    budget: DensifyBudget = dataclasses.field(default_factory=DensifyBudget)
 
 
 def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list]:
@@ -257,6 +281,7 @@ class Trainer:
         self.losses = scaled_losses(cfg.losses, self.scale)
         self.strategy = scaled_strategy(method.strategy(), self.iterations, cfg.train.scale_refine_interval)
         self.strategy_state = self.strategy.init_state(len(method.gaussians))
+        self.budget = DensifyBudget(int(cfg.train.max_gaussians))
         self.views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
         self.sampler = CameraSampler(self.views, cfg.seed)
         self.images, self.masks = _target_images(scene, cfg, method.background)
@@ -272,12 +297,15 @@ class Trainer:
         return {"step": self.step, "seconds": self.seconds, "phases": dict(self.phases),
                 "method": self.method.state_dict(),
                 "strategy": {k: v.clone() for k, v in self.strategy_state.items()},
+                "budget": dataclasses.asdict(self.budget),
                 "sampler": self.sampler.state_dict(),
                 "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}}
 
     def load_state_dict(self, state: dict) -> None:
         self.method.load_state_dict(state["method"])
         self.strategy_state = {k: v.clone() for k, v in state["strategy"].items()}
+        # checkpoints written before the budget was tracked resume with no cut counted
+        self.budget = DensifyBudget(**{**dataclasses.asdict(self.budget), **state.get("budget", {})})
         self.sampler.load_state_dict(state["sampler"])
         random.setstate(state["rng"]["python"])
         np.random.set_state(state["rng"]["numpy"])
@@ -329,7 +357,8 @@ class Trainer:
         loss.backward()
         t1 = clock()
         phases["backward"] += t1 - t
-        self.strategy.step_post_backward(m.gaussians, m.optimizer, self.strategy_state, step, render)
+        self.budget.add(step, self.strategy.step_post_backward(m.gaussians, m.optimizer, self.strategy_state, step,
+                                                               render))
         t = clock()
         phases["densify"] += t - t1
         if len(m.gaussians) == 0:
@@ -403,4 +432,5 @@ class Trainer:
     def result(self, resumed_from: int = 0) -> TrainResult:
         return TrainResult(steps=self.step, seconds=self.seconds, it_per_s=self.step / max(self.seconds, 1e-9),
                            num_gaussians=len(self.method.gaussians), resumed_from=resumed_from,
-                           phases=merge_phases(self.phases, self.method.training_phases()))
+                           phases=merge_phases(self.phases, self.method.training_phases()),
+                           budget=dataclasses.replace(self.budget))

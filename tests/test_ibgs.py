@@ -3,6 +3,7 @@ the config ``extends`` layer, resume, and quick end-to-end runs of the three ker
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -230,9 +231,9 @@ def grid_and_sparse_cluster(height, cluster_scale=None):
 
 def test_sadc_places_new_gaussians_on_the_local_plane_between_sparse_neighbours():
     g, optimizer, strategy = grid_and_sparse_cluster(lambda x: 0.2 * x + 0.1)  # the plane z = 0.2x + 0.1
-    added = strategy._densify_sparse(g, optimizer)
+    added, cut = strategy._densify_sparse(g, optimizer)
     new = g.means[-added:].detach()
-    assert added > 0
+    assert added > 0 and cut == 0  # no budget
     assert torch.allclose(new[:, 2], 0.2 * new[:, 0] + 0.1, atol=1e-5)  # on the plane
     assert (new[:, 0] > 0.5).all()  # between the sparse cluster and the grid
     assert torch.equal(g.params["quats"][-added:], torch.tensor([[1.0, 0, 0, 0]]).expand(added, 4))
@@ -243,9 +244,17 @@ def test_sadc_places_new_gaussians_on_the_local_plane_between_sparse_neighbours(
 
 def test_sadc_takes_the_sparse_gaussian_of_a_pair_even_when_its_neighbour_comes_first():
     g, optimizer, strategy = grid_and_sparse_cluster(torch.zeros_like, cluster_scale=0.3)
-    added = strategy._densify_sparse(g, optimizer)
+    added, _ = strategy._densify_sparse(g, optimizer)
     assert added > 0
     assert (g.scales[-added:].detach().max(-1).values > 0.1).all()  # the sparse parent's scales, not the grid's
+
+
+def test_sadc_under_the_budget_keeps_the_widest_gaps_and_counts_the_pairs_left_out():
+    g, optimizer, strategy = grid_and_sparse_cluster(torch.zeros_like)
+    unbounded, _ = strategy._densify_sparse(*grid_and_sparse_cluster(torch.zeros_like)[:2])
+    n = len(g)
+    added, cut = dataclasses.replace(strategy, max_gaussians=n + 2)._densify_sparse(g, optimizer)
+    assert unbounded > 2 and added == 2 and cut == unbounded - 2 and len(g) == n + 2
 
 
 def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threads):
@@ -258,6 +267,18 @@ def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threa
     for k, v in straight.method.gaussians.params.items():
         assert torch.equal(v, resumed.method.gaussians.params[k]), k
     assert torch.equal(straight.method.neighbours.index, resumed.method.neighbours.index)
+
+
+def test_a_binding_budget_is_recorded_from_its_first_cut_and_survives_a_resume(tiny_spot, tmp_path, monkeypatch,
+                                                                               restore_threads):
+    """With 450 Gaussians allowed from 400, clone/split and SADC are cut before the crash at step 12; the
+    resumed run counts the cuts from the checkpoint on, so its `DensifyBudget` equals the straight run's."""
+    overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
+                 "method.densify_until=30000", "method.opacity_reset_every=30000", "train.max_gaussians=450")
+    straight, resumed = straight_and_resumed("ibgs", tiny_spot, tmp_path, monkeypatch, *overrides, crash_after=12)
+    budget = straight.result().budget
+    assert budget.max_gaussians == 450 and budget.first_cut_step <= 12 and budget.candidates_cut > 0
+    assert resumed.result().budget == budget and len(straight.method.gaussians) <= 450
 
 
 @pytest.mark.parametrize("attach", [False, True])

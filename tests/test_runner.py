@@ -41,6 +41,8 @@ def test_quick_run_trains_meshes_evaluates_and_records(method, tiny_spot, tmp_pa
     assert set(record.timings) >= {"load", "train", "extract", "evaluate", "total"}
     assert set(record.peak_rss_bytes) == {"load", "train", "extract", "evaluate"}
     assert record.num_gaussians > 0 and record.it_per_s > 0
+    assert record.densify_budget["max_gaussians"] == 20000 and set(record.densify_budget) == {
+        "max_gaussians", "first_cut_step", "candidates_cut"}
     assert record.mesh["sha256"] == sha256_file(folder / "mesh.ply") and record.mesh["faces"] > 0
     assert set(record.eval_protocol) == {"dtu_chamfer", "normal_similarity", "silhouette", "mesh_stats"}
     assert record.skipped == {} and record.inputs["resolution"] == [64, 48] and record.inputs["views_held_out"] == 0

@@ -71,7 +71,7 @@ def test_clone_split_prune_counts_and_optimizer_rows():
     state = strategy.init_state(len(g))
     info = strategy.step_post_backward(g, opt, state, 1, fake_render(grads))
     # clone rows 0 and 4; split row 1 into 2; prune row 4 and its clone (faint)
-    assert info == {"cloned": 2, "split": 1, "pruned": 2, "reset": False}
+    assert info == {"cloned": 2, "split": 1, "pruned": 2, "reset": False, "budget_cut": 0}
     assert len(g) == 5 + 2 + 2 - 1 - 2
     x = g.means.detach()[:, 0]
     assert x[:3].tolist() == [0.0, 2.0, 3.0]  # originals kept in order: 0, 2, 3
@@ -132,11 +132,15 @@ def test_budget_takes_highest_gradients():
     info = strategy.step_post_backward(g, opt, strategy.init_state(4), 1, fake_render([2e-3, 5e-4, 1e-3, 3e-3]))
     # room 2: row 3 (clone, +1), row 0 (clone, +1); the split of row 2 (+1) and row 1 no longer fit
     assert info["cloned"] == 2 and info["split"] == 0 and len(g) == 6
+    assert info["budget_cut"] == 2  # the candidates left out: rows 1 and 2
     assert sorted(g.means.detach()[4:, 0].tolist()) == [0.0, 3.0]
     full = immediate(max_gaussians=4)
     g, opt = make_setup(rows)
-    assert full.step_post_backward(g, opt, full.init_state(4), 1, fake_render([1e-3] * 4))["cloned"] == 0
-    assert len(g) == 4
+    info = full.step_post_backward(g, opt, full.init_state(4), 1, fake_render([1e-3] * 4))
+    assert info["cloned"] == 0 and info["budget_cut"] == 4 and len(g) == 4
+    g, opt = make_setup(rows)
+    unbounded = immediate()
+    assert unbounded.step_post_backward(g, opt, unbounded.init_state(4), 1, fake_render([1e-3] * 4))["budget_cut"] == 0
 
 
 def test_world_size_pruning_after_first_reset_and_screen_size_option():

@@ -71,7 +71,7 @@ def test_selection_is_the_union_of_the_standard_and_the_matched_abs_test():
     state = strategy.init_state(6)
     info = strategy.step_post_backward(g, opt, state, 1, fake_render(grads, absg))
     # clone rows 0, 4 (small), split rows 1, 5 (large): 6 + 2 + 4 - 2
-    assert info == {"cloned": 2, "split": 2, "pruned": 0, "reset": False}
+    assert info == {"cloned": 2, "split": 2, "pruned": 0, "reset": False, "budget_cut": 0}
     assert len(g) == 10
     assert set(state) == {"grad2d", "count", "radii", "absgrad"} and all(len(v) == 10 for v in state.values())
     # the same statistics select only rows 0, 1 with the 3DGS strategy

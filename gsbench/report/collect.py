@@ -59,6 +59,7 @@ class Run:
     config: dict
     variant: str = ""
     skipped: dict = field(default_factory=dict)  # evaluator -> why it could not score the scene (record ``skipped``)
+    densify_budget: dict = field(default_factory=dict)  # record ``densify_budget`` (gsbench.report.budget)
 
     @property
     def ok(self) -> bool:
@@ -119,6 +120,8 @@ def _run(data: dict, rel: str) -> Run:
     timings = {k: float(v) for k, v in (data.get("timings") or {}).items() if _number(v) is not None}
     # evaluators the plan left out (records from before the field have none)
     skipped = data.get("skipped") if isinstance(data.get("skipped"), dict) else {}
+    # how the Gaussian budget bound training (records from before the field have none)
+    budget = data.get("densify_budget") if isinstance(data.get("densify_budget"), dict) else {}
     return Run(
         run_id=str(data["run_id"]), dataset=str(data["dataset"]), scene=Path(str(data["scene"]).rstrip("/")).name,
         method=str(data["method"]), seed=_number(data.get("seed")), status=str(data.get("status") or "unknown"),
@@ -127,7 +130,7 @@ def _run(data: dict, rel: str) -> Run:
         threads=threads, iterations=iterations,
         eval_protocol=data.get("eval_protocol") if isinstance(data.get("eval_protocol"), dict) else {},
         environment=environment, error_tail=str(data.get("error_tail") or ""), config=flatten(config),
-        skipped={str(k): " ".join(str(v).split()) for k, v in skipped.items()},
+        skipped={str(k): " ".join(str(v).split()) for k, v in skipped.items()}, densify_budget=budget,
     )
 
 

@@ -13,6 +13,7 @@ import json
 import math
 
 from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
+from gsbench.report.budget import BUDGET_NOTE, budget_text
 from gsbench.report.collect import Run
 from gsbench.report.metrics import COMPANIONS, NO_GT, REAL_DATASETS, MetricSpec
 from gsbench.report.pareto import COSTS, cost_points
@@ -250,9 +251,10 @@ def _stat_cell(value: Stat | None, show) -> TCell:
 
 
 def speed_table(board: Board) -> Table:
-    """Per row: budget, threads, times, memory, size, mean metric, and the Pareto fronts it is on."""
+    """Per row: iterations, threads, times, memory, size and the Gaussian budget, mean metric, and the
+    Pareto fronts it is on."""
     header = ["method", "iterations", "threads", "train (s)", "total (s)", "it/s", "train peak RSS (MiB)", "Gaussians",
-              f"mean {board.spec.label}", "Pareto front"]
+              "Gaussian budget", f"mean {board.spec.label}", "Pareto front"]
     on = fronts(board)
     rows = []
     for row in board.rows:
@@ -261,12 +263,12 @@ def speed_table(board: Board) -> Table:
         front = [short for key, (short, _) in COSTS.items() if key in on.get(row.name, ())]
         rows.append([
             plain(row.name), plain(_join(row.iterations)), plain(_join(row.threads)),
-            *(_stat_cell(row.speed[key], show) for key, show in SPEED_COLUMNS),
+            *(_stat_cell(row.speed[key], show) for key, show in SPEED_COLUMNS), plain(budget_text(row.runs)),
             TCell(shown, value, "" if complete else "bad"),
             TCell(", ".join(front) or MISSING, len(front), "front" if front else ""),
         ])
     threads = sorted({t for row in board.rows for t in row.threads})
-    notes = [TIMES_NOTE, MEMORY_NOTE,
+    notes = [TIMES_NOTE, MEMORY_NOTE, BUDGET_NOTE,
              f"Pareto front: no other row (with a value on every scene) is at most as costly and at least as good "
              f"in mean {board.spec.label}; costs: {', '.join(short for short, _ in COSTS.values())}."]
     if len(threads) > 1:

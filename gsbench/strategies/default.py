@@ -40,7 +40,9 @@ class DefaultStrategy(Strategy):
     o ← min(o, ``reset_value``) and that group's Adam moments are zeroed.
 
     ``max_gaussians`` > 0 is a budget: if clone (+1 each) and split (+split_n − 1 each) would exceed
-    it, the highest-g candidates are taken while they fit (counted before pruning). ``scene_extent``
+    it, the highest-g candidates are taken while they fit (counted before pruning); the candidates left
+    out are the refinement info's ``budget_cut`` (the trainer records the first step with one,
+    `gsbench.train.DensifyBudget`). ``scene_extent``
     is 3DGS ``cameras_extent`` in the scene's units. Split sampling uses torch's global RNG.
     """
 
@@ -121,19 +123,20 @@ class DefaultStrategy(Strategy):
         return rows["quats"]
 
     def _select_budget(self, n: int, priority: torch.Tensor, clone: torch.Tensor, split: torch.Tensor):
-        """Restrict clone/split to the highest-``priority`` candidates whose added rows fit the budget."""
+        """Restrict clone/split to the highest-``priority`` candidates whose added rows fit the budget;
+        returns the kept clone and split masks and how many candidates the budget left out."""
         if self.max_gaussians <= 0:
-            return clone, split
+            return clone, split, 0
         room = max(0, self.max_gaussians - n)
         cost = clone.long() + split.long() * (self.split_n - 1)
         if int(cost.sum()) <= room:
-            return clone, split
+            return clone, split, 0
         candidates = torch.nonzero(cost > 0).flatten()
         order = candidates[torch.argsort(priority[candidates], descending=True, stable=True)]
         take = order[torch.cumsum(cost[order], 0) <= room]
         chosen = torch.zeros(n, dtype=torch.bool)
         chosen[take] = True
-        return clone & chosen, split & chosen
+        return clone & chosen, split & chosen, len(candidates) - len(take)
 
     def _split_children(self, gaussians: Gaussians, split: torch.Tensor) -> dict:
         n = self.split_n
@@ -148,7 +151,7 @@ class DefaultStrategy(Strategy):
         extent = self.scene_extent
         selected, priority = self._select(state)
         small = gaussians.scales.detach().max(-1).values <= self.percent_dense * extent
-        clone, split = self._select_budget(n, priority, selected & small, selected & ~small)
+        clone, split, cut = self._select_budget(n, priority, selected & small, selected & ~small)
 
         clones = self._clones(gaussians, clone)
         children = self._split_children(gaussians, split)
@@ -167,4 +170,5 @@ class DefaultStrategy(Strategy):
         keep = ~(prune | parents)
         keep_params(gaussians, optimizer, keep)
         state.update(self.init_state(len(gaussians)))
-        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((prune & ~parents).sum())}
+        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int((prune & ~parents).sum()),
+                "budget_cut": cut}

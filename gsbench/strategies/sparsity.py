@@ -12,7 +12,8 @@
    (i, j) and (j, i) count once. Its SH and opacity are the parents' mean, its scales i's with the
    in-plane axes halved (the axis of i's frame nearest v3,i keeps its scale; surfels halve both), its
    residual rotation the identity and its frame i's. The Gaussian budget caps the count (the widest
-   gaps are kept first). Then the kNN index and the 3D filter are refreshed again.
+   gaps are kept first; the pairs left out add to the info's ``budget_cut``). Then the kNN index and
+   the 3D filter are refreshed again.
 
 The strategy shares the method's `gsbench.geometry.neighbours.NeighbourIndex` (as AbsGradStrategy shares the
 3D filter) and orients split/clone offsets with the IBGS rotation ΔR·V (`_orientations`).
@@ -62,7 +63,8 @@ class SparsityAwareStrategy(AbsGradStrategy):
         self.neighbours.refresh(gaussians.means)
         added = 0
         if self.sadc:
-            added = self._densify_sparse(gaussians, optimizer)
+            added, cut = self._densify_sparse(gaussians, optimizer)
+            info["budget_cut"] += cut
             if added:
                 state.update(self.init_state(len(gaussians)))
                 if self.filter3d is not None:
@@ -71,12 +73,13 @@ class SparsityAwareStrategy(AbsGradStrategy):
         return {**info, "sadc": added}
 
     @torch.no_grad()
-    def _densify_sparse(self, gaussians: Gaussians, optimizer) -> int:
-        """Append SADC Gaussians (module docstring step 2); returns how many."""
+    def _densify_sparse(self, gaussians: Gaussians, optimizer) -> tuple[int, int]:
+        """Append SADC Gaussians (module docstring step 2); returns how many, and how many pairs the
+        budget left out."""
         n = len(gaussians)
         index = self.neighbours.check(n)
         if n < 3 or index.shape[1] == 0:
-            return 0
+            return 0, 0
         means = gaussians.means.detach()
         gaps = (means[index] - means[:, None]).norm(dim=-1)  # (N, K)
         spacing = gaps.mean(1)
@@ -91,11 +94,10 @@ class SparsityAwareStrategy(AbsGradStrategy):
         swap = sparse[j] & (j < i)
         pairs = torch.unique(torch.stack([torch.where(swap, j, i), torch.where(swap, i, j)], 1), dim=0)
         if len(pairs) == 0:
-            return 0
-        pairs = self._fit_budget(pairs, means, n)
-        rows = self._midpoint_rows(gaussians, pairs)
-        append_params(gaussians, optimizer, rows)
-        return len(pairs)
+            return 0, 0
+        kept = self._fit_budget(pairs, means, n)
+        append_params(gaussians, optimizer, self._midpoint_rows(gaussians, kept))
+        return len(kept), len(pairs) - len(kept)
 
     def _fit_budget(self, pairs: torch.Tensor, means: torch.Tensor, n: int) -> torch.Tensor:
         """The pairs that fit ``max_gaussians`` (0 = no budget), widest gaps first."""
