@@ -50,7 +50,9 @@ CLAIMS_NOTES = [
     "two methods, or two rows of the sweep that repeats an ablation, and tested on these runs in the metric "
     "the paper used: DTU the official script's Chamfer, TnT the F1 on vertices + face centroids (the 2DGS / "
     "GOF / RaDe-GS scripts). The papers' numbers are on the real datasets (GPU, full schedules); here only "
-    "their order is checked.",
+    "their order is checked, at these runs' budgets: the cost tables (Speed and size against error) say "
+    "which rows the Gaussian budget cut, and a verdict between rows cut at different steps is a verdict at "
+    "that budget, not on the methods as published.",
     "Verdict, from the paired test of the claimed better side against the other: agrees (the claimed side "
     "significantly better, p < 0.05); disagrees (the other side significantly better; for ≈ any significant "
     "difference); not separable (p ≥ 0.05; for ≥ and ≈ that agrees with the claim: 'agrees (not "
