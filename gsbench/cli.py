@@ -186,6 +186,16 @@ def cmd_depth(args) -> int:
     return 0
 
 
+def cmd_gaussians(args) -> int:
+    from gsbench.gaussian_placement import format_placement, run_placement
+
+    regions, within = run_placement(Path(args.run_dir), args.within)
+    print(f"{args.run_dir}: the Gaussian centres against the scene's exact surfaces (within {within:.4g} dataset "
+          "units of the object; of the environment; farther than that from every surface)")
+    print(format_placement(regions))
+    return 0
+
+
 def cmd_report(args) -> int:
     from gsbench.report.build import write_report
 
@@ -314,6 +324,14 @@ def build_parser() -> argparse.ArgumentParser:
     depth.add_argument("run_dir", metavar="RUN_DIR", help="the run's folder (<out>/<dataset>/<scene>/<method>/<run_id>)")
     depth.add_argument("--views", type=int, nargs="+", default=[0, 10, 20, 30, 40], help="view indices (default: 0 10 20 30 40)")
     depth.set_defaults(func=cmd_depth)
+
+    gaussians = sub.add_parser("gaussians", help="where a finished run's Gaussians are: on the object, on the "
+                               "environment or in free space (synthetic scenes)")
+    gaussians.add_argument("run_dir", metavar="RUN_DIR", help="the run's folder (<out>/<dataset>/<scene>/<method>/<run_id>)")
+    gaussians.add_argument("--within", type=float, default=None,
+                           help="distance to a surface that counts as on it, dataset units (default: 1.5%% of the "
+                                "object's bounding-box diagonal)")
+    gaussians.set_defaults(func=cmd_gaussians)
 
     report = sub.add_parser("report", help="leaderboard tables, speed-vs-error plots and sweep ablations from run records")
     report.add_argument("runs_dir", metavar="RUNS_DIR", help="runs folder (searched recursively for record.json)")

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gsbench.errors import ConfigError, GsbenchError
+from gsbench.errors import ConfigError
 
 TOLERANCES = (0.01, 0.05)
 
@@ -43,34 +43,14 @@ def depth_errors(depth: np.ndarray, exact: np.ndarray, mask: np.ndarray) -> dict
 def check_run_depth(folder: Path, views) -> list[dict]:
     """One `depth_errors` row per view of the run in ``folder`` (module docstring), with ``view`` added."""
     from gsbench.mesh.floor import exact_depth_maps  # noqa: PLC0415
-    from gsbench.registry import METHODS  # noqa: PLC0415
-    from gsbench.runner import load_run_scene, resolve_run  # noqa: PLC0415
-    from gsbench.train import FINAL_CHECKPOINT, load_checkpoint  # noqa: PLC0415
+    from gsbench.run_folder import load_finished_run  # noqa: PLC0415
 
-    folder = Path(folder)
-    config, final = folder / "config.yaml", folder / FINAL_CHECKPOINT
-    for path in (config, final):
-        if not path.is_file():
-            raise GsbenchError(f"{path} not found: `gsbench depth` reads a finished run's folder "
-                               f"(config.yaml and {FINAL_CHECKPOINT}); fix: pass <out>/<dataset>/<scene>/<method>/<run_id> "
-                               "of a run whose training finished")
-    import yaml  # noqa: PLC0415
-
-    resolved = yaml.safe_load(config.read_text())
-    if not (isinstance(resolved, dict) and isinstance(resolved.get("method"), dict) and "name" in resolved["method"]
-            and "scene" in resolved and "preset" in resolved):
-        raise GsbenchError(f"{config}: not a run's resolved config (needs method.name, scene and preset); fix: pass the "
-                           "folder gsbench run wrote, whose config.yaml it wrote itself")
-    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(config,))
-    scene = load_run_scene(cfg)
+    cfg, scene, method = load_finished_run(folder, "gsbench depth")
     views = list(views)
     bad = [v for v in views if not 0 <= v < len(scene.cameras)]
     if bad:
         raise ConfigError(f"views {bad} out of range: {cfg.scene} has {len(scene.cameras)} views (0..{len(scene.cameras) - 1})")
     exact = exact_depth_maps(scene, views)
-    method = METHODS.get(cfg.method["name"])()
-    method.setup(scene, cfg)
-    method.load_state_dict(load_checkpoint(final)["method"])
     rows = []
     for view, d_exact in zip(views, exact):
         with torch.no_grad():
