@@ -4,6 +4,7 @@ synthetic scene's exact depth."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,10 +12,7 @@ import pytest
 from gsbench.cli import main
 from gsbench.depth_check import check_run_depth, depth_errors
 from gsbench.errors import ConfigError
-from gsbench.runner import resolve_run, run_dir
-
-QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations=30", "train.checkpoint_every=0",
-         "mesh.voxel_size=0.02", "mesh.sdf_trunc=0.08", "eval.evaluators=[dtu_chamfer]"]
+from tests.method_setup import quick_run
 
 
 def test_depth_errors_counts_the_masked_pixels_by_tolerance():
@@ -41,13 +39,7 @@ def test_depth_errors_of_an_empty_mask_are_nan_not_zero():
 
 
 def test_depth_of_a_finished_run_against_the_exact_depth(tiny_spot, tmp_path, capsys):
-    sets = [arg for s in QUICK for arg in ("--set", s)]
-    out = tmp_path / "runs"
-    assert main(["run", "--method", "2dgs", "--scene", str(tiny_spot), "--preset", "quick", "--out", str(out),
-                 "--threads", "2", *sets]) == 0
-    cfg = resolve_run("2dgs", str(tiny_spot), preset="quick", overrides=QUICK)
-    cfg.out = str(out)
-    folder = run_dir(cfg)
+    folder = Path(quick_run("2dgs", tiny_spot, tmp_path).mesh["checkpoint"]).parent
     capsys.readouterr()
     assert main(["depth", str(folder), "--views", "0", "3"]) == 0
     printed = capsys.readouterr().out.splitlines()
@@ -56,7 +48,7 @@ def test_depth_of_a_finished_run_against_the_exact_depth(tiny_spot, tmp_path, ca
     for row in rows:
         assert row["pixels"] > 100 and math.isfinite(row["median_rel"])
         assert 0.0 <= row["over_0.05"] <= row["over_0.01"] <= 1.0
-        assert abs(row["median_rel"]) < 0.2  # 30 steps: rough, but the depth is of the object, not the background
+        assert abs(row["median_rel"]) < 0.2  # 60 steps: rough, but the depth is of the object, not the background
     with pytest.raises(ConfigError, match="out of range"):
         check_run_depth(folder, [999])
 

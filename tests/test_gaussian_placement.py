@@ -3,6 +3,8 @@ against its synthetic scene's exact surfaces."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -10,10 +12,7 @@ import trimesh
 from gsbench.cli import main
 from gsbench.errors import ConfigError
 from gsbench.gaussian_placement import REGIONS, _distances, place
-from gsbench.runner import resolve_run, run_dir
-
-QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations=30", "train.checkpoint_every=0",
-         "mesh.voxel_size=0.02", "mesh.sdf_trunc=0.08", "eval.evaluators=[dtu_chamfer]"]
+from tests.method_setup import quick_run
 
 
 def test_place_splits_by_the_object_then_by_any_surface_and_weights_by_opacity():
@@ -39,21 +38,16 @@ def test_distances_to_a_mesh_are_the_exact_point_to_surface_distances(tmp_path):
 
 
 def test_gaussians_of_a_finished_run_on_an_object_only_scene(tiny_spot, tmp_path, capsys):
-    sets = [arg for s in QUICK for arg in ("--set", s)]
-    out = tmp_path / "runs"
-    assert main(["run", "--method", "3dgs", "--scene", str(tiny_spot), "--preset", "quick", "--out", str(out),
-                 "--threads", "2", *sets]) == 0
-    cfg = resolve_run("3dgs", str(tiny_spot), preset="quick", overrides=QUICK)
-    cfg.out = str(out)
+    folder = Path(quick_run("3dgs", tiny_spot, tmp_path).mesh["checkpoint"]).parent
     capsys.readouterr()
-    assert main(["gaussians", str(run_dir(cfg))]) == 0
+    assert main(["gaussians", str(folder)]) == 0
     lines = capsys.readouterr().out.splitlines()
     rows = {line.split()[0]: line.split()[-3:] for line in lines[2:]}  # "free space" is "free" here
     assert list(rows) == ["object", "environment", "free"]
     assert rows["environment"][0] == "0"  # synthetic/spot has no environment: every surface is the object's
     assert int(rows["object"][0].replace(",", "")) > 0
     assert sum(float(r[1]) for r in rows.values()) == pytest.approx(1.0, abs=2e-3)
-    assert main(["gaussians", str(run_dir(cfg)), "--within", "-1"]) == 2
+    assert main(["gaussians", str(folder), "--within", "-1"]) == 2
     assert "positive" in capsys.readouterr().err
 
 
