@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from gsbench.errors import ConfigError
+from gsbench.text_table import aligned
 
 TOLERANCES = (0.01, 0.05)
 
@@ -66,5 +67,4 @@ def format_rows(rows: list[dict]) -> str:
     head = ["view", "pixels", "median e %"] + [f"|e| > {100 * t:g}%" for t in TOLERANCES]
     body = [[str(r["view"]), str(r["pixels"]), f"{100 * r['median_rel']:+.2f}"]
             + [f"{r[f'over_{t:g}']:.3f}" for t in TOLERANCES] for r in rows]
-    widths = [max(len(x) for x in col) for col in zip(head, *body)]
-    return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths)) for line in [head, *body])
+    return aligned(head, body)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gsbench.errors import ConfigError, GsbenchError
+from gsbench.text_table import aligned
 
 WITHIN_OF_DIAGONAL = 0.015
 REGIONS = ("object", "environment", "free space")
@@ -83,5 +84,4 @@ def format_placement(regions: dict) -> str:
     """A text table of `place`'s regions."""
     head = ["region", "Gaussians", "share", "opacity share"]
     body = [[name, f"{r['count']:,}", f"{r['share']:.3f}", f"{r['opacity_share']:.3f}"] for name, r in regions.items()]
-    widths = [max(len(x) for x in col) for col in zip(head, *body)]
-    return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths)) for line in [head, *body])
+    return aligned(head, body)
