@@ -166,6 +166,24 @@ def test_memory_is_the_training_high_water_mark_not_the_evaluators(tmp_path):
     assert run.train_peak_rss_bytes is None
 
 
+def test_times_from_several_cpu_models_are_flagged_where_they_are_compared(tmp_path):
+    """Sessions may run on different CPUs: a cost table whose runs mix CPU models says so, with the count on
+    each, and the runs table names every run's CPU; a table from one CPU model has no such note."""
+    runs = _copy_runs(tmp_path)
+    some = sorted(runs.glob("tnt/spot-tnt/3dgs/*/record.json"))[0]
+    data = json.loads(some.read_text())
+    data["environment"]["cpu"] = "Other CPU"
+    some.write_text(json.dumps(data))
+    out = tmp_path / "report"
+    write_report(runs, out, generated="2026-01-01T00:00:00+00:00")
+    md = (out / "leaderboard.md").read_text()
+    tnt_costs = md.split("### tnt: cost against")[1].split("\n#")[0]
+    dtu_costs = md.split("### dtu: cost against")[1].split("\n#")[0]
+    assert "CPU models differ between runs (Fixture CPU @ 2.00GHz: " in tnt_costs and "Other CPU: 1 run)" in tnt_costs
+    assert "CPU models differ" not in dtu_costs
+    assert "<td>Other CPU</td>" in (out / "index.html").read_text()
+
+
 def test_plots_of_an_earlier_report_are_removed(tmp_path):
     """out/plots is the report's own: a figure an earlier report drew there and this one does not is removed,
     the others are (re)written; files that are not PNGs stay."""

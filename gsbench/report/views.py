@@ -43,6 +43,21 @@ def _join(values) -> str:
     return ", ".join(str(v) for v in values) or MISSING
 
 
+def cpu_note(runs: list[Run]) -> str:
+    """A warning when the runs' times come from more than one CPU model (the record's ``environment.cpu``),
+    with the number of runs on each; empty when they come from one. A row's mean time then mixes machines
+    in its own proportions, so two rows compare only as far as their runs share a CPU model."""
+    models: dict[str, int] = {}
+    for run in runs:
+        model = str(run.environment.get("cpu") or MISSING)
+        models[model] = models.get(model, 0) + 1
+    if len(models) < 2:
+        return ""
+    listed = "; ".join(f"{model}: {n} run{'s' if n > 1 else ''}" for model, n in sorted(models.items()))
+    return (f"CPU models differ between runs ({listed}): a row's mean time mixes them, so compare times only "
+            f"between runs on one CPU model (the runs table and Environment say which).")
+
+
 def protocol_note(board: Board) -> str:
     """Which evaluator version(s) produced the board's numbers, with run counts."""
     evaluator = board.spec.evaluator
@@ -273,6 +288,9 @@ def speed_table(board: Board) -> Table:
              f"in mean {board.spec.label}; costs: {', '.join(short for short, _ in COSTS.values())}."]
     if len(threads) > 1:
         notes.append(f"Thread counts differ between runs ({_join(threads)}): compare times only at one thread count.")
+    cpus = cpu_note([run for row in board.rows for run in row.runs])
+    if cpus:
+        notes.append(cpus)
     title = f"{board.dataset}: cost against {board.spec.label}"
     return Table(f"speed-{_slug(board.dataset)}", title, header, rows, notes)
 
@@ -480,9 +498,9 @@ def environment_table(runs: list[Run]) -> Table:
 
 
 def runs_table(runs: list[Run], specs: dict[str, MetricSpec], sweeps: dict[str, list[str]]) -> Table:
-    """Every run: identity, status, its dataset's ranking metric, times, threads, protocols, sweeps."""
+    """Every run: identity, status, its dataset's ranking metric, times, threads, CPU model, protocols, sweeps."""
     header = ["run id", "dataset", "scene", "method", "seed", "status", "metric", "value", "train (s)", "total (s)",
-              "threads", "iterations", "protocols", "sweeps", "record"]
+              "threads", "CPU", "iterations", "protocols", "sweeps", "record"]
     rows = []
     for r in runs:
         spec = specs.get(r.dataset)
@@ -494,6 +512,7 @@ def runs_table(runs: list[Run], specs: dict[str, MetricSpec], sweeps: dict[str, 
                      plain(r.status, None, "" if r.ok else "bad"), plain(spec.label if spec else MISSING),
                      TCell(number(value), value), TCell(number(train, 1), train), TCell(number(total, 1), total),
                      plain(str(r.threads if r.threads is not None else MISSING)),
+                     plain(str(r.environment.get("cpu") or MISSING)),
                      plain(str(r.iterations if r.iterations is not None else MISSING)),
                      plain(protocols or MISSING), plain("; ".join(sweeps.get(r.run_id, [])) or MISSING), plain(r.path)])
     return Table("runs-table", "", header, rows)
