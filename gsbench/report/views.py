@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import math
+from collections import Counter
 
 from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
 from gsbench.report.budget import BUDGET_NOTE, budget_text
@@ -47,15 +48,12 @@ def cpu_note(runs: list[Run]) -> str:
     """A warning when the runs' times come from more than one CPU model (the record's ``environment.cpu``),
     with the number of runs on each; empty when they come from one. A row's mean time then mixes machines
     in its own proportions, so two rows compare only as far as their runs share a CPU model."""
-    models: dict[str, int] = {}
-    for run in runs:
-        model = str(run.environment.get("cpu") or MISSING)
-        models[model] = models.get(model, 0) + 1
+    models = Counter(str(run.environment.get("cpu") or MISSING) for run in runs)
     if len(models) < 2:
         return ""
     listed = "; ".join(f"{model}: {n} run{'s' if n > 1 else ''}" for model, n in sorted(models.items()))
     return (f"CPU models differ between runs ({listed}): a row's mean time mixes them, so compare times only "
-            f"between runs on one CPU model (the runs table and Environment say which).")
+            f"between runs on one CPU model (the page's list of runs and Environment say which).")
 
 
 def protocol_note(board: Board) -> str:
