@@ -6,18 +6,11 @@ from pathlib import Path
 
 from gsbench.data.camera import Scene
 from gsbench.errors import RegistryError
-from gsbench.registry import EVALUATORS
-from gsbench.evaluators.base import Evaluator
-
-def get_evaluator(name: str) -> Evaluator:
-    """An instance of the registered evaluator ``name``; RegistryError with a suggestion otherwise."""
-    return EVALUATORS.get(name)()
+from gsbench.evaluators.resolve import get_evaluator, plan_evaluation
 
 
 def default_evaluators(scene: Scene) -> tuple[str, ...]:
     """The dataset's default mesh evaluators that apply to ``scene`` (`gsbench.evaluators.resolve`)."""
-    from gsbench.evaluators.resolve import plan_evaluation  # noqa: PLC0415
-
     return plan_evaluation(scene, "tnt" if scene.fmt == "tnt" else "dtu", (), held_out=0).mesh
 
 

@@ -17,8 +17,6 @@ rejects unknown option names with the list of valid ones.
 from __future__ import annotations
 
 import dataclasses
-import resource
-import sys
 import time
 import warnings
 from abc import ABC, abstractmethod
@@ -28,6 +26,7 @@ from typing import Any, ClassVar
 
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError
+from gsbench.resources import peak_rss_bytes
 
 
 @dataclass(frozen=True)
@@ -37,12 +36,6 @@ class MetricInfo:
     higher_is_better: bool
     unit: str
     description: str = ""
-
-
-def peak_rss_bytes() -> int:
-    """Peak resident set size of this process so far (``resource.getrusage``; KiB on Linux, bytes on macOS)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return int(peak if sys.platform == "darwin" else peak * 1024)
 
 
 class Diagnostics:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError
@@ -34,8 +35,6 @@ class Geometry:
 def read_geometry(mesh) -> Geometry:
     """A `Geometry` of a path, trimesh, (N,3) array or Geometry, empty or not (`load_geometry` rejects
     empty ones)."""
-    import trimesh  # noqa: PLC0415
-
     if isinstance(mesh, Geometry):
         return mesh
     if isinstance(mesh, np.ndarray):

@@ -8,8 +8,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from scipy.io import loadmat
 
-from gsbench.data.filecheck import check_crop_json, check_ply
+from gsbench.data.filecheck.arrays import check_crop_json
+from gsbench.data.filecheck.ply import check_ply
 from gsbench.errors import EvaluationError, import_open3d
 
 GT_FIX = "download the ground truth again (or pass --gt PATH, a folder with an intact copy)"
@@ -35,8 +37,6 @@ def read_points(path: Path, with_normals: bool = False):
 
 def read_mat(path: Path, names: tuple[str, ...]) -> dict:
     """Variables ``names`` of a MATLAB ``.mat`` file (``scipy.io.loadmat``)."""
-    from scipy.io import loadmat  # noqa: PLC0415
-
     if not path.is_file():
         raise EvaluationError(f"ground-truth file not found: {path}")
     try:

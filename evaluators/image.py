@@ -6,7 +6,7 @@
   sigma 1.5, per-channel local statistics by a depthwise convolution with zero padding 5,
   ``C1 = 0.01^2``, ``C2 = 0.03^2``, ``SSIM = ((2 mu_x mu_y + C1)(2 s_xy + C2)) / ((mu_x^2 + mu_y^2 + C1)
   (s_x^2 + s_y^2 + C2))``, averaged over the map (over the mask's pixels when masks are given).
-  Computed by `gsbench.ssim` (the same code as the ``dssim`` training loss) in float64.
+  Computed by `gsbench.losses.ssim` (the same code as the ``dssim`` training loss) in float64.
 """
 
 from __future__ import annotations
@@ -14,10 +14,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
+from gsbench.losses.ssim import ssim_map as torch_ssim_map
+
 
 def _as_image(img, what: str) -> np.ndarray:
     arr = np.asarray(img, dtype=np.float64)
@@ -38,11 +41,7 @@ def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> fl
 
 
 def ssim_map(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Per-pixel SSIM (HxW, mean over channels): `gsbench.ssim.ssim_map` (the training loss's SSIM) in float64."""
-    import torch  # noqa: PLC0415
-
-    from gsbench.ssim import ssim_map as torch_ssim_map  # noqa: PLC0415
-
+    """Per-pixel SSIM (HxW, mean over channels): `gsbench.losses.ssim.ssim_map` (the training loss's SSIM) in float64."""
     x, y = _as_image(pred, "ssim pred"), _as_image(gt, "ssim gt")
     if x.shape != y.shape:
         raise EvaluationError(f"ssim: image shapes differ: {x.shape} vs {y.shape}")

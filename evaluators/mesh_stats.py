@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import trimesh
 
 from gsbench.data.camera import Scene
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
@@ -41,8 +42,6 @@ class MeshStatsOptions:
 
 def face_components(mesh) -> int:
     """Connected components of ``mesh``'s faces over shared edges (module docstring)."""
-    import trimesh  # noqa: PLC0415
-
     return len(trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mesh.faces))))
 
 
@@ -66,8 +65,6 @@ class MeshStats(Evaluator):
         """Nothing to check: every scene can be described."""
 
     def evaluate(self, mesh, scene: Scene, **options) -> dict:
-        import trimesh  # noqa: PLC0415
-
         opts = self.options(**options)
         check_frame(opts.frame)
         diag = Diagnostics()

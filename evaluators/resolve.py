@@ -22,14 +22,20 @@ from dataclasses import dataclass, field
 
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError, GsbenchError
-from gsbench.evaluators.api import get_evaluator
+from gsbench.evaluators.base import Evaluator
+from gsbench.registry import EVALUATORS
 
-# The evaluators a run computes when ``eval.evaluators`` is empty, per dataset (`gsbench.config.dataset_of`).
+# The evaluators a run computes when ``eval.evaluators`` is empty, per dataset (`gsbench.config.run_config.dataset_of`).
 DEFAULT_EVALUATORS: dict[str, tuple[str, ...]] = {
     "dtu": ("dtu_chamfer", "normal_similarity", "silhouette", "mesh_stats", "image"),
     "tnt": ("tnt_f1", "normal_similarity", "mesh_stats", "image"),
 }
 IMAGE = "image"
+
+
+def get_evaluator(name: str) -> Evaluator:
+    """An instance of the registered evaluator ``name``; RegistryError with a suggestion otherwise."""
+    return EVALUATORS.get(name)()
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,7 @@ from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import EvaluationError, import_open3d
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
 from gsbench.evaluators.geometry import check_frame, load_geometry, read_geometry, to_normalised_frame
+from gsbench.geometry.depth import pixel_centres
 
 HULL_DILATE_PX = 1  # masks grown by one pixel before carving (module docstring)
 HULL_MIN_VIEWS = 1
@@ -71,8 +72,8 @@ def camera_at(cam: Camera, width: int, height: int) -> Camera:
 def pixel_rays(cam: Camera) -> np.ndarray:
     """(H·W, 6) rays (origin, direction) through every pixel centre ``(i + 0.5, j + 0.5)``, row-major
     (row j, then column i), in the camera's world frame; directions not normalised."""
-    i, j = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-    pix = np.stack([i.ravel(), j.ravel(), np.ones(i.size)], axis=1)
+    centres = pixel_centres(cam).reshape(-1, 2).numpy()
+    pix = np.column_stack([centres, np.ones(len(centres))])
     dirs = (pix @ np.linalg.inv(np.asarray(cam.K, np.float64)).T) @ np.asarray(cam.R, np.float64)  # Rᵀ K⁻¹ p
     return np.concatenate([np.broadcast_to(cam.center, dirs.shape), dirs], axis=1)
 

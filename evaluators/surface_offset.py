@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError, import_open3d
@@ -95,8 +96,6 @@ class SurfaceOffset(Evaluator):
                     "(gsbench scene make NAME); drop surface_offset from eval.evaluators for other scenes")
 
     def evaluate(self, mesh, scene: Scene, **options) -> dict:
-        import trimesh  # noqa: PLC0415
-
         opts = self.options(**options)
         diag = Diagnostics()
         with diag.phase("load"):

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
 from gsbench.errors import DataError, GsbenchError, Interrupted
+from gsbench.resources import set_threads
 
 
 def threads_count(text: str) -> int:
@@ -26,19 +26,10 @@ def threads_count(text: str) -> int:
     return value
 
 
-def _set_threads(threads: int | None) -> None:
-    """Set OpenMP and torch intra-op threads (before torch does work)."""
-    if not threads:
-        return
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(threads)
-
-
 def cmd_list(args) -> int:
-    from gsbench.data.builtin import BUILTIN_SCENES
+    from gsbench.config.suites import load_suite, suite_names
+    from gsbench.data.synthetic.builtin import BUILTIN_SCENES
     from gsbench.registry import EVALUATORS, METHODS
-    from gsbench.suites import load_suite, suite_names
 
     print("methods:    " + (", ".join(METHODS.names()) or "(none registered yet)"))
     print("evaluators: " + ", ".join(EVALUATORS.names()))
@@ -73,7 +64,7 @@ def cmd_scene_check(args) -> int:
 def cmd_scene_floor(args) -> int:
     from gsbench.evaluators.api import format_table
     from gsbench.mesh.floor import floor_report
-    from gsbench.records import write_json_atomic
+    from gsbench.runs.records import write_json_atomic
 
     out = Path(args.out)
     report = floor_report(args.name, preset=args.preset, overrides=args.set or (), out=out)
@@ -89,8 +80,8 @@ def cmd_scene_floor(args) -> int:
 def cmd_config(args) -> int:
     import yaml
 
-    from gsbench.checks import check_run_config
-    from gsbench.config import resolve
+    from gsbench.config.checks import check_run_config
+    from gsbench.config.run_config import resolve
     from gsbench.registry import METHODS
 
     method_cls = METHODS.get(args.method)
@@ -111,7 +102,7 @@ def cmd_config(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from gsbench.runner import resolve_run, run
+    from gsbench.runs.runner import resolve_run, run
 
     cfg = resolve_run(args.method, args.scene, preset=args.preset, user_files=args.config or (),
                       overrides=args.set or (), seed=args.seed, gt=args.gt)
@@ -124,8 +115,8 @@ def cmd_run(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from gsbench.executors import make_executor, threads_per_run
-    from gsbench.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
+    from gsbench.runs.executors import make_executor, threads_per_run
+    from gsbench.runs.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
 
     sweep = with_suite(load_sweep(args.config), args.suite, args.seeds)
     runs = expand(sweep, overrides=args.set or ())
@@ -146,11 +137,11 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from gsbench.config import dataset_of
+    from gsbench.config.run_config import dataset_of
     from gsbench.data.loader import load_scene
     from gsbench.evaluators.api import evaluate_mesh_file, format_table
     from gsbench.evaluators.resolve import plan_evaluation, run_options
-    from gsbench.records import write_json_atomic
+    from gsbench.runs.records import write_json_atomic
 
     if not Path(args.mesh).is_file():
         raise DataError(f"{args.mesh}: mesh file not found; fix: --mesh names a .ply (a run folder's mesh.ply)")
@@ -177,7 +168,7 @@ def cmd_bench(args) -> int:
 
 
 def cmd_depth(args) -> int:
-    from gsbench.depth_check import check_run_depth, format_rows
+    from gsbench.diagnostics.depth_check import check_run_depth, format_rows
 
     rows = check_run_depth(Path(args.run_dir), args.views)
     print(f"{args.run_dir}: the depth the TSDF fuses against the scene's exact depth on the object mask "
@@ -187,7 +178,7 @@ def cmd_depth(args) -> int:
 
 
 def cmd_gaussians(args) -> int:
-    from gsbench.gaussian_placement import format_placement, run_placement
+    from gsbench.diagnostics.gaussian_placement import format_placement, run_placement
 
     regions, within = run_placement(Path(args.run_dir), args.within)
     print(f"{args.run_dir}: the Gaussian centres against the scene's exact surfaces (within {within:.4g} dataset "
@@ -344,7 +335,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    _set_threads(args.threads)
+    if args.threads:  # before a stage loads torch, which reads OMP_NUM_THREADS then
+        set_threads(args.threads)
     try:
         return args.func(args)
     except GsbenchError as exc:

@@ -1,6 +1,7 @@
 """Lazy plugin registries for methods and evaluators.
 
-Built-ins are ``"module:Object"`` strings, so listing imports nothing heavy; third-party plugins come
+Built-ins are ``"module:Object"`` strings, so listing imports nothing heavy: each built-in method names its
+class in its own file, ``configs/methods/<method>.yaml`` (``plugin:``), the evaluators are listed here; third-party plugins come
 from the entry-point groups ``gsbench.methods`` and ``gsbench.evaluators``; `Registry.register` adds
 an object or a path at run time (tests, notebooks). Unknown names fail with "did you mean".
 """
@@ -10,7 +11,7 @@ from __future__ import annotations
 import importlib
 from importlib import metadata
 
-from gsbench.config import suggest
+from gsbench.config.files import declared_methods, suggest
 from gsbench.errors import RegistryError
 
 
@@ -69,21 +70,7 @@ class Registry:
         return obj
 
 
-METHODS = Registry(
-    "method",
-    {
-        "3dgs": "gsbench.methods.gs3d:GS3D",
-        "2dgs": "gsbench.methods.gs2d:GS2D",
-        "gof": "gsbench.methods.gof:GOF",
-        "radegs": "gsbench.methods.radegs:RaDeGS",
-        "sugar": "gsbench.methods.sugar:SuGaR",
-        "ibgs": "gsbench.methods.ibgs:IBGS",
-        "ibgs-gof": "gsbench.methods.ibgs:IBGSGOF",
-        "ibgs-2dgs": "gsbench.methods.ibgs:IBGS2DGS",
-        "pgsr": "gsbench.methods.pgsr:PGSR",
-    },
-    "gsbench.methods",
-)
+METHODS = Registry("method", declared_methods(), "gsbench.methods")  # configs/methods/<method>.yaml
 
 EVALUATORS = Registry(
     "evaluator",

@@ -1,42 +1,70 @@
-"""A finished run's folder, loaded back: its resolved config, its scene and its trained method.
+"""A run's folder and the files in it, named once.
 
-The diagnostics that look inside a trained model (`gsbench depth`, `gsbench gaussians`) read the folder
-`gsbench run` wrote (``<out>/<dataset>/<scene>/<method>/<run_id>``): ``config.yaml``, the resolved
-configuration it wrote itself, and ``checkpoint-final.pt``. A folder without them, or a config that is
-not a run's, is a `GsbenchError` naming the file and the fix.
+`gsbench run` writes ``<out>/<dataset>/<scene>/<method>/<run_id>/``: ``config.yaml`` (the resolved
+configuration), ``checkpoint.pt`` (the latest resumable state, removed when training ends),
+``checkpoint-final.pt``, ``metrics.jsonl`` (the training log), ``mesh.ply``, ``eval.json``, ``stages.json``
+(per stage: seconds and peak memory), ``record.json`` (the run record, written last) and ``.lock`` (one
+process at a time). Training, the runner, sweeps, diagnostics and the report all reach these files through
+`RunFolder`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
-from gsbench.errors import GsbenchError
 
+@dataclass(frozen=True)
+class RunFolder:
+    """The files of the run folder ``path`` (module docstring)."""
 
-def load_finished_run(folder, command: str, *, load_images: bool = True):
-    """``(cfg, scene, method)`` of the finished run in ``folder``, the method set up on the scene and
-    loaded from the final checkpoint; ``command`` names the caller in the errors."""
-    import yaml  # noqa: PLC0415
+    path: Path
 
-    from gsbench.registry import METHODS  # noqa: PLC0415
-    from gsbench.runner import load_run_scene, resolve_run  # noqa: PLC0415
-    from gsbench.train import FINAL_CHECKPOINT, load_checkpoint  # noqa: PLC0415
+    CONFIG = "config.yaml"
+    CHECKPOINT = "checkpoint.pt"
+    FINAL_CHECKPOINT = "checkpoint-final.pt"
+    METRICS = "metrics.jsonl"
+    MESH = "mesh.ply"
+    EVAL = "eval.json"
+    STAGES = "stages.json"
+    RECORD = "record.json"
+    LOCK = ".lock"
 
-    folder = Path(folder)
-    config, final = folder / "config.yaml", folder / FINAL_CHECKPOINT
-    for path in (config, final):
-        if not path.is_file():
-            raise GsbenchError(f"{path} not found: `{command}` reads a finished run's folder (config.yaml and "
-                               f"{FINAL_CHECKPOINT}); fix: pass <out>/<dataset>/<scene>/<method>/<run_id> of a run "
-                               "whose training finished")
-    resolved = yaml.safe_load(config.read_text())
-    if not (isinstance(resolved, dict) and isinstance(resolved.get("method"), dict) and "name" in resolved["method"]
-            and "scene" in resolved and "preset" in resolved):
-        raise GsbenchError(f"{config}: not a run's resolved config (needs method.name, scene and preset); fix: pass the "
-                           "folder gsbench run wrote, whose config.yaml it wrote itself")
-    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(config,))
-    scene = load_run_scene(cfg, load_images=load_images)
-    method = METHODS.get(cfg.method["name"])()
-    method.setup(scene, cfg)
-    method.load_state_dict(load_checkpoint(final)["method"])
-    return cfg, scene, method
+    def __post_init__(self):
+        object.__setattr__(self, "path", Path(self.path))
+
+    @property
+    def config(self) -> Path:
+        return self.path / self.CONFIG
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.path / self.CHECKPOINT
+
+    @property
+    def final_checkpoint(self) -> Path:
+        return self.path / self.FINAL_CHECKPOINT
+
+    @property
+    def metrics(self) -> Path:
+        return self.path / self.METRICS
+
+    @property
+    def mesh(self) -> Path:
+        return self.path / self.MESH
+
+    @property
+    def eval(self) -> Path:
+        return self.path / self.EVAL
+
+    @property
+    def stages(self) -> Path:
+        return self.path / self.STAGES
+
+    @property
+    def record(self) -> Path:
+        return self.path / self.RECORD
+
+    @property
+    def lock(self) -> Path:
+        return self.path / self.LOCK

@@ -19,14 +19,14 @@
     drawn (at most 50) until the floor is reached; never more than n. An empty hull is a `DataError`.
   - ``sphere``, and any scene without masks: ``random_init_points`` uniform in the scene sphere
     (`Gaussians.random_in_sphere`), the initialisation before the hull rule, bit for bit.
-  Adam (``train.optimizer``, `gsbench.optim`) with eps 1e-15 and one group per parameter,
+  Adam (``train.optimizer``, `gsbench.training.optim`) with eps 1e-15 and one group per parameter,
   ``group["name"]`` = `Gaussians.params` key (docs/methods/3dgs.md §5.1): means ``position_lr_init·extent``, sh_dc
   ``feature_lr``, sh_rest ``feature_lr/20``, opacity ``opacity_lr``, log-scales ``scaling_lr``,
   quaternions ``rotation_lr``.
 - ``extent`` is 3DGS ``cameras_extent``: 1.1 × the largest distance of a training camera centre from
   their mean (docs/methods/3dgs.md §1.3); it scales the position lr and the densification size tests.
 - Schedules (`update_schedules`, called by the Trainer every step with the preset's schedule
-  ``scale`` = iterations / 30000, `gsbench.train.scale_step`): position lr
+  ``scale`` = iterations / 30000, `gsbench.training.trainer.scale_step`): position lr
   ``exp((1−t) ln lr0 + t ln lr1)`` with t = min(step / (position_lr_max_steps·scale), 1) (docs/methods/3dgs.md §5.1, no
   delay); SH degree ``min(raster.sh_degree, step // (sh_interval·scale))`` (docs/methods/3dgs.md §2.4: +1 every 1000 steps).
 - ``render``: the method's kernel on `Gaussians.raster_input` with the method's `filter3d` variance
@@ -44,9 +44,8 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,19 +53,21 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from gsbench.config import RunConfig
+from gsbench.atomic import atomic_path
+from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import ConfigError, DataError
-from gsbench.gaussians import Gaussians
-from gsbench.losses import TermSpec, active_terms
+from gsbench.losses.terms import TermSpec, active_terms
 from gsbench.mesh.cleanup import canonical_order
+from gsbench.mesh.tets import tetra_mesh
 from gsbench.mesh.tsdf import tsdf_fusion
-from gsbench.optim import make_adam
 from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, rasterize
-from gsbench.strategies.default import DefaultStrategy
-from gsbench.strategies.base import Strategy
-from gsbench.train import scale_step, split_views
+from gsbench.training.gaussians import Gaussians
+from gsbench.training.optim import make_adam
+from gsbench.training.strategies.base import Strategy
+from gsbench.training.strategies.default import DefaultStrategy
+from gsbench.training.trainer import scale_step
 
 ADAM_EPS = 1e-15  # docs/methods/3dgs.md §5.1, §7
 DEPTH_OUTPUTS = {"expected": "depth", "median": "median_depth"}  # mesh.depth -> render output
@@ -77,16 +78,13 @@ HULL_INIT_MAX_BATCHES = 50  # candidate batches drawn at most to reach that floo
 
 @dataclass(frozen=True)
 class MethodInfo:
-    """What a method declares: primitive (``3d``|``2d``), rasterizer kernel, the render outputs it may
-    request, its mesh extractor and the depth that extractor fuses by default (``expected``|``median``, or a method's
-    own such as PGSR's ``unbiased``; the method yaml sets ``mesh.depth`` to it), and the loss terms it configures."""
+    """What a method's implementation is: its primitive (``3d``|``2d``), its rasterizer kernel and the render
+    outputs it may request. Its default choices (loss terms and weights, mesh extractor and depth) are data, in
+    its own ``configs/methods/<method>.yaml``."""
 
     primitive: str
     kernel: str
     outputs: tuple[str, ...]
-    mesh_extractor: str
-    mesh_depth: str
-    loss_terms: tuple[str, ...]
 
 
 @dataclass
@@ -107,15 +105,16 @@ class GSConfig:
     random_init_points: int = 100_000
     random_init_region: str = "visual_hull"
     max_init_points: int = 0
-    densify_grad_threshold: float = 0.0002
-    percent_dense: float = 0.01
-    prune_opacity: float = 0.005
-    densify_from: int = 500
-    densify_until: int = 15000
-    densify_every: int = 100
-    opacity_reset_every: int = 3000
-    opacity_reset_value: float = 0.01
-    prune_screen_size: bool = False
+    # densification (docs/methods/3dgs.md §5.3), under `DefaultStrategy`'s names and with its 3DGS defaults
+    grad_threshold: float = DefaultStrategy.grad_threshold
+    percent_dense: float = DefaultStrategy.percent_dense
+    prune_opacity: float = DefaultStrategy.prune_opacity
+    refine_start: int = DefaultStrategy.refine_start
+    refine_stop: int = DefaultStrategy.refine_stop
+    refine_every: int = DefaultStrategy.refine_every
+    reset_every: int = DefaultStrategy.reset_every
+    reset_value: float = DefaultStrategy.reset_value
+    prune_screen_size: bool = DefaultStrategy.prune_screen_size
 
 
 def cameras_extent(cameras) -> float:
@@ -131,18 +130,9 @@ def expon_lr(t: float, lr0: float, lr1: float) -> float:
 
 
 def _export_atomic(mesh, out_path: Path) -> None:
-    """Export a trimesh in `canonical_order` to a temp file in the target folder, then ``os.replace`` it
-    into place."""
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.stem}.", suffix=out_path.suffix, dir=out_path.parent)
-    os.close(fd)
-    try:
+    """Export a trimesh in `canonical_order` atomically (`gsbench.atomic`; the format from the suffix)."""
+    with atomic_path(out_path, keep_suffix=True) as tmp:
         canonical_order(mesh).export(tmp)
-        os.replace(tmp, out_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class Method:
@@ -153,10 +143,6 @@ class Method:
     INFO: MethodInfo
     MESH_EXTRACTORS: tuple[str, ...] = ("tsdf",)
     MESH_DEPTHS: tuple[str, ...] = tuple(DEPTH_OUTPUTS)  # accepted mesh.depth values (PGSR adds "unbiased")
-    # What the papers report on the real DTU / TnT (GPU, full schedule), shown by `gsbench report` beside
-    # measured numbers and never comparable with synthetic scenes or CPU budgets: {dataset: {"metric",
-    # "mean", "source", optional "scenes"}}. Read from each class itself (a variant does not inherit it).
-    REPORTED: dict = {}
 
     def __init__(self):
         self.gaussians: Gaussians | None = None
@@ -201,16 +187,21 @@ class Method:
     @classmethod
     def check_config(cls, cfg: RunConfig) -> None:
         """Every check of ``cfg`` this method can make without a scene: `check_params`, and each configured
-        loss term's name and the parameters the method binds to it (`gsbench.losses.active_terms`)."""
+        loss term's name and the parameters the method binds to it (`gsbench.losses.terms.active_terms`)."""
         method = cls()
         method.configure(cfg)
         active_terms(cfg.losses, 0, method.term_params(), method.loss_terms())
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
-        """Create the Gaussians and the optimizer for ``scene`` under the resolved ``cfg``."""
+        """Create the Gaussians and the optimizer for ``scene`` under the resolved ``cfg``; the scene carries the
+        run's view split (`gsbench.runs.runner.load_run_scene`), a ConfigError when it is not ``cfg``'s."""
         self.configure(cfg)
+        if scene.holdout_every != cfg.data.holdout_every:
+            raise ConfigError(f"scene '{scene.name}' was loaded with the view split holdout_every={scene.holdout_every}, "
+                              f"the run's data.holdout_every is {cfg.data.holdout_every}; fix: load it with "
+                              "gsbench.runs.runner.load_run_scene(cfg) or load_scene(..., holdout_every=...)")
         self.scene_radius = scene.radius
-        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        views = scene.train_views
         self.extent = cameras_extent([scene.cameras[i] for i in views])
         self.gaussians = self.initial_gaussians(scene, cfg)
         self.optimizer = self.make_optimizer(self.gaussians)
@@ -246,7 +237,7 @@ class Method:
         """(points, colours) of the random init inside the training views' visual hull (module docstring):
         batches of ``n`` candidates drawn as `Gaussians.random_in_sphere` draws them, the first batch's
         survivors kept, more batches only to reach min(1000, n)."""
-        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        views = scene.train_views
         cameras, masks = [scene.cameras[i] for i in views], [scene.masks[i] for i in views]
         floor = min(HULL_INIT_FLOOR, n)
         rng = np.random.default_rng(cfg.seed)
@@ -281,29 +272,27 @@ class Method:
         lrs = self.learning_rates()
         groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()
                   if param.requires_grad]
-        return make_adam(groups, self.cfg.train.optimizer, ADAM_EPS)  # train.optimizer, gsbench/optim.py
+        return make_adam(groups, self.cfg.train.optimizer, ADAM_EPS)  # train.optimizer, gsbench/training/optim.py
 
     # ---- what the Trainer asks for ------------------------------------------------------------
     def strategy(self) -> Strategy:
         """3DGS densification (docs/methods/3dgs.md §5.3) at the paper's 30k-step schedule; the Trainer scales it."""
         return DefaultStrategy(**self.densify_settings())
 
-    def densify_settings(self) -> dict:
-        """`DefaultStrategy` fields from the method's paper-named densification hyper-parameters."""
-        p = self.params
-        return dict(
-            grad_threshold=p.densify_grad_threshold, percent_dense=p.percent_dense, prune_opacity=p.prune_opacity,
-            refine_start=p.densify_from, refine_stop=p.densify_until, refine_every=p.densify_every,
-            reset_every=p.opacity_reset_every, reset_value=p.opacity_reset_value,
-            prune_screen_size=p.prune_screen_size, white_background=self.cfg.data.white_background,
-            scene_extent=self.extent, max_gaussians=self.cfg.train.max_gaussians)
+    def densify_settings(self, strategy=DefaultStrategy) -> dict:
+        """The ``strategy`` fields the method's ``Config`` sets, under the strategy's own names (a method declares
+        its densification once, in its ``Config``), and the run's: background, scene extent, Gaussian budget."""
+        names = {f.name for f in dataclasses.fields(strategy)}
+        own = {k: v for k, v in dataclasses.asdict(self.params).items() if k in names}
+        return {**own, "white_background": self.cfg.data.white_background, "scene_extent": self.extent,
+                "max_gaussians": self.cfg.train.max_gaussians}
 
     def loss_terms(self) -> dict[str, TermSpec]:
         """The method's own terms not in the global registry (none for 3DGS/2DGS)."""
         return {}
 
     def term_params(self) -> dict[str, dict]:
-        """Parameters bound to registered terms (`gsbench.losses.active_terms` ``params``)."""
+        """Parameters bound to registered terms (`gsbench.losses.terms.active_terms` ``params``)."""
         return {}
 
     def loss_state(self) -> dict:
@@ -349,10 +338,8 @@ class Method:
     def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
         """Mesh the trained Gaussians with ``mesh.extractor`` into ``out_path`` (.ply); returns its size."""
         self.check_extractor(cfg)
-        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        views = scene.train_views
         if cfg.mesh.extractor == "tets":
-            from gsbench.mesh.tets import tetra_mesh  # noqa: PLC0415  (CGAL/scipy only when used)
-
             mesh = tetra_mesh(self.raster_input(), [scene.cameras[i] for i in views], self.raster_settings(),
                               kernel=self.info().kernel, level=cfg.mesh.level, bisection_steps=cfg.mesh.bisection_steps)
         else:

@@ -15,13 +15,12 @@ from dataclasses import dataclass
 
 import torch
 
-from gsbench.config import RunConfig
+from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.geometry.filter3d import Filter3D
 from gsbench.methods.base import GSConfig, Method
-from gsbench.strategies.absgrad import AbsGradStrategy
-from gsbench.strategies.base import Strategy
-from gsbench.train import split_views
+from gsbench.training.strategies.absgrad import AbsGradStrategy
+from gsbench.training.strategies.base import Strategy
 
 
 @dataclass
@@ -39,7 +38,7 @@ class FilteredMethod(Method):
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
         super().setup(scene, cfg)
-        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        views = scene.train_views
         self.filter = Filter3D([scene.cameras[i] for i in views], near=self.raster_settings().near,
                                enabled=self.params.use_filter3d)
         self.filter.update(self.gaussians.means)

@@ -37,21 +37,8 @@ class GOF(FilteredMethod):
 
     name = "gof"
     Config = GOFConfig
-    INFO = MethodInfo(primitive="3d", kernel="raymax", outputs=("rgb", "alpha", "median_depth", "normal", "distortion"),
-                      mesh_extractor="tsdf", mesh_depth="median",
-                      loss_terms=("l1", "dssim", "normal_consistency", "depth_distortion"))
+    INFO = MethodInfo(primitive="3d", kernel="raymax", outputs=("rgb", "alpha", "median_depth", "normal", "distortion"))
     MESH_EXTRACTORS = ("tsdf", "tets")
-    # docs/methods/gof.md §10: DTU and TnT as the PGSR paper (Tables II, III) and MILo (Tables 2, 3) quote the GOF
-    # paper's tables, which were not read themselves.
-    REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 0.74, "source": "GOF paper, DTU table (as quoted by PGSR and MILo)",
-                "scenes": {"scan24": 0.50, "scan37": 0.82, "scan40": 0.37, "scan55": 0.37, "scan63": 1.12,
-                           "scan65": 0.74, "scan69": 0.73, "scan83": 1.18, "scan97": 1.29, "scan105": 0.68,
-                           "scan106": 0.77, "scan110": 0.90, "scan114": 0.42, "scan118": 0.66, "scan122": 0.49}},
-        "tnt": {"metric": "f1_centroids", "mean": 0.46, "source": "GOF paper, TnT table (as quoted by MILo)",
-                "scenes": {"Barn": 0.51, "Caterpillar": 0.41, "Courthouse": 0.28, "Ignatius": 0.68,
-                           "Meetingroom": 0.28, "Truck": 0.59}},
-    }
 
     def raster_settings(self) -> RasterSettings:
         """GOF detaches the blending weights in the distortion gradient (docs/methods/gof.md §3.5)."""

@@ -1,7 +1,7 @@
 """3DGS (Kerbl et al. 2023), docs/methods/3dgs.md.
 
 EWA splatting of 3D Gaussians (``ewa`` kernel), L = 0.8·L1 + 0.2·(1 − SSIM) (docs/methods/3dgs.md §4.1, weights in
-``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.strategies.default.DefaultStrategy`, docs/methods/3dgs.md §5.3)
+``configs/methods/3dgs.yaml``), the 2023 densification (`gsbench.training.strategies.default.DefaultStrategy`, docs/methods/3dgs.md §5.3)
 with prune opacity 0.005, identity rotations at init (docs/methods/3dgs.md §2.2). 3DGS has no mesh extractor of its own;
 the benchmark fuses the *expected* depth Σ wᵢzᵢ / Σ wᵢ with the 2DGS TSDF settings (docs/methods/3dgs.md §6).
 """
@@ -16,10 +16,4 @@ class GS3D(Method):
 
     name = "3dgs"
     Config = GSConfig
-    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"), mesh_extractor="tsdf",
-                      mesh_depth="expected", loss_terms=("l1", "dssim"))
-    # docs/methods/3dgs.md §9: the 2DGS paper's Tables 1 and 2 (checked against arXiv 2403.17888v3).
-    REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 1.96, "source": "2DGS paper, Table 1 (3DGS row)"},
-        "tnt": {"metric": "f1_centroids", "mean": 0.09, "source": "2DGS paper, Table 2 (3DGS row)"},
-    }
+    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"))

@@ -16,8 +16,8 @@ is the reconstruction of docs/methods/ibgs.md §10, every assumption a config fi
   true lets the rendering gradient reach the neighbour means through V. Scales stay free; scale axis
   k follows frame column k (v3, the normal, is the third axis at init; surfels keep it there);
 - losses ``eigval`` and ``eigvec`` (`gsbench.methods.ibgs_terms`), weights in the method yaml;
-- densification: `gsbench.strategies.sparsity.SparsityAwareStrategy` — the abs-gradient criterion plus SADC
-  (``sadc``, ``sadc_sparsity``, ``sadc_min_gap``).
+- densification: `gsbench.training.strategies.sparsity.SparsityAwareStrategy` — the abs-gradient criterion plus SADC
+  (``sadc``, ``sparsity``, ``min_gap``).
 
 Registered variants, one per kernel (the authors' RaDe-GS, GOF and 2DGS variants, docs/methods/ibgs.md §1.3, docs/methods/ibgs.md §11.2): ``ibgs``
 (RaDe-GS v1 on ``rade``: λ_d 100, L_n, TSDF of the median depth), ``ibgs-gof`` (GOF on ``raymax``) and
@@ -33,19 +33,19 @@ from dataclasses import dataclass
 import torch
 
 import gsbench.methods.ibgs_terms  # noqa: F401  (registers eigval and eigvec)
-from gsbench.config import RunConfig
+from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError
 from gsbench.geometry.local_geometry import LocalGeometry, apply_alignment, frame_alignment, local_geometry
+from gsbench.geometry.neighbours import NeighbourIndex
+from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
 from gsbench.methods.gof import GOF, GOFConfig
 from gsbench.methods.gs2d import GS2D, GS2DConfig
 from gsbench.methods.radegs import RaDeGS, RaDeGSConfig
-from gsbench.geometry.neighbours import NeighbourIndex
 from gsbench.phase_timer import PhaseTimer
 from gsbench.raster import RasterGaussians
-from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
-from gsbench.strategies.sparsity import SparsityAwareStrategy
-from gsbench.strategies.base import Strategy
+from gsbench.training.strategies.base import Strategy
+from gsbench.training.strategies.sparsity import SparsityAwareStrategy
 
 
 @dataclass
@@ -59,8 +59,8 @@ class IBGSFields:
     match_frames: bool = True
     eigen_gap_eps: float = 1e-3
     sadc: bool = True
-    sadc_sparsity: float = 2.0
-    sadc_min_gap: float = 1.5
+    sparsity: float = 2.0
+    min_gap: float = 1.5
 
 
 class IBGSMixin:
@@ -118,10 +118,8 @@ class IBGSMixin:
 
     def strategy(self) -> Strategy:
         """Abs-gradient densification + SADC, sharing the kNN index (and the 3D filter, if any)."""
-        p = self.params
-        return SparsityAwareStrategy(**self.densify_settings(), filter3d=getattr(self, "filter", None),
-                                     neighbours=self.neighbours, sadc=p.sadc, sparsity=p.sadc_sparsity,
-                                     min_gap=p.sadc_min_gap, include_self=p.knn_include_self,
+        return SparsityAwareStrategy(**self.densify_settings(SparsityAwareStrategy),
+                                     filter3d=getattr(self, "filter", None), neighbours=self.neighbours,
                                      scene_radius=self.scene_radius)
 
     def training_phases(self) -> dict[str, float]:
@@ -159,15 +157,6 @@ class IBGS(IBGSMixin, RaDeGS):
 
     name = "ibgs"
     Config = IBGSConfig
-    INFO = dataclasses.replace(RaDeGS.INFO, loss_terms=RaDeGS.INFO.loss_terms + ("eigval", "eigvec"))
-    # docs/methods/ibgs.md §11.1 (OpenReview discussion): DTU 0.67 (with L_d + L_n; the K table
-    # gives 0.674 at K = 5), TnT per scene, mean 0.40.
-    REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 0.67, "source": "IBGS OpenReview discussion, screen-space loss table"},
-        "tnt": {"metric": "f1_centroids", "mean": 0.40, "source": "IBGS OpenReview discussion, TnT table",
-                "scenes": {"Barn": 0.41, "Caterpillar": 0.34, "Courthouse": 0.23, "Ignatius": 0.68,
-                           "Meetingroom": 0.26, "Truck": 0.50}},
-    }
 
 
 class IBGSGOF(IBGSMixin, GOF):
@@ -175,9 +164,6 @@ class IBGSGOF(IBGSMixin, GOF):
 
     name = "ibgs-gof"
     Config = IBGSGOFConfig
-    INFO = dataclasses.replace(GOF.INFO, loss_terms=GOF.INFO.loss_terms + ("eigval", "eigvec"))
-    # docs/methods/ibgs.md §11.1: GOF 0.72 -> 0.70 DTU CD.
-    REPORTED = {"dtu": {"metric": "chamfer", "mean": 0.70, "source": "IBGS OpenReview discussion, other rasterizers"}}
 
 
 class IBGS2DGS(IBGSMixin, GS2D):
@@ -185,6 +171,3 @@ class IBGS2DGS(IBGSMixin, GS2D):
 
     name = "ibgs-2dgs"
     Config = IBGS2DGSConfig
-    INFO = dataclasses.replace(GS2D.INFO, loss_terms=GS2D.INFO.loss_terms + ("eigval", "eigvec"))
-    # docs/methods/ibgs.md §11.1: 2DGS 0.75 -> 0.72 DTU CD.
-    REPORTED = {"dtu": {"metric": "chamfer", "mean": 0.72, "source": "IBGS OpenReview discussion, other rasterizers"}}

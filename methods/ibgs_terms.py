@@ -1,5 +1,5 @@
 """IBGS loss terms ``eigval`` and ``eigvec`` (docs/methods/ibgs.md §5.2, §5.3, docs/methods/ibgs.md §5),
-registered in `gsbench.losses` at import.
+registered in `gsbench.losses.terms` at import.
 
 Both read ``state["local_geometry"]`` (a `gsbench.geometry.local_geometry.LocalGeometry` of this step) and
 ``state["scene_radius"]``; Gaussians whose neighbourhood is a single point (``valid`` false) are skipped.
@@ -22,7 +22,7 @@ import torch
 from gsbench.errors import ConfigError
 from gsbench.geometry.local_geometry import LocalGeometry
 from gsbench.geometry.neighbours import rows
-from gsbench.losses import Batch, register_term
+from gsbench.losses.terms import Batch, register_term
 from gsbench.raster.types import RenderOutput
 
 

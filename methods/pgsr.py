@@ -36,17 +36,18 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-import gsbench.raster as raster
-from gsbench.config import RunConfig
+from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError
-from gsbench.losses import Batch, depth_to_normal, pixel_rays
+from gsbench.geometry.depth import depth_to_normal, pixel_rays
+from gsbench.losses.terms import Batch
 from gsbench.methods import pgsr_terms
 from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo
+from gsbench.raster import profiling
 from gsbench.raster.types import RenderOutput
-from gsbench.strategies.base import Strategy
-from gsbench.strategies.absgrad import AbsGradStatistics
-from gsbench.train import scale_step, split_views
+from gsbench.training.strategies.absgrad import AbsGradStatistics
+from gsbench.training.strategies.base import Strategy
+from gsbench.training.trainer import scale_step
 
 
 @dataclass
@@ -55,7 +56,7 @@ class PGSRConfig(GSConfig):
     except percent_dense 0.001, plus the abs-gradient split, the multi-view settings and exposure compensation."""
 
     percent_dense: float = 0.001
-    densify_abs_grad_threshold: float = 0.0008  # TnT script: 0.00015
+    abs_grad_threshold: float = 0.0008  # TnT script: 0.00015
     abs_split_radius: float = 20.0  # px: the abs-gradient split needs a max screen radius above this
     multi_view_num: int = 8
     multi_view_max_angle: float = 30.0  # degrees between viewing directions
@@ -128,22 +129,8 @@ class PGSR(Method):
 
     name = "pgsr"
     Config = PGSRConfig
-    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "normal", "plane_distance"),
-                      mesh_extractor="tsdf", mesh_depth="unbiased",
-                      loss_terms=("l1_exposure", "dssim", "min_scale", "pgsr_normal", "pgsr_geo", "pgsr_ncc"))
+    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "normal", "plane_distance"))
     MESH_DEPTHS = ("unbiased", *DEPTH_OUTPUTS)
-    # docs/methods/pgsr.md §9: the paper's Table II row "PGSR(DS)" (training images downsampled x2, as PGSR's DTU
-    # script trains; the full-resolution row is 0.49) and Table III, checked against the arXiv 2406.06521 text.
-    REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 0.53, "source": "PGSR paper, Table II, PGSR(DS) row (half-resolution training)",
-                "scenes": {"scan24": 0.34, "scan37": 0.58, "scan40": 0.29, "scan55": 0.29, "scan63": 0.78,
-                           "scan65": 0.58, "scan69": 0.54, "scan83": 1.01, "scan97": 0.73, "scan105": 0.51,
-                           "scan106": 0.49, "scan110": 0.69, "scan114": 0.31, "scan118": 0.37, "scan122": 0.38}},
-        "tnt": {"metric": "f1_centroids", "mean": 0.50,
-                "source": "PGSR paper, Table III",
-                "scenes": {"Barn": 0.66, "Caterpillar": 0.41, "Courthouse": 0.21, "Ignatius": 0.80,
-                           "Meetingroom": 0.29, "Truck": 0.60}},
-    }
 
     def __init__(self):
         super().__init__()
@@ -176,7 +163,7 @@ class PGSR(Method):
         super().setup(scene, cfg)
         p = self.params
         self.cameras = list(scene.cameras)
-        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        views = scene.train_views
         self.neighbours = neighbour_views(self.cameras, views, p.multi_view_num, p.multi_view_max_angle,
                                           p.multi_view_min_dis * scene.radius, p.multi_view_max_dis * scene.radius)
         self.gray = [pgsr_terms.gray(torch.as_tensor(np.asarray(img, dtype=np.float32))) for img in scene.images] \
@@ -190,9 +177,7 @@ class PGSR(Method):
         return optimizer
 
     def strategy(self) -> Strategy:
-        p = self.params
-        return PGSRStrategy(**self.densify_settings(), abs_grad_threshold=p.densify_abs_grad_threshold,
-                            abs_split_radius=p.abs_split_radius)
+        return PGSRStrategy(**self.densify_settings(PGSRStrategy))
 
     def update_schedules(self, step: int, scale: float) -> None:
         super().update_schedules(step, scale)
@@ -221,7 +206,7 @@ class PGSR(Method):
         t0 = time.perf_counter()
         # the neighbour's render is part of this loss term's cost; `gsbench bench train` times its rasterizer
         # phases apart from the step's own render (gsbench/bench/train.py, ``neighbour_raster``)
-        with raster.profile_as("neighbour."):
+        with profiling.profile_as("neighbour."):
             ctx = self._build_multiview(render, batch)
         self.multiview_seconds += time.perf_counter() - t0
         self._cache = (key, ctx)

@@ -1,4 +1,4 @@
-"""PGSR's geometry and loss terms (docs/methods/pgsr.md §3, §4), registered in `gsbench.losses` at import.
+"""PGSR's geometry and loss terms (docs/methods/pgsr.md §3, §4), registered in `gsbench.losses.terms` at import.
 
 Geometry (camera space, the pixel-centre convention of docs/design.md §2.1, r̃ = K⁻¹(u, v, 1)):
 
@@ -39,9 +39,10 @@ import torch.nn.functional as F
 
 from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
-from gsbench.losses import Batch, depth_to_normal, image_map, pixel_rays, register_term
+from gsbench.geometry.depth import depth_to_normal, pixel_centres, pixel_rays
+from gsbench.losses.ssim import ssim
+from gsbench.losses.terms import Batch, image_map, register_term
 from gsbench.raster.types import RenderOutput
-from gsbench.ssim import ssim
 
 GRAY = (0.299, 0.587, 0.114)  # PGSR process_image: the grey image of the NCC (ITU-R 601 luma)
 GRAZING_COS = 1e-2  # unbiased depth only where −N̂·r̂ > this (about 89.4°); PGSR divides by N·r + 1e-8 unguarded
@@ -132,13 +133,6 @@ def sample_image(image: torch.Tensor, pixels: torch.Tensor, padding: str = "bord
     return out[..., 0] if squeeze else out
 
 
-def pixel_grid(camera: Camera, dtype=torch.float32) -> torch.Tensor:
-    """(H,W,2) pixel-centre coordinates (i + 0.5, j + 0.5)."""
-    j, i = torch.meshgrid(torch.arange(camera.height, dtype=dtype), torch.arange(camera.width, dtype=dtype),
-                          indexing="ij")
-    return torch.stack([i + 0.5, j + 0.5], -1)
-
-
 @dataclass
 class Warp:
     """The forward–backward warp (`warp_to_neighbour`) of the P reference pixels whose own plane gives a depth.
@@ -171,7 +165,7 @@ def warp_to_neighbour(ref_plane: tuple[torch.Tensor, torch.Tensor], ref_cam: Cam
     rays_all = pixel_rays(ref_cam, dtype).reshape(-1, 3)
     D_r, N_r = D_r.reshape(-1), N_r.reshape(-1, 3)
     index = torch.nonzero(plane_validity(D_r, N_r, rays_all)).flatten()
-    pix = pixel_grid(ref_cam, dtype).reshape(-1, 2)[index]
+    pix = pixel_centres(ref_cam, dtype).reshape(-1, 2)[index]
     rays_r, D_r, N_r = rays_all[index], D_r[index], N_r[index]
     ok_r = torch.ones_like(D_r, dtype=torch.bool)
     K_r, K_n = intrinsics(ref_cam, dtype), intrinsics(nb_cam, dtype)
@@ -281,8 +275,8 @@ def l1_exposure_term(render: RenderOutput, batch: Batch, state: dict) -> torch.T
 def pgsr_normal_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
     """L_svgeo = mean over H×W of w · Σ_c |N_d·stopgrad(α) − N| (docs/methods/pgsr.md §4.2): N the rendered normal
     (Σ wᵢnᵢ, not normalised), N_d the unit normal of the unbiased depth's central differences
-    (`gsbench.losses.depth_to_normal`), w = `image_gradient_weight` of the GT image (computed once per view,
-    `gsbench.losses.image_map`)."""
+    (`gsbench.losses.terms.depth_to_normal`), w = `image_gradient_weight` of the GT image (computed once per view,
+    `gsbench.losses.terms.image_map`)."""
     depth = render_depth(render, batch.camera)
     n_d = depth_to_normal(depth, batch.camera) * render.alpha.detach()[..., None]
     weight = image_map(image_gradient_weight, batch.image, depth.dtype)

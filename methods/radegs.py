@@ -41,20 +41,7 @@ class RaDeGS(FilteredMethod):
     name = "radegs"
     Config = RaDeGSConfig
     INFO = MethodInfo(primitive="3d", kernel="rade",
-                      outputs=("rgb", "alpha", "depth", "median_depth", "normal", "distortion"),
-                      mesh_extractor="tsdf", mesh_depth="median",
-                      loss_terms=("l1", "dssim", "normal_consistency", "depth_distortion"))
-    # docs/methods/radegs.md §9: DTU 0.68 (paper v1) and TnT per scene, mean 0.40, as MILo (Tables 2, 3) and, for
-    # TnT, the IBGS authors quote them; the RaDe-GS paper itself was not read.
-    REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 0.68, "source": "RaDe-GS paper v1, DTU table (as quoted by MILo)",
-                "scenes": {"scan24": 0.46, "scan37": 0.73, "scan40": 0.33, "scan55": 0.38, "scan63": 0.79,
-                           "scan65": 0.75, "scan69": 0.76, "scan83": 1.19, "scan97": 1.22, "scan105": 0.62,
-                           "scan106": 0.70, "scan110": 0.78, "scan114": 0.36, "scan118": 0.68, "scan122": 0.47}},
-        "tnt": {"metric": "f1_centroids", "mean": 0.40, "source": "RaDe-GS v1, TnT table (as quoted by MILo and the IBGS discussion)",
-                "scenes": {"Barn": 0.43, "Caterpillar": 0.32, "Courthouse": 0.21, "Ignatius": 0.69,
-                           "Meetingroom": 0.25, "Truck": 0.51}},
-    }
+                      outputs=("rgb", "alpha", "depth", "median_depth", "normal", "distortion"))
 
     def term_params(self) -> dict[str, dict]:
         """L_n mixing the expected- and median-depth normals; v1's normalised, edge-aware L_d (docs/methods/radegs.md §4.2, §4.3)."""

@@ -3,15 +3,15 @@
 Pipeline (docs/methods/sugar.md §1.1, §2, §3), one training run on the ``ewa`` (3DGS) kernel:
 
 1. **3DGS warm-up** until step ``warmup_until``: the 2023 3DGS loss 0.8·L1 + 0.2·(1 − SSIM) and its
-   densification (`gsbench.strategies.default.DefaultStrategy`: clone/split/prune every 100 steps, opacity
-   resets), stopped at the end of the warm-up whatever ``densify_until`` says (SuGaR's 3DGS stops at
+   densification (`gsbench.training.strategies.default.DefaultStrategy`: clone/split/prune every 100 steps, opacity
+   resets), stopped at the end of the warm-up whatever ``refine_stop`` says (SuGaR's 3DGS stops at
    7000 < 15000).
 2. **Coarse stage** from step ``warmup_until``: a fresh Adam state (SuGaR builds a new optimizer from
    the 7k checkpoint; the position lr continues along the same log-linear decay), the full SH degree,
    no densification and no opacity reset; the opacity entropy term (``opacity_entropy``, weight 0.1)
    until ``hard_prune_at``.
 3. At the start of step ``hard_prune_at``: **hard prune** of the Gaussians with opacity <
-   ``hard_prune_opacity`` (0.5), optimizer-aware (`gsbench.strategies.base.keep_params`); then the kNN graph
+   ``hard_prune_opacity`` (0.5), optimizer-aware (`gsbench.training.strategies.base.keep_params`); then the kNN graph
    (``knn_k`` = 16 nearest centres, itself included, scipy cKDTree) is computed, and recomputed every
    ``knn_every`` steps after that. From that step the SDF-estimation regulariser (``sugar_sdf``, weight
    0.2, ``regularizer``: ``density`` by default or ``sdf``) and the normal regulariser (``sugar_normal``,
@@ -22,12 +22,12 @@ Pipeline (docs/methods/sugar.md §1.1, §2, §3), one training run on the ``ewa`
    (`gsbench.mesh.levelset`). ``tsdf`` is also accepted.
 
 **Schedule.** SuGaR runs 15 000 steps (7000 3DGS + 8000 coarse). Every step-valued setting of gsbench is
-for a 30 000-step run and scaled by ``train.iterations / 30000`` (`gsbench.train`), so SuGaR's step
+for a 30 000-step run and scaled by ``train.iterations / 30000`` (`gsbench.training.trainer`), so SuGaR's step
 numbers are doubled here: warm-up 14 000, entropy window 14 000–18 000, prune and regularisers from
 18 000, kNN refresh every 1000, and the warm-up's 3DGS schedule (densify from 1000, opacity reset every
 6000, position lr decay over 60 000, SH degree +1 every 2000). Any ``train.iterations`` keeps SuGaR's
 proportions (7/15 warm-up, entropy to 9/15); ``--set train.iterations=15000`` reproduces SuGaR's step
-numbers exactly. The densification interval stays 100 Adam steps (`gsbench.train.scaled_strategy`).
+numbers exactly. The densification interval stays 100 Adam steps (`gsbench.training.trainer.scaled_strategy`).
 
 **Samples per step** (``num_samples``, default 10 000; SuGaR: 1 000 000). The two regularisers cost
 ≈ 1.8 µs per sample with the fused field kernels (16 neighbours, forward + backward: 18 ms for 10 000
@@ -54,14 +54,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from gsbench.config import RunConfig
+from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError, NumericalError
+from gsbench.mesh.levelset import levelset_mesh
 from gsbench.methods import sugar_terms
 from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo, _export_atomic
-from gsbench.strategies.default import DefaultStrategy
-from gsbench.strategies.base import Strategy, keep_params
-from gsbench.train import scale_step, split_views
+from gsbench.training.strategies.base import Strategy, keep_params
+from gsbench.training.strategies.default import DefaultStrategy
+from gsbench.training.trainer import scale_step
 
 
 @dataclass
@@ -71,9 +72,9 @@ class SugarConfig(GSConfig):
 
     position_lr_max_steps: int = 60000
     sh_interval: int = 2000
-    densify_from: int = 1000
-    densify_until: int = 30000
-    opacity_reset_every: int = 6000
+    refine_start: int = 1000
+    refine_stop: int = 30000
+    reset_every: int = 6000
     warmup_until: int = 14000
     hard_prune_at: int = 18000
     hard_prune_opacity: float = 0.5
@@ -86,21 +87,14 @@ class SugarConfig(GSConfig):
 class SuGaR(Method):
     """SuGaR's coarse stage: 3DGS warm-up, entropy, hard prune, density/normal regularisers, Poisson mesh.
 
-    ``INFO.mesh_extractor`` is the coarse mesh (docs/methods/sugar.md §4); SuGaR's refinement stage (docs/methods/sugar.md §6, optional in SuGaR)
+    The mesh (``mesh.extractor: poisson``, configs/methods/sugar.yaml) is the coarse mesh (docs/methods/sugar.md §4); SuGaR's refinement stage (docs/methods/sugar.md §6, optional in SuGaR)
     is not available, so the coarse mesh is always the one evaluated.
     """
 
     name = "sugar"
     Config = SugarConfig
-    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth", "median_depth"),
-                      mesh_extractor="poisson", mesh_depth="median",
-                      loss_terms=("l1", "dssim", "opacity_entropy", "sugar_sdf", "sugar_normal"))
+    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth", "median_depth"))
     MESH_EXTRACTORS = ("poisson", "tsdf")
-    # docs/methods/sugar.md §8: the 2DGS paper's Tables 1 and 2 (checked against arXiv 2403.17888v3).
-    REPORTED = {
-        "dtu": {"metric": "chamfer", "mean": 1.33, "source": "2DGS paper, Table 1 (SuGaR row)"},
-        "tnt": {"metric": "f1_centroids", "mean": 0.19, "source": "2DGS paper, Table 2 (SuGaR row)"},
-    }
 
     def check_params(self) -> None:
         """The base checks, the coarse-stage schedule, the prune threshold, the kNN and the regulariser."""
@@ -124,7 +118,7 @@ class SuGaR(Method):
         """3DGS densification (docs/methods/3dgs.md §5.3) during the warm-up only (docs/methods/sugar.md §3.1: none in
         the coarse stage)."""
         settings = self.densify_settings()
-        settings["refine_stop"] = min(self.params.densify_until, self.params.warmup_until)
+        settings["refine_stop"] = min(self.params.refine_stop, self.params.warmup_until)
         return DefaultStrategy(**settings)
 
     def term_params(self) -> dict[str, dict]:
@@ -168,9 +162,7 @@ class SuGaR(Method):
         """``poisson``: SuGaR's level-set points + screened Poisson (docs/methods/sugar.md §4); other extractors as `Method`."""
         if cfg.mesh.extractor != "poisson":
             return super().extract_mesh(scene, cfg, out_path)
-        from gsbench.mesh.levelset import levelset_mesh  # noqa: PLC0415  (open3d only when used)
-
-        views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+        views = scene.train_views
         cameras = [scene.cameras[i] for i in views]
         masks = [scene.masks[i] for i in views] if cfg.data.use_masks and scene.masks is not None else None
         mesh = levelset_mesh(self.raster_input(), cameras, self.raster_settings(), cfg.mesh, kernel=self.info().kernel,

@@ -16,7 +16,7 @@ smallest scales σ (N,):
 Two implementations of each:
 
 * fused (default): ``gs_sugar_field_*`` / ``gs_sugar_normal_*`` of the C++ extension
-  (``gsbench/raster/csrc/sugar_field.cpp``: float32 and float64, OpenMP, float64 arithmetic for both). The
+  (``methods/csrc/sugar_field.cpp``: float32 and float64, OpenMP, float64 arithmetic for both). The
   forwards evaluate the formulas per pair (the field packs each Gaussian's A = R/s, μ, o, s once); the
   backwards (the clamp's gradient 0 above ``clamp_max``, as torch's) sum ∂L/∂x over each sample's pairs and
   the per-Gaussian gradients over each Gaussian's pairs in a fixed order (a counting sort of idx, shared by
@@ -37,13 +37,13 @@ latter, ~1e-7; the float32 reference is itself a few 1e-7 off it).
 from __future__ import annotations
 
 import ctypes
-import functools
+from pathlib import Path
 
 import torch
 from torch.autograd.function import once_differentiable
 
-from gsbench.impl_choice import choose_impl
-from gsbench.raster.build import load_library, omp_threads
+from gsbench.native.build import load_library, omp_threads
+from gsbench.native.impl_choice import choose_impl
 
 FIELD_ENV = "GSBENCH_SUGAR_FIELD"
 IMPLS = ("fused", "reference")
@@ -134,20 +134,18 @@ def _index(idx: torch.Tensor) -> torch.Tensor:
 
 
 
-@functools.lru_cache(maxsize=1)
-def _library() -> ctypes.CDLL:
-    """The extension with the four entry points' signatures declared."""
+_i64, _ptr, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+SIGNATURES = {
+    "gs_sugar_field_forward": ([_i64] * 4 + [_ptr] * 6 + [_dbl, _ptr, _i64], ctypes.c_int),
+    "gs_sugar_field_backward": ([_i64] * 4 + [_ptr] * 6 + [_dbl] + [_ptr] * 6 + [_i64], ctypes.c_int),
+    "gs_sugar_normal_forward": ([_i64] * 4 + [_ptr] * 7 + [_dbl] * 3 + [_ptr, _ptr, _i64], ctypes.c_int),
+    "gs_sugar_normal_backward": ([_i64] * 4 + [_ptr] * 4 + [_i64], ctypes.c_int),
+}
 
-    lib = load_library()
-    i64, ptr, dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
-    lib.gs_sugar_field_forward.argtypes = [i64] * 4 + [ptr] * 6 + [dbl, ptr, i64]
-    lib.gs_sugar_field_backward.argtypes = [i64] * 4 + [ptr] * 6 + [dbl] + [ptr] * 6 + [i64]
-    lib.gs_sugar_normal_forward.argtypes = [i64] * 4 + [ptr] * 7 + [dbl] * 3 + [ptr, ptr, i64]
-    lib.gs_sugar_normal_backward.argtypes = [i64] * 4 + [ptr] * 4 + [i64]
-    for fn in (lib.gs_sugar_field_forward, lib.gs_sugar_field_backward, lib.gs_sugar_normal_forward,
-               lib.gs_sugar_normal_backward):
-        fn.restype = ctypes.c_int
-    return lib
+
+def _library() -> ctypes.CDLL:
+    """The native library of SuGaR's neighbour field, normal average and their backwards (``csrc/sugar_field.cpp``, compiled on first use)."""
+    return load_library("sugar_field", [Path(__file__).parent / "csrc" / "sugar_field.cpp"], SIGNATURES)
 
 
 def _check(rc: int, what: str) -> None:

@@ -1,6 +1,6 @@
 """SuGaR's coarse-stage regularisers as registered loss terms (docs/methods/sugar.md §3, §5).
 
-Importing this module registers two terms in `gsbench.losses`:
+Importing this module registers two terms in `gsbench.losses.terms`:
 
 - ``sugar_sdf``  — SuGaR's "SDF estimation" loss (``estimation_factor`` 0.2), parameter ``mode``:
   ``density`` (``coarse_density.py``, the default) or ``sdf`` (``coarse_sdf.py``);
@@ -56,10 +56,10 @@ import torch
 import torch.nn.functional as F
 
 from gsbench.errors import ConfigError
-from gsbench.losses import Batch, register_term
-from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
 from gsbench.geometry.neighbours import nearest_other, rows
-from gsbench.raster.projection import quat_to_rotmat
+from gsbench.losses.terms import Batch, register_term
+from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
+from gsbench.raster.payload import quat_to_rotmat
 from gsbench.raster.types import RenderOutput
 
 MODES = ("density", "sdf")

@@ -186,3 +186,22 @@ def tnt_sphere_mesh(offset: float = 0.0, world: np.ndarray | None = None, subdiv
     if world is not None:
         v = v @ world[:3, :3].T + world[:3, 3]
     return trimesh.Trimesh(v, m.faces, process=False)
+
+
+def grid_samples_loop(vertices, faces, density):
+    """Per-triangle loop written straight from docs/evaluation.md §2.2."""
+    out = []
+    for f in faces:
+        a, b, c = vertices[f]
+        v1, v2 = b - a, c - a
+        l1, l2, area2 = np.linalg.norm(v1), np.linalg.norm(v2), np.linalg.norm(np.cross(v1, v2))
+        if area2 == 0:
+            continue
+        thr = density * np.sqrt(l1 * l2 / area2)
+        n1, n2 = int(np.floor(l1 / thr)), int(np.floor(l2 / thr))
+        for i in range(n1 + 1):
+            for j in range(n2 + 1):
+                k1, k2 = (i + 0.5) / max(n1, 1e-7), (j + 0.5) / max(n2, 1e-7)
+                if k1 + k2 < 1:
+                    out.append(a + k1 * v1 + k2 * v2)
+    return np.array(out).reshape(-1, 3)

@@ -1,8 +1,13 @@
 """A method set up on a scene with the quick preset and a few hundred random Gaussians (method tests)."""
 
+import math
+
+import pytest
+
 from gsbench.data.loader import load_scene
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run
+from gsbench.runs.runner import resolve_run, run
+from gsbench.training.trainer import Trainer
 
 TINY = ["data.downscale=1", "method.random_init_points=400", "train.checkpoint_every=0"]
 
@@ -19,10 +24,6 @@ def setup_method(name, scene_dir, *overrides):
 def straight_and_resumed(method, scene_dir, tmp_path, monkeypatch, *overrides, crash_after: int):
     """Two Trainers of ``method``: one trained straight through, one that crashes after step ``crash_after``
     and is resumed from its checkpoint by a fresh Trainer (``overrides`` set the schedule)."""
-    import pytest  # noqa: PLC0415
-
-    from gsbench.train import Trainer  # noqa: PLC0415
-
     def trainer(folder):
         m, scene, cfg = setup_method(method, scene_dir, *overrides)
         return Trainer(m, scene, cfg, folder)
@@ -47,10 +48,6 @@ QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations
 
 def quick_run(name, scene_dir, tmp_path, *overrides):
     """The record of a quick end-to-end run (train, mesh, dtu_chamfer), checked ok, finite and meshed."""
-    import math  # noqa: PLC0415
-
-    from gsbench.runner import run  # noqa: PLC0415
-
     cfg = resolve_run(name, str(scene_dir), preset="quick", overrides=[*QUICK, *overrides])
     cfg.out = str(tmp_path / "runs")
     record = run(cfg, echo=lambda *a: None)
@@ -58,3 +55,15 @@ def quick_run(name, scene_dir, tmp_path, *overrides):
     assert all(math.isfinite(record.metrics[k]) for k in ("chamfer", "accuracy", "completeness"))
     assert record.mesh["faces"] > 0
     return record
+
+
+def interrupt_at(trainer, step: int, monkeypatch) -> None:
+    """Make ``trainer.fit()`` stop with a KeyboardInterrupt (Ctrl-C) at training step ``step``."""
+    original = trainer.train_step
+
+    def train_step(t):
+        if t == step:
+            raise KeyboardInterrupt
+        return original(t)
+
+    monkeypatch.setattr(trainer, "train_step", train_step)

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from bounded_call import bounded
+
 from gsbench.data.loader import check_scene, load_scene, make_scene
 
 TIMEOUT = 10.0  # seconds a load may take before it counts as a hang
@@ -108,7 +108,7 @@ def test_colmap_binary_damaged(tnt, stem, how):
 
 def test_colmap_points_with_tracks_walked(tmp_path):
     """Variable-length tracks: a valid file passes, a cut one names the record, a long count fails fast."""
-    from gsbench.data.filecheck import check_colmap_binary
+    from gsbench.data.filecheck.colmap import check_colmap_binary
     from gsbench.errors import DataError
 
     rng = np.random.default_rng(0)
@@ -364,7 +364,7 @@ def test_check_ply_ascii_and_faces(tiny_spot, tmp_path):
     face has the same number of corners and one record at a time otherwise."""
     import open3d as o3d
 
-    from gsbench.data.filecheck import check_ply
+    from gsbench.data.filecheck.ply import check_ply
     from gsbench.errors import DataError
 
     mesh = o3d.io.read_triangle_mesh(str(tiny_spot / "gt_mesh.ply"))

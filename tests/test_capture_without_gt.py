@@ -13,8 +13,8 @@ import pytest
 
 from gsbench.cli import main
 from gsbench.data.loader import check_scene, has_ground_truth
-from gsbench.records import RunRecord
-from gsbench.runner import resolve_run, run_dir
+from gsbench.runs.records import RunRecord
+from gsbench.runs.runner import resolve_run, run_dir
 
 QUICK = ["method.random_init_points=2000", "train.iterations=60", "train.checkpoint_every=30", "train.log_every=10",
          "mesh.voxel_size=0.02", "mesh.sdf_trunc=0.08"]

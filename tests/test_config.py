@@ -4,7 +4,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from gsbench.config import parse_override, resolve, run_id
+from gsbench.config.run_config import parse_override, resolve, run_id
 from gsbench.errors import ConfigError
 
 

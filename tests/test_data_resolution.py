@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gsbench.data.images import scaled_size
 from gsbench.data.loader import load_scene
 from gsbench.data.resolution import fit_downscale
-from gsbench.data.images import scaled_size
 from gsbench.errors import DataError
 
 CPU, QUICK = (240, 150), (64, 48)

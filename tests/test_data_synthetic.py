@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gsbench.data.loader import check_scene, load_scene, make_scene
-from gsbench.data.synthetic import plan_scene
+from gsbench.data.synthetic.generator import plan_scene
 
 DTU_RES, TNT_RES = (64, 48), (64, 36)
 CASES = {  # key -> (built-in name, format, resolution)
@@ -148,10 +148,10 @@ def test_dtu_stl_holds_only_the_observed_surface(scenes):
     """Like a DTU scan, the stl samples the surface seen by >= 2 views; the unseen underside is left out."""
     import open3d as o3d
 
-    from gsbench.data.groundtruth import sample_surface, visible_counts
     from gsbench.data.similarity import decompose, transform_points
-    from gsbench.data.render import Renderer
-    from gsbench.data.synthetic import DTU_GT_SPACING, DTU_MIN_VIEWS, TAU_FRACTION
+    from gsbench.data.synthetic.generator import DTU_GT_SPACING, DTU_MIN_VIEWS, TAU_FRACTION
+    from gsbench.data.synthetic.groundtruth import sample_surface, visible_counts
+    from gsbench.data.synthetic.render import Renderer
 
     name, fmt, res = CASES["dtu"]
     plan = plan_scene(name, fmt, res)

@@ -12,7 +12,7 @@ from gsbench.data.colmap import write_colmap_model
 from gsbench.data.dtu import write_cameras_npz
 from gsbench.data.images import write_mask, write_rgb
 from gsbench.data.loader import check_scene, load_scene
-from gsbench.data.rigs import look_at
+from gsbench.data.synthetic.rigs import look_at
 from gsbench.errors import DataError
 
 W, H, N = 16, 12, 3

@@ -1,4 +1,4 @@
-"""`gsbench depth` (gsbench/depth_check.py): per-view relative depth error of a finished run against its
+"""`gsbench depth` (gsbench/diagnostics/depth_check.py): per-view relative depth error of a finished run against its
 synthetic scene's exact depth."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from gsbench.cli import main
-from gsbench.depth_check import check_run_depth, depth_errors
+from gsbench.diagnostics.depth_check import check_run_depth, depth_errors
 from gsbench.errors import ConfigError
 from tests.method_setup import quick_run
 

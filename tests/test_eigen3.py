@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from gsbench.geometry.eigen3 import EIGEN_ENV, _ReferenceSym3Eigh, sym3_eigh, sym3_eigh_reference
 from gsbench.errors import ConfigError, NumericalError
+from gsbench.geometry.eigen3 import EIGEN_ENV, _ReferenceSym3Eigh, sym3_eigh, sym3_eigh_reference
 
 IMPLS = ("fast", "reference")
 N = 200

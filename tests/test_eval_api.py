@@ -1,14 +1,14 @@
 """CLI-facing helpers: evaluator lookup, evaluate_mesh_file, the text table, the benchmark workload."""
 
+import eval_fixtures as F
 import numpy as np
 import pytest
 
-import eval_fixtures as F
+from gsbench.bench.eval import latlong_sphere, run_eval_benchmark, run_tnt_benchmark
 from gsbench.errors import EvaluationError, RegistryError
 from gsbench.evaluators import api
-from gsbench.registry import EVALUATORS
 from gsbench.evaluators.base import MetricInfo
-from gsbench.bench.eval import latlong_sphere, run_eval_benchmark, run_tnt_benchmark
+from gsbench.registry import EVALUATORS
 
 
 def test_versions_of_changed_headlines():

@@ -2,10 +2,10 @@
 
 import numpy as np
 import pytest
+from eval_fixtures import look_at
 from scipy.ndimage import binary_dilation
 from skimage.morphology import disk
 
-from eval_fixtures import look_at
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError
 from gsbench.evaluators import culling

@@ -1,10 +1,10 @@
 """dtu_chamfer on an analytic DTU-layout fixture: a 20 mm sphere sampled at 0.2 mm (docs/evaluation.md §2)."""
 
+import eval_fixtures as F
 import numpy as np
 import pytest
 import trimesh
 
-import eval_fixtures as F
 from gsbench.errors import EvaluationError
 from gsbench.evaluators.dtu_chamfer import DTUChamfer, dtu_gt_files
 
@@ -149,18 +149,8 @@ def _sequential_reference(mesh_mm, root, seed=0):
     from gsbench.evaluators.gt_io import read_points
 
     v, f = np.asarray(mesh_mm.vertices), np.asarray(mesh_mm.faces)
-    samples = []
-    for a, b, c in v[f]:
-        v1, v2 = b - a, c - a
-        l1, l2, area2 = np.linalg.norm(v1), np.linalg.norm(v2), np.linalg.norm(np.cross(v1, v2))
-        thr = 0.2 * np.sqrt(l1 * l2 / area2)
-        n1, n2 = int(np.floor(l1 / thr)), int(np.floor(l2 / thr))
-        for i in range(n1 + 1):
-            for j in range(n2 + 1):
-                k1, k2 = (i + 0.5) / max(n1, 1e-7), (j + 0.5) / max(n2, 1e-7)
-                if k1 + k2 < 1:
-                    samples.append(a + k1 * v1 + k2 * v2)
-    data = np.concatenate([v, np.array(samples)])
+    samples = F.grid_samples_loop(v, f, 0.2)  # DTU's sampling density 0.2 mm
+    data = np.concatenate([v, samples])
     data = data[np.random.default_rng(seed).permutation(len(data))]
     keep = np.ones(len(data), bool)
     for i, nb in enumerate(cKDTree(data).query_ball_point(data, 0.2)):

@@ -9,8 +9,8 @@ import pytest
 import trimesh
 
 from gsbench.data.camera import Camera, Normalisation, Scene
-from gsbench.evaluators.api import get_evaluator
 from gsbench.evaluators.mesh_stats import MeshStats
+from gsbench.evaluators.resolve import get_evaluator
 
 
 def _scene(scale=1.0) -> Scene:

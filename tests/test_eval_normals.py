@@ -1,10 +1,10 @@
 """normal_similarity (mesh NC, docs/evaluation.md §4.1) and rendered_normal_similarity (docs/evaluation.md §4.3)."""
 
+import eval_fixtures as F
 import numpy as np
 import pytest
 import trimesh
 
-import eval_fixtures as F
 from gsbench.errors import EvaluationError
 from gsbench.evaluators.normal_similarity import NormalSimilarity, rendered_normal_similarity
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from gsbench.config import MeshConfig
+from gsbench.config.run_config import MeshConfig
 from gsbench.data.loader import load_scene, make_scene
 from gsbench.errors import EvaluationError
 from gsbench.evaluators.surface_offset import SurfaceOffset, gt_mesh_file, pixel_footprint
@@ -122,8 +122,8 @@ def test_scene_floor_renders_the_surroundings(tmp_path):
 
 def test_renderer_depth_is_the_render_depth(spot):
     """`Renderer.depth` (what the floor fuses) is `Renderer.render`'s depth without the colour work."""
-    from gsbench.data.render import Renderer
-    from gsbench.data.synthetic import plan_scene
+    from gsbench.data.synthetic.generator import plan_scene
+    from gsbench.data.synthetic.render import Renderer
 
     plan = plan_scene("synthetic/spot", res=(48, 36))
     renderer = Renderer(plan.rendered)

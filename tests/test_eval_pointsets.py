@@ -6,25 +6,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from gsbench.evaluators import pointsets
-
-
-def _grid_samples_loop(vertices, faces, density):
-    """Per-triangle loop written straight from docs/evaluation.md §2.2."""
-    out = []
-    for f in faces:
-        a, b, c = vertices[f]
-        v1, v2 = b - a, c - a
-        l1, l2, area2 = np.linalg.norm(v1), np.linalg.norm(v2), np.linalg.norm(np.cross(v1, v2))
-        if area2 == 0:
-            continue
-        thr = density * np.sqrt(l1 * l2 / area2)
-        n1, n2 = int(np.floor(l1 / thr)), int(np.floor(l2 / thr))
-        for i in range(n1 + 1):
-            for j in range(n2 + 1):
-                k1, k2 = (i + 0.5) / max(n1, 1e-7), (j + 0.5) / max(n2, 1e-7)
-                if k1 + k2 < 1:
-                    out.append(a + k1 * v1 + k2 * v2)
-    return np.array(out).reshape(-1, 3)
+from tests.eval_fixtures import grid_samples_loop
 
 
 def test_barycentric_grid_matches_per_triangle_loop():
@@ -33,7 +15,7 @@ def test_barycentric_grid_matches_per_triangle_loop():
     v = m.vertices * rng.uniform(0.5, 1.5, (len(m.vertices), 1))  # irregular triangles, many (n1, n2) groups
     faces = np.vstack([m.faces, [[0, 0, 1]]])  # plus a zero-area face, which is dropped
     fast = pointsets.barycentric_grid_samples(v, faces, 0.2)
-    slow = _grid_samples_loop(v, faces, 0.2)
+    slow = grid_samples_loop(v, faces, 0.2)
     assert fast.shape == slow.shape and len(fast) > 1000
     np.testing.assert_allclose(fast, slow, atol=1e-12)  # same points in the same (triangle) order
 

@@ -2,11 +2,11 @@
 one surface, the area-sampled ones do not; TnT's three point sets; the capped TnT queries; the
 toolbox's uniform downsampling rule; the two DTU mask-culling conventions."""
 
+import eval_fixtures as F
 import numpy as np
 import pytest
 import trimesh
 
-import eval_fixtures as F
 from gsbench.evaluators import culling
 from gsbench.evaluators.dtu_chamfer import DTUChamfer
 from gsbench.evaluators.tnt_f1 import TnTF1, precision_recall, uniform_rate

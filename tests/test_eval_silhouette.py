@@ -10,7 +10,7 @@ import trimesh
 
 from gsbench.data.camera import Camera, Normalisation, Scene
 from gsbench.errors import EvaluationError
-from gsbench.evaluators.api import get_evaluator
+from gsbench.evaluators.resolve import get_evaluator
 from gsbench.evaluators.silhouette import Silhouette
 
 SIZE = 40  # pixels, square images

@@ -1,9 +1,9 @@
 """tnt_f1 on an analytic TnT-layout fixture: a sphere, a known trans.txt, a ring trajectory (docs/evaluation.md §3)."""
 
+import eval_fixtures as F
 import numpy as np
 import pytest
 
-import eval_fixtures as F
 from gsbench.errors import EvaluationError
 from gsbench.evaluators.tnt_f1 import SETS, TnTF1, precision_recall, tnt_gt_files
 

@@ -1,4 +1,4 @@
-"""Executors (gsbench.executors): the local process pool and Ray behind one concurrent.futures seam; tiny
+"""Executors (gsbench.runs.executors): the local process pool and Ray behind one concurrent.futures seam; tiny
 real sweeps on each (two ok runs and a failing one; a second invocation resumes)."""
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ from pathlib import Path
 
 import pytest
 
-import gsbench.executors
+import gsbench.runs.executors
 from gsbench.errors import ConfigError, GsbenchError
-from gsbench.executors import LocalExecutor, make_executor, threads_per_run
+from gsbench.runs.executors import LocalExecutor, make_executor, threads_per_run
 
 
 def test_workers_times_threads_must_fit_the_cores(monkeypatch):
-    monkeypatch.setattr(gsbench.executors, "cores", lambda: 4)
+    monkeypatch.setattr(gsbench.runs.executors, "cores", lambda: 4)
     with pytest.raises(ConfigError, match=r"--workers 3 × --threads 2 = 6 threads, more than the 4 cores.*<= 4"):
         make_executor("local", workers=3, threads=2)
     assert threads_per_run(None, 2) == 2 and threads_per_run(0, 3) == 1 and threads_per_run(3, 1) == 3
@@ -127,8 +127,8 @@ def sweep_twice(scene, tmp_path, capsys, *options):
     import json
 
     from gsbench.cli import main
-    from gsbench.records import RunRecord
-    from gsbench.sweep import expand, load_sweep
+    from gsbench.runs.records import RunRecord
+    from gsbench.runs.sweep import expand, load_sweep
 
     path = tmp_path / "tiny.yaml"
     path.write_text(TINY_SWEEP.format(scene=scene))

@@ -11,8 +11,8 @@ import torch
 from gsbench.data.camera import Camera
 from gsbench.errors import NumericalError
 from gsbench.geometry.filter3d import Filter3D, filter3d_variance, filter_coefficient
-from gsbench.gaussians import Gaussians
-from gsbench.strategies.base import reset_opacity
+from gsbench.training.gaussians import Gaussians
+from gsbench.training.strategies.base import reset_opacity
 
 
 def camera(f: float, tz: float) -> Camera:

@@ -1,4 +1,4 @@
-"""`gsbench gaussians` (gsbench/gaussian_placement.py): the regions of a finished run's Gaussian centres
+"""`gsbench gaussians` (gsbench/diagnostics/gaussian_placement.py): the regions of a finished run's Gaussian centres
 against its synthetic scene's exact surfaces."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import pytest
 import trimesh
 
 from gsbench.cli import main
+from gsbench.diagnostics.gaussian_placement import REGIONS, _distances, place
 from gsbench.errors import ConfigError
-from gsbench.gaussian_placement import REGIONS, _distances, place
 from tests.method_setup import quick_run
 
 

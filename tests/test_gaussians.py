@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from gsbench.errors import DataError, NumericalError
-from gsbench.gaussians import SH_C0, Gaussians, knn_initial_scale
+from gsbench.training.gaussians import SH_C0, Gaussians, knn_initial_scale
 
 
 def test_knn_scale_matches_brute_force():

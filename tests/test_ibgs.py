@@ -10,19 +10,25 @@ import numpy as np
 import pytest
 import torch
 
-import gsbench.config as config
+import gsbench.config.run_config as config
 from gsbench.errors import ConfigError, NumericalError
-from gsbench.gaussians import Gaussians
-from gsbench.geometry.local_geometry import PERMUTATIONS_3D, LocalGeometry, apply_alignment, frame_alignment, local_geometry
-from gsbench.methods.ibgs_terms import eigval_term, eigvec_term
+from gsbench.geometry.local_geometry import (
+    PERMUTATIONS_3D,
+    LocalGeometry,
+    apply_alignment,
+    frame_alignment,
+    local_geometry,
+)
 from gsbench.geometry.neighbours import NeighbourIndex, nearest_other
-from gsbench.raster.reference import quat_to_rotmat
-from gsbench.registry import METHODS
 from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
-from gsbench.runner import resolve_run
-from gsbench.strategies.sparsity import SparsityAwareStrategy
-from gsbench.strategies.base import append_params
-from gsbench.train import Trainer
+from gsbench.methods.ibgs_terms import eigval_term, eigvec_term
+from gsbench.raster.reference_projection import quat_to_rotmat
+from gsbench.registry import METHODS
+from gsbench.runs.runner import resolve_run
+from gsbench.training.gaussians import Gaussians
+from gsbench.training.strategies.base import append_params
+from gsbench.training.strategies.sparsity import SparsityAwareStrategy
+from gsbench.training.trainer import Trainer
 from tests.method_setup import quick_run, setup_method, straight_and_resumed
 
 
@@ -193,7 +199,7 @@ def test_setup_orients_gaussians_by_their_neighbourhood(tiny_spot):
 
 
 def test_densification_and_sadc_keep_the_knn_index_valid(tiny_spot):
-    m, scene, _ = setup_method("ibgs", tiny_spot, "method.densify_every=1", "method.densify_from=0")
+    m, scene, _ = setup_method("ibgs", tiny_spot, "method.refine_every=1", "method.refine_start=0")
     strategy = m.strategy()
     assert isinstance(strategy, SparsityAwareStrategy) and strategy.neighbours is m.neighbours
     state = strategy.init_state(len(m.gaussians))
@@ -259,8 +265,8 @@ def test_sadc_under_the_budget_keeps_the_widest_gaps_and_counts_the_pairs_left_o
 
 def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threads):
     """24 steps straight vs 12 + crash + resume + 12, densifying and refreshing the kNN every 4 steps."""
-    overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
-                 "method.densify_until=30000", "method.opacity_reset_every=30000", "method.knn_refresh_every=5",
+    overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.refine_every=4",
+                 "method.refine_stop=30000", "method.reset_every=30000", "method.knn_refresh_every=5",
                  "losses.eigval.start=0", "losses.eigvec.start=0")
     straight, resumed = straight_and_resumed("ibgs", tiny_spot, tmp_path, monkeypatch, *overrides, crash_after=12)
     assert len(resumed.method.gaussians) == len(straight.method.gaussians) != 400
@@ -273,8 +279,8 @@ def test_a_binding_budget_is_recorded_from_its_first_cut_and_survives_a_resume(t
                                                                                restore_threads):
     """With 450 Gaussians allowed from 400, clone/split and SADC are cut before the crash at step 12; the
     resumed run counts the cuts from the checkpoint on, so its `DensifyBudget` equals the straight run's."""
-    overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
-                 "method.densify_until=30000", "method.opacity_reset_every=30000", "train.max_gaussians=450")
+    overrides = ("train.iterations=24", "train.checkpoint_every=12", "method.refine_every=4",
+                 "method.refine_stop=30000", "method.reset_every=30000", "train.max_gaussians=450")
     straight, resumed = straight_and_resumed("ibgs", tiny_spot, tmp_path, monkeypatch, *overrides, crash_after=12)
     budget = straight.result().budget
     assert budget.max_gaussians == 450 and budget.first_cut_step <= 12 and budget.candidates_cut > 0
@@ -306,9 +312,11 @@ def test_variants_extend_their_base_method_configs():
     assert resolve_run("ibgs-gof", "synthetic/spot", preset="paper").losses["depth_distortion"]["weight"] == 1000.0
     assert resolve_run("ibgs-gof", "synthetic/spot-tnt", preset="paper").mesh.extractor == "tets"
     assert resolve_run("ibgs-2dgs", "synthetic/spot", preset="paper").losses["depth_distortion"]["start"] == 3000
-    for name in ("ibgs", "ibgs-gof", "ibgs-2dgs"):
+    for name, base in (("ibgs", "radegs"), ("ibgs-gof", "gof"), ("ibgs-2dgs", "2dgs")):
         cls = METHODS.get(name)
-        assert set(resolve_run(name, "synthetic/spot", preset="paper").losses) == set(cls.info().loss_terms)
+        assert cls.info() == METHODS.get(base).info()  # the base method's kernel and outputs
+        base_terms = set(resolve_run(base, "synthetic/spot", preset="paper").losses)
+        assert set(resolve_run(name, "synthetic/spot", preset="paper").losses) == base_terms | {"eigval", "eigvec"}
         assert cls.Config().knn_k == 5 and cls.Config().knn_refresh_every == 100 and not cls.Config().attach_eigenvectors
 
 

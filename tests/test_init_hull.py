@@ -7,13 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from gsbench.config import resolve
+from gsbench.config.run_config import resolve
 from gsbench.data.loader import load_scene
 from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import ConfigError, DataError
-from gsbench.gaussians import Gaussians
 from gsbench.registry import METHODS
-from gsbench.train import split_views
+from gsbench.training.gaussians import Gaussians
 
 
 def _cfg(method, scene_dir, *overrides):
@@ -42,8 +41,8 @@ def _candidates(n, radius, seed):
     return points, rng.uniform(0, 1, size=(n, 3))
 
 
-def _training_hull(scene, cfg, points, dilate_px=1):
-    views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+def _training_hull(scene, points, dilate_px=1):
+    views = scene.train_views
     return inside_visual_hull(points, [scene.cameras[i] for i in views], [scene.masks[i] for i in views],
                               dilate_px=dilate_px, min_views=1)
 
@@ -67,17 +66,17 @@ def test_hull_init_is_inside_the_training_hull_at_the_sphere_density(method, tin
     assert spot_scene.points is None
     g = _init(method, spot_scene, cfg)
     means = g.params["means"].detach()
-    assert _training_hull(spot_scene, cfg, means.double().numpy()).all()
+    assert _training_hull(spot_scene, means.double().numpy()).all()
     # exactly the sphere init's first batch of candidates that the hull keeps (position and colour)
     points, colors = _candidates(20000, spot_scene.radius, cfg.seed)
-    inside = _training_hull(spot_scene, cfg, points)
+    inside = _training_hull(spot_scene, points)
     assert len(g) == int(inside.sum()) < 20000 // 4
     assert torch.equal(means, torch.as_tensor(points[inside], dtype=torch.float32))
     sphere = _sphere_init(spot_scene, cfg, 20000, g.dims)
     assert torch.equal(g.params["sh_dc"], sphere.params["sh_dc"][torch.as_tensor(inside)])
     assert torch.equal(g.params["opacity_logits"], sphere.params["opacity_logits"][: len(g)])
     # the count is the hull's share of the ball: an independent estimate from other candidates agrees
-    share = _training_hull(spot_scene, cfg, _candidates(20000, spot_scene.radius, 12345)[0]).mean()
+    share = _training_hull(spot_scene, _candidates(20000, spot_scene.radius, 12345)[0]).mean()
     assert len(g) / 20000 == pytest.approx(share, abs=0.015)
 
 
@@ -85,11 +84,11 @@ def test_floor_and_cap(tiny_spot, spot_scene):
     # 400 candidates leave ~60 in the hull, under the floor min(1000, 400): more batches fill it to 400
     cfg = _cfg("3dgs", tiny_spot, "method.random_init_points=400")
     g = _init("3dgs", spot_scene, cfg)
-    assert len(g) == 400 and _training_hull(spot_scene, cfg, g.params["means"].detach().double().numpy()).all()
+    assert len(g) == 400 and _training_hull(spot_scene, g.params["means"].detach().double().numpy()).all()
     # max_gaussians caps n (the batch size); the hull keeps its share of that
     cfg = _cfg("3dgs", tiny_spot, "method.random_init_points=100000", "train.max_gaussians=10000")
     g = _init("3dgs", spot_scene, cfg)
-    assert 1000 <= len(g) == int(_training_hull(spot_scene, cfg, _candidates(10000, 1.0, cfg.seed)[0]).sum()) < 10000
+    assert 1000 <= len(g) == int(_training_hull(spot_scene, _candidates(10000, 1.0, cfg.seed)[0]).sum()) < 10000
 
 
 def test_same_seed_same_init_other_seed_other_init(tiny_spot, spot_scene):
@@ -128,15 +127,16 @@ def test_empty_hull_is_a_clear_error(tiny_spot, spot_scene):
 
 def test_held_out_views_masks_are_not_used(tiny_spot, spot_scene):
     cfg = _cfg("3dgs", tiny_spot, "method.random_init_points=20000", "data.holdout_every=8")
-    training, held = split_views(len(spot_scene.cameras), 8)
+    split_scene = dataclasses.replace(spot_scene, holdout_every=8)
+    training, held = split_scene.train_views, split_scene.held_out_views
     assert held
-    base = _init("3dgs", spot_scene, cfg)
+    base = _init("3dgs", split_scene, cfg)
 
     def blanked(views, columns=slice(None)):
         masks = [m.copy() for m in spot_scene.masks]
         for i in views:
             masks[i][:, columns] = False
-        return dataclasses.replace(spot_scene, masks=masks)
+        return dataclasses.replace(split_scene, masks=masks)
 
     assert _same(_init("3dgs", blanked(held), cfg), base)
     # half of one training view's mask does carve the init (the check above is not vacuous)

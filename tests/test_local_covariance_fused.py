@@ -76,7 +76,7 @@ def test_an_index_out_of_range_is_an_error_and_the_environment_selects_the_refer
 
 
 def test_impl_choice_typos_and_inputs_the_kernel_cannot_take(monkeypatch):
-    """The environment variable is checked like its siblings' (`gsbench.impl_choice`); float16 falls back to the
+    """The environment variable is checked like its siblings' (`gsbench.native.impl_choice`); float16 falls back to the
     reference, unless the fused kernel is asked for by name."""
     means, index = _cloud(8, 3)
     half = means.detach().half().requires_grad_(True)

@@ -1,4 +1,4 @@
-"""Loss-term registry, built-in terms and SSIM (gsbench.losses, gsbench.ssim)."""
+"""Loss-term registry, built-in terms and SSIM (gsbench.losses.terms, gsbench.losses.ssim)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,14 @@ import pytest
 import torch
 from scipy import ndimage
 
-from gsbench import losses
 from gsbench.errors import ConfigError
-from gsbench.gaussians import Gaussians
-from gsbench.losses import Batch, active_terms, depth_to_normal, get_term, required_outputs, total_loss
+from gsbench.geometry.depth import depth_to_normal, pixel_rays
+from gsbench.losses import terms as losses
+from gsbench.losses.ssim import C1, C2, gaussian_window, ssim, ssim_map
+from gsbench.losses.terms import Batch, active_terms, get_term, required_outputs, total_loss
 from gsbench.raster.reference import render
 from gsbench.raster.types import RasterSettings, RenderOutput
-from gsbench.ssim import C1, C2, gaussian_window, ssim, ssim_map
+from gsbench.training.gaussians import Gaussians
 from tests.raster_scenes import make_camera, random_gaussians
 
 # ---- SSIM -----------------------------------------------------------------------------------------
@@ -124,7 +125,7 @@ def test_no_active_term_is_zero():
 def plane_render(W=20, H=16, z=2.0, tilt=0.0, normal_error=0.0, alpha=1.0):
     """A render of a plane z = z0 + tilt·x (camera space), with its exact (or perturbed) normal."""
     cam = make_camera(W, H)
-    rays = losses.pixel_rays(cam, torch.float64)
+    rays = pixel_rays(cam, torch.float64)
     # plane n·X = d with n ∝ (tilt, 0, -1): X = t·ray, t = z0 / (1 - tilt·ray_x) gives camera z.
     depth = z / (1.0 - tilt * rays[..., 0])
     n = torch.tensor([tilt, 0.0, -1.0], dtype=torch.float64)
@@ -229,7 +230,7 @@ def test_total_loss_gradients_finite_through_reference_render():
     g = random_gaussians(12, "surfel", seed=3, camera=cam, dtype=torch.float64)
     params = {k: getattr(g, k).clone().requires_grad_(True) for k in ("means", "scales", "opacities")}
     g.means, g.scales, g.opacities = params["means"], params["scales"], params["opacities"]
-    builtin = [name for name in losses.term_names() if losses.get_term(name).fn.__module__ == "gsbench.losses"]
+    builtin = [name for name in losses.term_names() if losses.get_term(name).fn.__module__ == "gsbench.losses.terms"]
     cfg = {name: {"weight": 1.0} for name in builtin}  # method plugins' terms are tested with their methods
     active = active_terms(cfg, 0, params={"normal_consistency": {"depth_ratio": 0.5}})
     out = render(g, cam, kernel="surfel", outputs=required_outputs(active), settings=RasterSettings())

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from gsbench.config import MeshConfig
+from gsbench.config.run_config import MeshConfig
 from gsbench.data.loader import load_scene, make_scene
 from gsbench.mesh import MeshError
 from gsbench.mesh.cleanup import canonical_order, keep_largest_clusters, to_trimesh

@@ -4,24 +4,24 @@ loss-term parameters, the 3D filter in render/checkpoints, the tets mesh hook, a
 from __future__ import annotations
 
 import math
-import sys
-import types
 
 import pytest
 import torch
 import trimesh
 
-import gsbench.config as config
+import gsbench.config.files as config_files
+import gsbench.config.run_config as config
 import gsbench.methods.base as method_base
 from gsbench.errors import ConfigError
-from gsbench import losses
-from gsbench.losses import Batch, active_terms, depth_to_normal, edge_weights, image_map
+from gsbench.geometry.depth import depth_to_normal
+from gsbench.losses import terms as losses
+from gsbench.losses.terms import Batch, active_terms, edge_weights, image_map
 from gsbench.methods.pgsr_terms import image_gradient_weight
 from gsbench.raster.types import RenderOutput
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run
-from gsbench.strategies.absgrad import AbsGradStrategy
-from gsbench.train import load_checkpoint, split_views
+from gsbench.runs.runner import resolve_run
+from gsbench.training.strategies.absgrad import AbsGradStrategy
+from gsbench.training.trainer import load_checkpoint
 from tests.method_setup import quick_run, setup_method, straight_and_resumed
 from tests.raster_scenes import make_camera
 
@@ -39,14 +39,14 @@ TERM_PARAMS = {  # docs/methods/gof.md §4.3docs/methods/gof.md §4.2: median-de
 
 def test_registered_methods_declare_kernel_primitive_and_terms():
     gof, rade = METHODS.get("gof"), METHODS.get("radegs")
-    assert (gof.info().kernel, gof.info().primitive, gof.info().mesh_depth) == ("raymax", "3d", "median")
-    assert (rade.info().kernel, rade.info().primitive, rade.info().mesh_depth) == ("rade", "3d", "median")
+    assert (gof.info().kernel, gof.info().primitive) == ("raymax", "3d")
+    assert (rade.info().kernel, rade.info().primitive) == ("rade", "3d")
     for name, cls in (("gof", gof), ("radegs", rade)):
         cfg = resolve_run(name, "synthetic/spot", preset="paper")
-        assert cfg.mesh.depth == cls.info().mesh_depth and cfg.mesh.extractor == "tsdf"
-        assert set(cfg.losses) == set(cls.info().loss_terms)
+        assert cfg.mesh.depth == "median" and cfg.mesh.extractor == "tsdf"
+        assert set(cfg.losses) == {"l1", "dssim", "normal_consistency", "depth_distortion"}
         p = cls.Config()
-        assert (p.prune_opacity, p.densify_grad_threshold, p.densify_from, p.densify_until, p.opacity_reset_every,
+        assert (p.prune_opacity, p.grad_threshold, p.refine_start, p.refine_stop, p.reset_every,
                 p.use_filter3d) == (0.05, 0.0002, 500, 15000, 3000, True)
     assert rade.Config().depth_ratio == 0.6
 
@@ -77,7 +77,7 @@ def test_method_dataset_layer_sits_between_dataset_and_preset(tmp_path, monkeypa
                          "presets/quick.yaml": "train: {iterations: 4}\n"}.items():
         (tmp_path / folder).parent.mkdir(exist_ok=True)
         (tmp_path / folder).write_text(text)
-    monkeypatch.setattr(config, "CONFIG_ROOT", tmp_path)
+    monkeypatch.setattr(config_files, "CONFIG_ROOT", tmp_path)
     cfg = config.resolve("toy", "synthetic/spot", preset="quick")
     train = cfg.train
     assert (train.checkpoint_every, train.log_every, train.max_gaussians, train.iterations) == (1, 3, 3, 4)
@@ -163,7 +163,7 @@ def test_depth_distortion_normalised_and_edge_aware():
 def test_filter_is_computed_at_setup_rendered_and_shared_with_the_strategy(tiny_spot, monkeypatch):
     m, scene, cfg = setup_method("radegs", tiny_spot)
     assert m.filter3d().shape == (len(m.gaussians),) and bool((m.filter3d() > 0).all())
-    views = split_views(len(scene.cameras), cfg.data.holdout_every)[0]
+    views = scene.train_views
     assert m.filter.cameras == [scene.cameras[i] for i in views] and m.filter.near == pytest.approx(0.2 * scene.radius)
     strategy = m.strategy()
     assert isinstance(strategy, AbsGradStrategy) and strategy.filter3d is m.filter
@@ -184,8 +184,8 @@ def test_filter_is_computed_at_setup_rendered_and_shared_with_the_strategy(tiny_
 
 def test_resume_is_bit_identical_with_densification_and_the_filter(tiny_spot, tmp_path, monkeypatch, restore_threads):
     """GOF: 24 steps straight vs 12 + crash + resume + 12, densifying (and refiltering) every 4 steps."""
-    overrides = ("threads=1", "train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
-                 "method.densify_until=30000", "method.opacity_reset_every=30000")
+    overrides = ("threads=1", "train.iterations=24", "train.checkpoint_every=12", "method.refine_every=4",
+                 "method.refine_stop=30000", "method.reset_every=30000")
     straight, resumed = straight_and_resumed("gof", tiny_spot, tmp_path, monkeypatch, *overrides, crash_after=12)
     assert len(resumed.method.gaussians) == len(straight.method.gaussians) != 400  # densified
     for k, v in straight.method.gaussians.params.items():
@@ -207,11 +207,11 @@ def test_tets_extractor_calls_tetra_mesh_with_the_filtered_gaussians(tiny_spot, 
         calls.update(g=g, cameras=cameras, settings=settings, kernel=kernel, level=level, steps=bisection_steps)
         return trimesh.creation.box()
 
-    monkeypatch.setitem(sys.modules, "gsbench.mesh.tets", types.SimpleNamespace(tetra_mesh=tetra_mesh))
+    monkeypatch.setattr(method_base, "tetra_mesh", tetra_mesh)
     size = m.extract_mesh(scene, cfg, tmp_path / "mesh.ply")
     assert size == {"vertices": 8, "faces": 12} and (tmp_path / "mesh.ply").is_file()
     assert calls["g"].filter3d is m.filter3d() and len(calls["g"]) == len(m.gaussians)
-    assert calls["cameras"] == [scene.cameras[i] for i in split_views(len(scene.cameras), cfg.data.holdout_every)[0]]
+    assert calls["cameras"] == [scene.cameras[i] for i in scene.train_views]
     assert (calls["kernel"], calls["level"], calls["steps"]) == ("raymax", 0.5, 3)
     assert calls["settings"].scene_radius == scene.radius
     for name in ("radegs", "3dgs"):

@@ -12,29 +12,30 @@ import trimesh
 
 from gsbench.data.loader import load_scene, make_scene
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run
-from gsbench.strategies.default import DefaultStrategy
-from gsbench.train import Trainer
+from gsbench.runs.runner import resolve_run
+from gsbench.training.strategies.default import DefaultStrategy
+from gsbench.training.trainer import Trainer
 
-# Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection.
+# Idle OpenMP threads must sleep, not spin (see gsbench.training.trainer.set_threads); set at collection.
 
 
-def test_registered_methods_declare_kernel_primitive_and_mesh_depth():
+def test_registered_methods_declare_kernel_primitive_mesh_depth_and_terms():
     gs3d, gs2d = METHODS.get("3dgs"), METHODS.get("2dgs")
-    assert (gs3d.info().kernel, gs3d.info().primitive, gs3d.info().mesh_depth) == ("ewa", "3d", "expected")
-    assert (gs2d.info().kernel, gs2d.info().primitive, gs2d.info().mesh_depth) == ("surfel", "2d", "median")
-    for name, cls in (("3dgs", gs3d), ("2dgs", gs2d)):
-        cfg = resolve_run(name, "synthetic/spot", preset="paper")
-        assert cfg.mesh.depth == cls.info().mesh_depth  # the method yaml agrees with the declaration
-        assert set(cfg.losses) == set(cls.info().loss_terms)
+    assert (gs3d.info().kernel, gs3d.info().primitive) == ("ewa", "3d")
+    assert (gs2d.info().kernel, gs2d.info().primitive) == ("surfel", "2d")
+    expected = {"3dgs": ("expected", {"l1", "dssim"}),
+                "2dgs": ("median", {"l1", "dssim", "depth_distortion", "normal_consistency"})}
+    for name, (depth, terms) in expected.items():
+        cfg = resolve_run(name, "synthetic/spot", preset="paper")  # the method's yaml declares both
+        assert cfg.mesh.depth == depth and set(cfg.losses) == terms
 
 
 def test_defaults_are_the_papers():
     p3, p2 = METHODS.get("3dgs").Config(), METHODS.get("2dgs").Config()
     assert (p3.position_lr_init, p3.position_lr_final, p3.feature_lr, p3.opacity_lr, p3.scaling_lr,
             p3.rotation_lr) == (0.00016, 0.0000016, 0.0025, 0.05, 0.005, 0.001)
-    assert (p3.densify_grad_threshold, p3.densify_from, p3.densify_until, p3.densify_every,
-            p3.opacity_reset_every, p3.prune_opacity, p3.init_opacity) == (0.0002, 500, 15000, 100, 3000, 0.005, 0.1)
+    assert (p3.grad_threshold, p3.refine_start, p3.refine_stop, p3.refine_every,
+            p3.reset_every, p3.prune_opacity, p3.init_opacity) == (0.0002, 500, 15000, 100, 3000, 0.005, 0.1)
     assert p2.prune_opacity == 0.05 and p2.depth_ratio == 1.0
     losses = resolve_run("2dgs", "synthetic/spot", preset="paper").losses
     assert losses["normal_consistency"] == {"weight": 0.05, "start": 7000, "end": -1}

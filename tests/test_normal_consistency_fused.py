@@ -1,4 +1,4 @@
-"""Fused C++ depth-normal consistency (csrc/normal_consistency.cpp via `gsbench.normal_consistency`) against
+"""Fused C++ depth-normal consistency (csrc/normal_consistency.cpp via `gsbench.losses.normal_consistency`) against
 its PyTorch reference: float64 gradcheck, value and gradients in float64 and float32, every mode the
 methods use, a background of depth 0, maps too small to have an interior, and the implementation switch."""
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from gsbench import normal_consistency as nc
 from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
-from gsbench.normal_consistency import normal_consistency, normal_consistency_reference
+from gsbench.losses import normal_consistency as nc
+from gsbench.losses.normal_consistency import normal_consistency, normal_consistency_reference
 
 # (weights, normalize, alpha): 2DGS (one map, alpha), GOF (one map, normalised), RaDe-GS (two maps, normalised)
 MODES = [([1.0], False, True), ([1.0], True, False), ([0.4, 0.6], True, False), ([0.3, 0.7], False, True)]

@@ -1,4 +1,4 @@
-"""`train.optimizer` (gsbench/optim.py): the papers' Adam by default, and the opt-in visible-only Adam,
+"""`train.optimizer` (gsbench/training/optim.py): the papers' Adam by default, and the opt-in visible-only Adam,
 which leaves the rows of unseen Gaussians untouched and is Adam when every row is visible."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from gsbench.errors import ConfigError
-from gsbench.optim import FusedAdam, VisibleAdam, make_adam
-from gsbench.train import Trainer
+from gsbench.training.optim import FusedAdam, VisibleAdam, make_adam
+from gsbench.training.trainer import Trainer
 from tests.method_setup import setup_method, straight_and_resumed
 
 

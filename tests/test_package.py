@@ -4,8 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import gsbench
-
 
 def test_plugin_folders_install_under_gsbench():
     import gsbench.evaluators

@@ -16,12 +16,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 from method_setup import quick_run, setup_method, straight_and_resumed  # noqa: E402
 from raster_scenes import concat, look_at_camera, make_camera, single_gaussian  # noqa: E402
 
-from gsbench.losses import Batch, active_terms, required_outputs  # noqa: E402
+from gsbench.config.files import reported_numbers  # noqa: E402
+from gsbench.losses.terms import Batch, active_terms, required_outputs  # noqa: E402
 from gsbench.methods import pgsr_terms as T  # noqa: E402
 from gsbench.methods.pgsr import PGSR, MultiViewContext, PGSRStrategy, neighbour_views  # noqa: E402
 from gsbench.raster import RasterSettings, RenderOutput, rasterize, reference  # noqa: E402
 from gsbench.registry import METHODS  # noqa: E402
-from gsbench.runner import resolve_run  # noqa: E402
+from gsbench.runs.runner import resolve_run  # noqa: E402
 
 
 def _plane_maps(camera, n_w, d_w, alpha=0.8, dtype=torch.float64):
@@ -46,7 +47,7 @@ def test_plane_homography_warps_a_plane_exactly():
     nb = look_at_camera((1.0, 0.1, -2.8), (0.1, 0, 0), 36, 28)
     n_w, d_w = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0]), 0.4
     _, _, n_r, d_r = _plane_maps(ref, n_w, d_w)
-    pix = T.pixel_grid(ref, torch.float64).reshape(-1, 2)
+    pix = T.pixel_centres(ref, torch.float64).reshape(-1, 2)
     rays = T.pixel_rays(ref, torch.float64).reshape(-1, 3)
     depth = d_r / -(rays @ torch.tensor(n_r))
     X_ref = depth[:, None] * rays
@@ -236,9 +237,10 @@ def test_neighbours_follow_pgsr_selection():
 
 def test_declared_info_matches_the_configs_and_papers():
     pgsr = METHODS.get("pgsr")
-    assert pgsr is PGSR and (pgsr.info().kernel, pgsr.info().primitive, pgsr.info().mesh_depth) == ("ewa", "3d", "unbiased")
+    assert pgsr is PGSR and (pgsr.info().kernel, pgsr.info().primitive) == ("ewa", "3d")
     cfg = resolve_run("pgsr", "synthetic/spot", preset="paper")
-    assert set(cfg.losses) == set(pgsr.info().loss_terms) and cfg.mesh.depth == "unbiased"
+    assert set(cfg.losses) == {"l1_exposure", "dssim", "min_scale", "pgsr_normal", "pgsr_geo", "pgsr_ncc"}
+    assert cfg.mesh.depth == "unbiased"
     assert cfg.losses["pgsr_normal"] == {"weight": 0.015, "start": 7000, "end": -1}
     assert cfg.losses["pgsr_geo"] == {"weight": 0.03, "start": 7000, "end": -1}
     assert cfg.losses["pgsr_ncc"] == {"weight": 0.15, "start": 7000, "end": -1}
@@ -247,14 +249,15 @@ def test_declared_info_matches_the_configs_and_papers():
     assert (cfg.mesh.sdf_trunc, cfg.mesh.depth_trunc, cfg.mesh.num_clusters) == (0.016, 5.0, 1)
     tnt = resolve_run("pgsr", "synthetic/spot-tnt", preset="paper")
     assert tnt.method["exposure_compensation"] is True and tnt.method["tsdf_max_view_angle"] == 80.0
-    assert (tnt.method["densify_abs_grad_threshold"], tnt.method["prune_opacity"]) == (0.00015, 0.05)
+    assert (tnt.method["abs_grad_threshold"], tnt.method["prune_opacity"]) == (0.00015, 0.05)
     p = pgsr.Config()
-    assert (p.percent_dense, p.densify_abs_grad_threshold, p.multi_view_patch_half, p.multi_view_num) == (0.001, 0.0008, 3, 8)
+    assert (p.percent_dense, p.abs_grad_threshold, p.multi_view_patch_half, p.multi_view_num) == (0.001, 0.0008, 3, 8)
     assert p.exposure_compensation is True
-    assert pgsr.REPORTED["dtu"]["mean"] == 0.53 and pgsr.REPORTED["tnt"]["mean"] == 0.50
-    scenes = pgsr.REPORTED["dtu"]["scenes"]
+    reported = reported_numbers("pgsr")
+    assert reported["dtu"]["mean"] == 0.53 and reported["tnt"]["mean"] == 0.50
+    scenes = reported["dtu"]["scenes"]
     assert len(scenes) == 15 and abs(sum(scenes.values()) / 15 - 0.53) < 0.005
-    assert abs(sum(pgsr.REPORTED["tnt"]["scenes"].values()) / 6 - 0.50) < 0.005
+    assert abs(sum(reported["tnt"]["scenes"].values()) / 6 - 0.50) < 0.005
 
 
 def test_requested_outputs_follow_the_schedule(tiny_spot):

@@ -1,4 +1,4 @@
-"""gsbench.progress (progress lines when stderr is not a terminal, stage lines) and the Trainer's use of
+"""gsbench.training.progress (progress lines when stderr is not a terminal, stage lines) and the Trainer's use of
 it, plus the Trainer's step phases (TrainResult.phases) over a fresh and a resumed run."""
 
 from __future__ import annotations
@@ -9,11 +9,19 @@ import re
 import pytest
 
 from gsbench.data.loader import load_scene
-from gsbench.progress import ProgressLines, format_duration, is_terminal, stage
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run
-from gsbench.train import (CHECKPOINT, STEP_PHASES, Trainer, load_checkpoint, merge_phases, save_atomic,
-                           seed_everything)
+from gsbench.run_folder import RunFolder
+from gsbench.runs.runner import resolve_run
+from gsbench.training.progress import ProgressLines, format_duration, is_terminal, stage
+from gsbench.training.trainer import (
+    STEP_PHASES,
+    Trainer,
+    load_checkpoint,
+    merge_phases,
+    save_atomic,
+    seed_everything,
+)
+from tests.method_setup import interrupt_at
 
 TINY = ["data.downscale=1", "method.random_init_points=400", "train.log_every=5"]
 LINE = re.compile(r"^train 3dgs: step (\d+)/(\d+) \((\d+)%\) ([\d.e+-]+) it/s loss ([\d.e+-]+) N (\d+) ETA (\S+)$")
@@ -134,26 +142,19 @@ def test_progress_interval_defaults_to_30s(tiny_spot, tmp_path):
 
 
 def test_phases_cover_the_steps_and_continue_over_a_resume(tiny_spot, tmp_path, monkeypatch):
-    overrides = ("train.iterations=12", "train.checkpoint_every=6", "method.densify_every=4",
-                 "method.densify_until=30000", "method.opacity_reset_every=30000")
+    overrides = ("train.iterations=12", "train.checkpoint_every=6", "method.refine_every=4",
+                 "method.refine_stop=30000", "method.reset_every=30000")
     straight = make_trainer("3dgs", tiny_spot, tmp_path / "a", *overrides).fit()
     assert set(straight.phases) == set(STEP_PHASES)
     assert all(v >= 0 for v in straight.phases.values()) and straight.phases["render"] > 0
     assert sum(straight.phases.values()) <= straight.seconds + 1e-6
 
     interrupted = make_trainer("3dgs", tiny_spot, tmp_path / "b", *overrides)
-    step = interrupted.train_step
-
-    def crash(t):
-        if t == 7:
-            raise KeyboardInterrupt
-        return step(t)
-
-    monkeypatch.setattr(interrupted, "train_step", crash)
+    interrupt_at(interrupted, 7, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         interrupted.fit()
     monkeypatch.undo()
-    saved = load_checkpoint(tmp_path / "b" / CHECKPOINT)["phases"]
+    saved = load_checkpoint(tmp_path / "b" / RunFolder.CHECKPOINT)["phases"]
     assert set(saved) == set(STEP_PHASES) and saved["render"] > 0
     resumed = make_trainer("3dgs", tiny_spot, tmp_path / "b", *overrides).fit()
     assert resumed.resumed_from == 6
@@ -173,7 +174,7 @@ def test_a_checkpoint_without_phases_resumes_from_zeros(tiny_spot, tmp_path):
         first.step = t
     state = first.state_dict()
     del state["phases"]  # a checkpoint written before phases existed
-    save_atomic(state, run / CHECKPOINT)
+    save_atomic(state, run / RunFolder.CHECKPOINT)
     result = make_trainer("3dgs", tiny_spot, run, *overrides).fit()
     assert result.steps == 8 and result.resumed_from == 4
     assert set(result.phases) == set(STEP_PHASES) and result.phases["render"] > 0

@@ -11,6 +11,7 @@ tests/test_projection_fused_raymax_surfel.py` prints projection forward+backward
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from pathlib import Path
@@ -20,15 +21,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from raster_scenes import concat, look_at_camera, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
+from raster_scenes import concat, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
 
 from gsbench.raster import RasterGaussians, RasterSettings, projection, rasterize  # noqa: E402
-from gsbench.raster.projection import NUM_PARAMS, project_fused, project_torch  # noqa: E402
+from gsbench.raster.payload import NUM_PARAMS
+from gsbench.raster.projection import project_fused, project_torch  # noqa: E402
+from tests.projection_checks import DETACHED, PARAMS, compare_projections, posed_camera  # noqa: E402
 
 KERNELS = ("raymax", "surfel")
-PARAMS = ("means", "quats", "scales", "opacities", "sh")
-DETACHED = ("means2d", "depth", "bounds")
-EXACT = ("radii", "visible", "rect", "rect_radius")
 
 SETTINGS = {
     "default": RasterSettings(sh_degree=1),
@@ -39,45 +39,14 @@ SETTINGS = {
 }
 
 
-def _posed_camera(W=64, H=48):
-    return look_at_camera((0.3, 0.2, -0.5), (0.0, 0.0, 3.0), width=W, height=H)
-
-
-def _compare(g: RasterGaussians, cam, kernel, settings, fwd_tol=1e-10, grad_tol=1e-8, seed=0):
-    ga, gb = with_grad(g), with_grad(g)
-    pa = project_torch(ga, cam, kernel, settings)
-    pb = project_fused(gb, cam, kernel, settings)
-    assert pb.params.shape == pa.params.shape == (len(g), NUM_PARAMS[kernel])
-    assert pb.params.dtype == pa.params.dtype
-    assert bool(torch.isfinite(pb.params).all()), "non-finite fused payload"
-    # relative per element (columns differ by orders of magnitude: c' ~ 1e16 for scales 1e-8)
-    a, b = pa.params.detach(), pb.params.detach()
-    rel = float(((a - b).abs() / a.abs().clamp_min(1.0)).max())
-    assert rel <= fwd_tol, f"{kernel}: payload differs (relative {rel:.3g})"
-    for k in DETACHED:
-        x, y = getattr(pa, k), getattr(pb, k)
-        assert x.dtype == y.dtype and x.shape == y.shape, k
-        assert float((x - y).abs().max()) <= fwd_tol * max(1.0, float(x.abs().max())), k
-    for k in EXACT:
-        assert torch.equal(getattr(pa, k), getattr(pb, k)), k
-    gen = torch.Generator().manual_seed(seed)
-    w = torch.randn(pa.params.shape, generator=gen, dtype=pa.params.dtype)
-    (pa.params * w).sum().backward()
-    (pb.params * w).sum().backward()
-    for p in PARAMS:
-        x, y = getattr(ga, p).grad, getattr(gb, p).grad
-        x = torch.zeros_like(getattr(ga, p)) if x is None else x
-        assert y is not None and y.shape == x.shape and bool(torch.isfinite(y).all()), f"{kernel}: grad of {p}"
-        err = float((x - y).abs().max()) / max(float(x.abs().max()), 1e-30)
-        assert err <= grad_tol, f"{kernel}: gradient of {p} differs (relative {err:.3g})"
-    return pa, pb
+_compare = functools.partial(compare_projections, per_element=True)  # columns differ by orders of magnitude
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("name", list(SETTINGS))
 @pytest.mark.parametrize("filter3d", [None, 1e-3], ids=["nofilter", "filter3d"])
 def test_fused_matches_torch_float64(kernel, name, filter3d):
-    cam = _posed_camera()
+    cam = posed_camera()
     g = random_gaussians(200, kernel, seed=4, camera=make_camera(64, 48), dtype=torch.float64, sh_degree=3,
                          filter3d=filter3d)
     _compare(g, cam, kernel, SETTINGS[name])
@@ -93,7 +62,7 @@ def test_fused_matches_torch_identity_camera_float64(kernel):
 
 def test_surfel_three_scale_columns_use_two():
     """surfel accepts (N, 3) scales; the third column is ignored (zero gradient), as in the PyTorch path."""
-    cam = _posed_camera()
+    cam = posed_camera()
     g = random_gaussians(50, "surfel", seed=1, camera=make_camera(64, 48), sh_degree=1)
     s3 = torch.cat([g.scales, torch.full((50, 1), 0.7, dtype=g.scales.dtype)], -1)
     g3 = RasterGaussians(g.means, g.quats, s3, g.opacities, g.sh)
@@ -168,7 +137,7 @@ def _rel(a, b):
 @pytest.mark.parametrize("filter3d", [None, 1e-3], ids=["nofilter", "filter3d"])
 def test_float32_matches_torch_float32(kernel, filter3d):
     """Random scenes in float32: fused payload and gradients within 1e-5 of the PyTorch float32 path."""
-    cam = _posed_camera()
+    cam = posed_camera()
     g = _f32(random_gaussians(300, kernel, seed=5, camera=make_camera(64, 48), sh_degree=2, filter3d=filter3d))
     settings = RasterSettings(sh_degree=2)
     ga, gb = with_grad(g), with_grad(g)
@@ -230,7 +199,7 @@ def test_selection_switch_raymax_surfel(monkeypatch):
 @pytest.mark.parametrize("posed", [False, True], ids=["identity", "posed"])
 def test_rasterize_same_with_either_projection(kernel, posed, monkeypatch):
     """The whole render (float64, all outputs and gradients) is the same whichever projection runs."""
-    cam = _posed_camera(33, 20) if posed else make_camera(33, 20)
+    cam = posed_camera(33, 20) if posed else make_camera(33, 20)
     g = random_gaussians(60, kernel, seed=7, camera=make_camera(33, 20), dtype=torch.float64, sh_degree=1,
                          filter3d=1e-4 if posed else None)
     settings = RasterSettings(sh_degree=1)

@@ -1,6 +1,6 @@
 """Exact ellipse/tile overlap binning (ewa, rade): fewer tile pairs, bit-identical images and gradients.
 
-`gsbench.raster.EXACT_OVERLAP` (default on, env GSBENCH_EXACT_OVERLAP) switches between the exact test and
+`gsbench.raster.binning.EXACT_OVERLAP` (default on, env GSBENCH_EXACT_OVERLAP) switches between the exact test and
 the old binning (every tile of the Gaussian's bounding rectangle). A tile is dropped only if no pixel
 centre in it can get alpha >= 1/255, so every output and gradient must be bit-identical (torch.equal).
 """
@@ -18,15 +18,19 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from raster_scenes import concat, make_camera, random_gaussians, random_quats, single_gaussian, with_grad  # noqa: E402
 
-import gsbench.raster as R  # noqa: E402
-from gsbench.raster import OUTPUTS, RasterSettings, rasterize  # noqa: E402
+from gsbench.raster import (  # noqa: E402
+    OUTPUTS,
+    RasterSettings,
+    binning,  # noqa: E402
+    rasterize,
+)
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 
 
 def _render(g, cam, kernel, exact, outputs=OUTPUTS, settings=RasterSettings(), seed=0):
-    old = R.EXACT_OVERLAP
-    R.EXACT_OVERLAP = exact
+    old = binning.EXACT_OVERLAP
+    binning.EXACT_OVERLAP = exact
     try:
         gg = with_grad(g)
         out = rasterize(gg, cam, kernel=kernel, outputs=outputs, settings=settings)
@@ -45,7 +49,7 @@ def _render(g, cam, kernel, exact, outputs=OUTPUTS, settings=RasterSettings(), s
         res["absgrad"] = out.extras["absgrad"].clone()
         return res, int(out.extras["tile_pairs"]), int(out.extras["pairs"])
     finally:
-        R.EXACT_OVERLAP = old
+        binning.EXACT_OVERLAP = old
 
 
 def _assert_identical(kernel, g, cam, outputs=OUTPUTS, settings=RasterSettings()):
@@ -185,15 +189,15 @@ def test_tile_lists_are_depth_ordered_subsequences_at_any_thread_count(kernel):
                random_gaussians(100, kernel, seed=12, dtype=torch.float32, camera=cam))
 
     def lists(exact, threads, outputs=("rgb",)):
-        old_t, old_e = torch.get_num_threads(), R.EXACT_OVERLAP
+        old_t, old_e = torch.get_num_threads(), binning.EXACT_OVERLAP
         torch.set_num_threads(threads)
-        R.EXACT_OVERLAP = exact
+        binning.EXACT_OVERLAP = exact
         try:
             with torch.no_grad():
                 out = rasterize(g, cam, kernel=kernel, outputs=outputs)
         finally:
             torch.set_num_threads(old_t)
-            R.EXACT_OVERLAP = old_e
+            binning.EXACT_OVERLAP = old_e
         offsets, tile_list = out.extras["state"].bufs[2:4]
         assert int(offsets[-1]) == out.extras["tile_pairs"]
         return [tile_list[offsets[t]:offsets[t + 1]].tolist() for t in range(offsets.numel() - 1)]

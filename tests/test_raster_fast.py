@@ -163,7 +163,7 @@ def test_surfel_densification_statistic_is_2dgs_shortcut(outs):
     low-pass filter off the intersection is the only path, so it is the derivative of the reference's loss for a
     world-space move of the means along the camera's x and y axes (SH degree 0: no view-dependent colour, whose
     direction also moves with the mean)."""
-    from gsbench.raster.projection import camera_tensors  # noqa: PLC0415
+    from gsbench.raster.payload import camera_tensors  # noqa: PLC0415
 
     cam, g32 = _scene("surfel", seed=5, n=80, W=40, H=32, sh_degree=0)
     settings = RasterSettings(sh_degree=0, surfel_filter=0.0)
@@ -370,7 +370,7 @@ def test_package_integrate_stays_the_function_after_the_field_module_loads():
     import gsbench.mesh.tets  # noqa: F401, PLC0415  (imports gsbench.raster.opacity_field)
     import gsbench.raster  # noqa: PLC0415
 
-    assert callable(gsbench.raster.integrate) and gsbench.raster.integrate.__module__ == "gsbench.raster"
+    assert callable(gsbench.raster.integrate) and gsbench.raster.integrate.__module__ == "gsbench.raster.opacity_field"
 
 
 @pytest.mark.parametrize("surfel_filter", [0.0, 0.5, 8.0])

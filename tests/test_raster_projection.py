@@ -16,15 +16,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from raster_scenes import concat, look_at_camera, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
+from raster_scenes import concat, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
 
 from gsbench.raster import RasterGaussians, RasterSettings, projection, rasterize  # noqa: E402
-from gsbench.raster.projection import FUSED_KERNELS, project_fused, project_torch  # noqa: E402
+from gsbench.raster.projection import project_fused  # noqa: E402
+from gsbench.raster.projection_fused import FUSED_KERNELS
+from tests.projection_checks import PARAMS, compare_projections, posed_camera  # noqa: E402
 
 KERNELS = ("ewa", "rade")
-PARAMS = ("means", "quats", "scales", "opacities", "sh")
-DETACHED = ("means2d", "depth", "bounds")
-EXACT = ("radii", "visible", "rect", "rect_radius")
 
 SETTINGS = {
     "default": RasterSettings(sh_degree=1),
@@ -34,53 +33,22 @@ SETTINGS = {
 }
 
 
-def _posed_camera(W=64, H=48):
-    return look_at_camera((0.3, 0.2, -0.5), (0.0, 0.0, 3.0), width=W, height=H)
-
-
-def _compare(g: RasterGaussians, cam, kernel, settings, fwd_tol=1e-10, grad_tol=1e-8, seed=0):
-    ga, gb = with_grad(g), with_grad(g)
-    pa = project_torch(ga, cam, kernel, settings)
-    pb = project_fused(gb, cam, kernel, settings)
-    assert pb.params.shape == pa.params.shape and pb.params.dtype == pa.params.dtype
-    assert bool(torch.isfinite(pb.params).all()), "non-finite fused payload"
-    scale = max(1.0, float(pa.params.detach().abs().max()))
-    diff = float((pa.params.detach() - pb.params.detach()).abs().max())
-    assert diff <= fwd_tol * scale, f"{kernel}: payload differs by {diff:.3g}"
-    for k in DETACHED:
-        a, b = getattr(pa, k), getattr(pb, k)
-        assert float((a - b).abs().max()) <= fwd_tol * max(1.0, float(a.abs().max())), k
-    for k in EXACT:
-        assert torch.equal(getattr(pa, k), getattr(pb, k)), k
-    gen = torch.Generator().manual_seed(seed)
-    w = torch.randn(pa.params.shape, generator=gen, dtype=pa.params.dtype)
-    (pa.params * w).sum().backward()
-    (pb.params * w).sum().backward()
-    for p in PARAMS:
-        x, y = getattr(ga, p).grad, getattr(gb, p).grad
-        x = torch.zeros_like(getattr(ga, p)) if x is None else x
-        assert y is not None and bool(torch.isfinite(y).all()), f"{kernel}: non-finite grad of {p}"
-        err = float((x - y).abs().max()) / max(float(x.abs().max()), 1e-30)
-        assert err <= grad_tol, f"{kernel}: gradient of {p} differs (relative {err:.3g})"
-    return pa, pb
-
-
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("name", list(SETTINGS))
 @pytest.mark.parametrize("filter3d", [None, 1e-3], ids=["nofilter", "filter3d"])
 def test_fused_matches_torch_float64(kernel, name, filter3d):
     settings = SETTINGS[name]
-    cam = _posed_camera()
+    cam = posed_camera()
     g = random_gaussians(200, kernel, seed=4, camera=make_camera(64, 48), dtype=torch.float64, sh_degree=3,
                          filter3d=filter3d)
-    _compare(g, cam, kernel, settings)
+    compare_projections(g, cam, kernel, settings)
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
 def test_fused_matches_torch_identity_camera_float64(kernel):
     cam = make_camera(40, 30)
     g = random_gaussians(200, kernel, seed=9, camera=cam, dtype=torch.float64, sh_degree=1)
-    _compare(g, cam, kernel, RasterSettings(sh_degree=1))
+    compare_projections(g, cam, kernel, RasterSettings(sh_degree=1))
 
 
 def _hard_scene(kernel):
@@ -108,7 +76,7 @@ def _hard_scene(kernel):
 @pytest.mark.parametrize("name", ["default", "sh3-aa-eps-near"])
 def test_hard_cases_float64(kernel, name):
     cam = make_camera(24, 20)
-    pa, pb = _compare(_hard_scene(kernel), cam, kernel, SETTINGS[name], fwd_tol=1e-10, grad_tol=1e-8)
+    pa, pb = compare_projections(_hard_scene(kernel), cam, kernel, SETTINGS[name], fwd_tol=1e-10, grad_tol=1e-8)
     assert not bool(pb.visible[0]) and not bool(pb.visible[1]) and not bool(pb.visible[2])
 
 
@@ -133,7 +101,7 @@ def test_hard_cases_float32_finite_and_close(kernel):
 
 @pytest.mark.parametrize("kernel", FUSED_KERNELS)  # one float64 gradcheck for every fused projection
 def test_gradcheck_fused_projection(kernel):
-    cam = _posed_camera(20, 16)
+    cam = posed_camera(20, 16)
     g = random_gaussians(5, kernel, seed=2, camera=make_camera(20, 16), dtype=torch.float64, sh_degree=2,
                          scale_range=(0.1, 0.4), filter3d=1e-3)
     settings = RasterSettings(sh_degree=2, antialias2d=0.2)
@@ -189,10 +157,10 @@ def test_depth_order_and_binning_match_torch_sort(dtype):
     """C++ radix sort by (depth, id) and the sequential binner equal torch's stable sort and the original gs_bin."""
     import ctypes  # noqa: PLC0415
 
-    from gsbench.raster import _ptr  # noqa: PLC0415
-    from gsbench.raster.build import load_library  # noqa: PLC0415
+    from gsbench.raster.abi import library  # noqa: PLC0415
+    from gsbench.raster.composite import pointer as _ptr  # noqa: PLC0415
 
-    lib = load_library()
+    lib = library()
     gen = torch.Generator().manual_seed(3)
     n, tx, ty = 5000, 13, 9
     depth = torch.round(torch.rand(n, generator=gen, dtype=torch.float64) * 50) / 7 + 0.2  # many exact ties

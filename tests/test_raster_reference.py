@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from raster_scenes import concat, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
 
 from gsbench.raster import reference as ref  # noqa: E402
+from gsbench.raster import reference_projection as ref_projection  # noqa: E402
 from gsbench.raster.types import KERNELS, OUTPUTS, RasterSettings  # noqa: E402
 
 D = torch.float64
@@ -228,7 +229,7 @@ def test_surfel_means2d_is_box_centre():
     proj = ref.project(g, cam, "surfel", RasterSettings())
     # Sample the 3σ ellipse boundary and project it.
     th = torch.linspace(0, 2 * math.pi, 20001, dtype=D)
-    R = ref.quat_to_rotmat(g.quats)[0]
+    R = ref_projection.quat_to_rotmat(g.quats)[0]
     pts = g.means[0] + 3 * 0.3 * (torch.cos(th)[:, None] * R[:, 0] + torch.sin(th)[:, None] * R[:, 1])
     uv = torch.stack([cam.fx * pts[:, 0] / pts[:, 2] + cam.cx, cam.fy * pts[:, 1] / pts[:, 2] + cam.cy], -1)
     box_centre = 0.5 * (uv.min(0).values + uv.max(0).values)
@@ -243,7 +244,7 @@ def test_rade_plane_closed_form_agrees():
     cam = make_camera(16, 16)
     g = random_gaussians(20, "rade", 5, D, camera=cam, spread=0.9)
     proj = ref.project(g, cam, "rade", RasterSettings())
-    torch.testing.assert_close(proj.rade_p, ref.rade_plane_closed_form(proj.mu, proj.cov_inv), rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(proj.rade_p, ref_projection.rade_plane_closed_form(proj.mu, proj.cov_inv), rtol=1e-9, atol=1e-12)
 
 
 def test_rade_depth_matches_gof_tstar_to_first_order():
@@ -273,14 +274,14 @@ def test_sh_basis_orthonormal():
     zc = 1 - 2 * k / n
     phi = math.pi * (1 + 5**0.5) * k
     dirs = torch.stack([torch.sqrt(1 - zc**2) * torch.cos(phi), torch.sqrt(1 - zc**2) * torch.sin(phi), zc], -1)
-    basis = torch.stack([ref.eval_sh(torch.eye(16, dtype=D)[b].reshape(1, 16, 1).expand(n, 16, 3), dirs, 3)[:, 0] for b in range(16)], 1)
+    basis = torch.stack([ref_projection.eval_sh(torch.eye(16, dtype=D)[b].reshape(1, 16, 1).expand(n, 16, 3), dirs, 3)[:, 0] for b in range(16)], 1)
     gram = 4 * math.pi * basis.T @ basis / n
     torch.testing.assert_close(gram, torch.eye(16, dtype=D), atol=2e-3, rtol=0)
     # Sign convention: degree-1 terms are (−C1 y, C1 z, −C1 x).
     d = torch.tensor([[0.6, 0.0, 0.8]], dtype=D)
     sh = torch.zeros(1, 4, 3, dtype=D)
     sh[0, 3] = 1.0
-    torch.testing.assert_close(ref.eval_sh(sh, d, 1), torch.full((1, 3), -ref.SH_C1 * 0.6, dtype=D))
+    torch.testing.assert_close(ref_projection.eval_sh(sh, d, 1), torch.full((1, 3), -ref_projection.SH_C1 * 0.6, dtype=D))
 
 
 def test_filter3d_scales_and_opacity():

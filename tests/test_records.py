@@ -5,7 +5,7 @@ import os
 
 import pytest
 
-from gsbench.records import RunRecord, capture_environment, sha256_file, write_json_atomic
+from gsbench.runs.records import RunRecord, capture_environment, sha256_file, write_json_atomic
 
 
 def test_record_round_trip(tmp_path):

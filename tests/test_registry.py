@@ -12,7 +12,7 @@ from gsbench.registry import EVALUATORS, Registry
 def test_listing_imports_nothing_heavy():
     code = (
         "import sys; from gsbench.registry import METHODS, EVALUATORS; "
-        "from gsbench.data.builtin import BUILTIN_SCENES; "
+        "from gsbench.data.synthetic.builtin import BUILTIN_SCENES; "
         "METHODS.names(); EVALUATORS.names(); "
         "heavy = [m for m in ('torch', 'open3d', 'trimesh', 'pymeshlab', 'pycolmap', 'scipy') if m in sys.modules]; "
         "print(','.join(heavy))"

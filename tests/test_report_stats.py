@@ -1,6 +1,6 @@
 """Rankings with confidence: the t-interval of a cell, the paired tests, shared ranks, the papers' orderings
 tested (`gsbench.report.stats`, `gsbench.report.claims`) on constructed records; and suites of scenes in
-sweeps (`gsbench.suites`)."""
+sweeps (`gsbench.config.suites`)."""
 
 from __future__ import annotations
 
@@ -11,17 +11,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsbench.data.builtin import BUILTIN_SCENES
+from gsbench.config.suites import load_suite, suite_names
+from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.errors import ConfigError
 from gsbench.report.aggregate import leaderboard
 from gsbench.report.build import write_report
 from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, verdict
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.metrics import PAPERS_METRIC, metric_specs, reported
-from gsbench.report.stats import (MIN_WILCOXON, comparisons, paired_test, pairs_to_decide, sign_test_p,
-                                  significance_ranks, t_half_width)
-from gsbench.suites import load_suite, suite_names
-from gsbench.sweep import expand, load_sweep, with_suite
+from gsbench.report.stats import (
+    MIN_WILCOXON,
+    comparisons,
+    paired_test,
+    pairs_to_decide,
+    sign_test_p,
+    significance_ranks,
+    t_half_width,
+)
+from gsbench.runs.sweep import expand, load_sweep, with_suite
 
 SCENES = ("scan1", "scan2", "scan3")
 SEEDS = (0, 1, 2)
@@ -217,7 +224,7 @@ def test_ablation_cells_differing_from_the_baseline_are_marked(tmp_path):
 
 
 def test_claims_use_the_papers_metric_and_name_their_source():
-    from gsbench.config import config_root
+    from gsbench.config.files import config_root
 
     for claim in CLAIMS:
         assert claim.metric == PAPERS_METRIC[claim.dataset], claim
@@ -228,7 +235,7 @@ def test_claims_use_the_papers_metric_and_name_their_source():
 
 
 def test_claims_between_methods_quote_the_methods_reported_means():
-    """A claim's paper numbers are the two methods' REPORTED means (one source, so they cannot drift apart)."""
+    """A claim's paper numbers are the two methods' reported means (one source, so they cannot drift apart)."""
     for claim in (c for c in CLAIMS if not c.sweep):
         sides = [reported(name, claim.dataset, []) for name in (claim.better, claim.worse)]
         assert [float(x) for x in claim.paper.split(" vs ")] == [side.mean for side in sides], claim

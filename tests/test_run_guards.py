@@ -10,10 +10,11 @@ import signal
 import pytest
 
 from gsbench.cli import main
-from gsbench.records import RunRecord
-from gsbench.run_lock import run_lock
-from gsbench.runner import resolve_run, run_dir
-from gsbench.train import CHECKPOINT, Trainer
+from gsbench.run_folder import RunFolder
+from gsbench.runs.records import RunRecord
+from gsbench.runs.run_lock import run_lock
+from gsbench.runs.runner import resolve_run, run_dir
+from gsbench.training.trainer import Trainer
 from tests.test_runner import QUICK, gsbench_run
 
 BAD = [("3dgs", "train.iterations=0", "train.iterations must be >= 1"),
@@ -27,7 +28,7 @@ BAD = [("3dgs", "train.iterations=0", "train.iterations must be >= 1"),
 
 @pytest.mark.parametrize("method, override, message", BAD)
 def test_bad_values_fail_before_anything_is_read_or_written(method, override, message, tmp_path, capsys, monkeypatch):
-    import gsbench.runner as runner
+    import gsbench.runs.runner as runner
 
     def no_scene(*_args, **_kwargs):
         raise AssertionError("the scene was read before the configuration was checked")
@@ -78,7 +79,7 @@ def test_sigterm_records_an_interrupted_run_that_resumes(tiny_spot, tmp_path, mo
     before = signal.getsignal(signal.SIGTERM)  # SIG_DFL, or what an earlier test (ray.init) installed
     folder = gsbench_run("3dgs", tiny_spot, tmp_path / "runs", "eval.evaluators=[mesh_stats]", expect=143)
     record = RunRecord.read(folder / "record.json")
-    assert record.status == "interrupted" and record.error_tail == "" and (folder / CHECKPOINT).is_file()
+    assert record.status == "interrupted" and record.error_tail == "" and (folder / RunFolder.CHECKPOINT).is_file()
     assert signal.getsignal(signal.SIGTERM) is before  # the run's handler is gone again
     monkeypatch.undo()
     gsbench_run("3dgs", tiny_spot, tmp_path / "runs", "eval.evaluators=[mesh_stats]")

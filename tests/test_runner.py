@@ -1,4 +1,4 @@
-"""The runner (gsbench.runner, ``gsbench run``): quick end-to-end runs per method, cached stages, resume
+"""The runner (gsbench.runs.runner, ``gsbench run``): quick end-to-end runs per method, cached stages, resume
 after an interruption, failure records."""
 
 from __future__ import annotations
@@ -10,11 +10,12 @@ import pytest
 import trimesh
 
 from gsbench.cli import main
-from gsbench.records import RunRecord, sha256_file
-from gsbench.runner import resolve_run, run_dir
-from gsbench.train import CHECKPOINT, FINAL_CHECKPOINT, METRICS, Trainer
+from gsbench.run_folder import RunFolder
+from gsbench.runs.records import RunRecord, sha256_file
+from gsbench.runs.runner import resolve_run, run_dir
+from gsbench.training.trainer import Trainer
 
-# Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection, before
+# Idle OpenMP threads must sleep, not spin (see gsbench.training.trainer.set_threads); set at collection, before
 # any test loads the rasterizer extension.
 # A TSDF voxel of about one pixel at 64x48 (a finer grid meshes pixel noise and slows evaluation).
 QUICK = ["data.downscale=1", "method.random_init_points=2000", "train.iterations=60", "train.checkpoint_every=30",
@@ -50,10 +51,10 @@ def test_quick_run_trains_meshes_evaluates_and_records(method, tiny_spot, tmp_pa
         k.split(".", 1)[1] for k in record.timings if k.startswith("train.")}
     assert record.losses["schedule"]["l1"] == {"weight": 0.8, "start": 0, "end": -1}
     assert record.config["train"]["iterations"] == 60 and record.environment["threads"] == 2
-    logged = [json.loads(line) for line in (folder / METRICS).read_text().splitlines()]
+    logged = [json.loads(line) for line in (folder / RunFolder.METRICS).read_text().splitlines()]
     assert [row["step"] for row in logged] == [10, 20, 30, 40, 50, 60]
     assert {"l1", "dssim", "total", "num_gaussians", "it_per_s"} <= set(logged[-1])
-    assert (folder / FINAL_CHECKPOINT).is_file() and not (folder / CHECKPOINT).exists()
+    assert (folder / RunFolder.FINAL_CHECKPOINT).is_file() and not (folder / RunFolder.CHECKPOINT).exists()
     assert "chamfer" in capsys.readouterr().out
     if method == "2dgs":
         assert record.losses["schedule"]["normal_consistency"]["start"] == 14  # 7000 · 60/30000
@@ -72,7 +73,7 @@ def test_second_run_skips_every_finished_stage(tiny_spot, tmp_path, monkeypatch)
 
     monkeypatch.setattr(Trainer, "fit", must_not_run)
     monkeypatch.setattr("gsbench.methods.base.Method.extract_mesh", must_not_run)
-    monkeypatch.setattr("gsbench.runner._evaluate", must_not_run)
+    monkeypatch.setattr("gsbench.runs.runner._evaluate", must_not_run)
     gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR)
     second = RunRecord.read(folder / "record.json")
     assert second.status == "ok" and second.metrics == first.metrics and second.mesh == first.mesh
@@ -110,11 +111,11 @@ def test_interrupted_training_resumes_from_its_checkpoint(tiny_spot, tmp_path, m
     cfg.out = str(tmp_path / "runs")
     folder = run_dir(cfg)
     assert RunRecord.read(folder / "record.json").status == "interrupted"  # resumable, not a failure
-    assert (folder / CHECKPOINT).is_file()
+    assert (folder / RunFolder.CHECKPOINT).is_file()
     monkeypatch.undo()
     gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR)
     assert RunRecord.read(folder / "record.json").status == "ok"
-    logged = [json.loads(line)["step"] for line in (folder / METRICS).read_text().splitlines()]
+    logged = [json.loads(line)["step"] for line in (folder / RunFolder.METRICS).read_text().splitlines()]
     assert logged == [10, 20, 30, 40, 50, 60]  # the line of step 40 (after the checkpoint at 30) is not repeated
 
 

@@ -1,4 +1,4 @@
-"""Fused C++ SSIM (gsbench/raster/csrc/ssim.cpp via `gsbench.ssim`) vs the PyTorch reference.
+"""Fused C++ SSIM (gsbench/losses/csrc/ssim.cpp via `gsbench.losses.ssim`) vs the PyTorch reference.
 
 Float32 note: the fused kernel computes in float64 for float32 images, so its float32 map is the float64
 map rounded. The float32 *reference* cancels in E[x²] − μx² (≈6e-6 off per pixel on noise, up to ~1e-3 on
@@ -15,13 +15,21 @@ import pytest
 import torch
 from scipy import ndimage
 
-from gsbench import losses, ssim as ssim_module
 from gsbench.errors import ConfigError
-from gsbench.losses import Batch
-from gsbench.raster.types import RenderOutput
-from gsbench.ssim import (
-    C1, C2, SSIM_ENV, gaussian_window, ssim, ssim_map, ssim_map_reference, ssim_reference,
+from gsbench.losses import ssim as ssim_module
+from gsbench.losses import terms as losses
+from gsbench.losses.ssim import (
+    C1,
+    C2,
+    SSIM_ENV,
+    gaussian_window,
+    ssim,
+    ssim_map,
+    ssim_map_reference,
+    ssim_reference,
 )
+from gsbench.losses.terms import Batch
+from gsbench.raster.types import RenderOutput
 
 TOL = 1e-6
 TOL64 = 1e-12

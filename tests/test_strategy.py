@@ -1,4 +1,4 @@
-"""Densification strategies and optimizer-aware parameter surgery (gsbench.strategies)."""
+"""Densification strategies and optimizer-aware parameter surgery (gsbench.training.strategies)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from gsbench.errors import ConfigError
-from gsbench.gaussians import PARAMETER_NAMES, Gaussians
 from gsbench.raster.types import RenderOutput
-from gsbench.strategies.default import DefaultStrategy
-from gsbench.strategies.base import append_params, keep_params
+from gsbench.training.gaussians import PARAMETER_NAMES, Gaussians
+from gsbench.training.strategies.base import append_params, keep_params
+from gsbench.training.strategies.default import DefaultStrategy
 
 SMALL, LARGE = math.log(0.002), math.log(0.2)  # max scale below / above percent_dense·extent = 0.01
 HIGH, LOW = 1e-3, 1e-5  # NDC gradient norms above / below the 0.0002 threshold

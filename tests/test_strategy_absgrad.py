@@ -1,4 +1,4 @@
-"""GOF / RaDe-GS abs-gradient densification (gsbench.strategies.absgrad.AbsGradStrategy, docs/methods/gof.md §5)."""
+"""GOF / RaDe-GS abs-gradient densification (gsbench.training.strategies.absgrad.AbsGradStrategy, docs/methods/gof.md §5)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ import torch
 
 from gsbench.data.camera import Camera
 from gsbench.geometry.filter3d import Filter3D, filter_coefficient
-from gsbench.gaussians import Gaussians
 from gsbench.raster.types import RenderOutput
-from gsbench.strategies.absgrad import AbsGradStrategy, matched_threshold
-from gsbench.strategies.default import DefaultStrategy
-from gsbench.train import scaled_strategy
+from gsbench.training.gaussians import Gaussians
+from gsbench.training.strategies.absgrad import AbsGradStrategy, matched_threshold
+from gsbench.training.strategies.default import DefaultStrategy
+from gsbench.training.trainer import scaled_strategy
 
 SMALL, LARGE = math.log(0.002), math.log(0.2)  # max scale below / above percent_dense·extent = 0.01
 OPAQUE = 2.0  # opacity logit: 0.88

@@ -10,19 +10,19 @@ import pytest
 import torch
 import trimesh
 
-from gsbench.config import MeshConfig
+from gsbench.config.run_config import MeshConfig
 from gsbench.data.loader import load_scene, make_scene
 from gsbench.errors import ConfigError, NumericalError
-from gsbench.gaussians import Gaussians
-from gsbench.losses import Batch, active_terms
+from gsbench.losses.terms import Batch, active_terms
 from gsbench.mesh import MeshError
 from gsbench.mesh.levelset import DensityField, auto_poisson_depth, level_crossings, levelset_mesh
 from gsbench.methods import sugar_terms
-from gsbench.raster.projection import quat_to_rotmat
+from gsbench.raster.payload import quat_to_rotmat
 from gsbench.raster.types import RasterGaussians, RasterSettings, RenderOutput
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run, run
-from gsbench.train import Trainer, scaled_losses, scaled_strategy
+from gsbench.runs.runner import resolve_run, run
+from gsbench.training.gaussians import Gaussians
+from gsbench.training.trainer import Trainer, scaled_losses, scaled_strategy
 from tests.raster_scenes import look_at_camera, make_camera
 
 LEVEL = 0.3
@@ -238,12 +238,12 @@ def setup_sugar(scene_dir, *overrides):
 def test_defaults_and_schedule_keep_sugars_proportions():
     cls = METHODS.get("sugar")
     info, p = cls.info(), cls.Config()
-    assert (info.kernel, info.primitive, info.mesh_extractor) == ("ewa", "3d", "poisson")
+    assert (info.kernel, info.primitive) == ("ewa", "3d")
     assert (p.warmup_until, p.hard_prune_at, p.hard_prune_opacity, p.knn_k, p.knn_every) == (14000, 18000, 0.5, 16, 1000)
-    warm_up = (p.densify_from, p.opacity_reset_every, p.position_lr_max_steps, p.sh_interval)
+    warm_up = (p.refine_start, p.reset_every, p.position_lr_max_steps, p.sh_interval)
     assert p.regularizer == "density" and warm_up == (1000, 6000, 60000, 2000)  # 3DGS's, doubled
     cfg = resolve_run("sugar", "synthetic/spot", preset="paper")
-    assert set(cfg.losses) == set(info.loss_terms) and cfg.mesh.depth == info.mesh_depth
+    assert set(cfg.losses) == {"l1", "dssim", "opacity_entropy", "sugar_sdf", "sugar_normal"} and cfg.mesh.depth == "median"
     assert (cfg.mesh.extractor, cfg.mesh.level, cfg.mesh.poisson_density_quantile) == ("poisson", 0.3, 0.1)
     sugar = scaled_losses(cfg.losses, 15000 / 30000)  # SuGaR's own 15 000-step run
     assert sugar["opacity_entropy"] == {"weight": 0.1, "start": 7000, "end": 9000}
@@ -324,7 +324,7 @@ def test_grazing_views_of_a_thin_sheet_train_without_nan_and_mesh(tmp_path_facto
     scene_dir = make_scene("synthetic/thin-plate", out=tmp_path_factory.getbasetemp() / "thin-plate-64x48",
                            res=(64, 48))
     m, scene, cfg = setup_sugar(scene_dir, "train.iterations=60", "method.random_init_points=1000",
-                                "method.init_opacity=0.5", "method.opacity_reset_every=60000",
+                                "method.init_opacity=0.5", "method.reset_every=60000",
                                 "method.num_samples=2000", "threads=1")
     run_dir = tmp_path_factory.mktemp("sugar-thin-plate")
     result = Trainer(m, scene, cfg, run_dir).fit()
@@ -340,7 +340,7 @@ def test_grazing_views_of_a_thin_sheet_train_without_nan_and_mesh(tmp_path_facto
 # 120 steps (warm-up to 56, entropy to 72, regularisers after) at 64x48 with 1000 Gaussians starting at
 # opacity 0.5, so that some survive the hard prune in so short a run; no opacity reset in the warm-up.
 QUICK = ["data.downscale=1", "method.random_init_points=1000", "method.init_opacity=0.5", "method.num_samples=2000",
-         "method.opacity_reset_every=60000", "train.iterations=120", "train.checkpoint_every=0", "train.log_every=10",
+         "method.reset_every=60000", "train.iterations=120", "train.checkpoint_every=0", "train.log_every=10",
          "eval.evaluators=[dtu_chamfer]", "threads=1"]
 
 

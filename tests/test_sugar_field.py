@@ -1,4 +1,4 @@
-"""Fused SuGaR neighbour field and normal average (gsbench/raster/csrc/sugar_field.cpp via
+"""Fused SuGaR neighbour field and normal average (methods/csrc/sugar_field.cpp via
 `gsbench.methods.sugar_field`) vs their PyTorch references: gradcheck, agreement, determinism, fallbacks."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import torch
 from gsbench.errors import ConfigError
 from gsbench.methods import sugar_field
 from gsbench.methods.sugar_field import FIELD_ENV, neighbour_field, neighbour_normals
-from gsbench.raster.projection import quat_to_rotmat
+from gsbench.raster.payload import quat_to_rotmat
 
 TOL = {torch.float32: 1e-6, torch.float64: 1e-10}
 

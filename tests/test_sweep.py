@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from gsbench.config import config_root
+from gsbench.config.files import config_root
 from gsbench.errors import ConfigError
-from gsbench.sweep import expand, format_runs, load_sweep, with_suite
+from gsbench.run_folder import RunFolder
+from gsbench.runs.sweep import expand, format_runs, load_sweep, with_suite
 
 SWEEPS = sorted((config_root() / "sweeps").glob("*.yaml"))
 
@@ -29,7 +30,7 @@ def write(tmp_path, text) -> Path:
 def test_grid_zip_scenes_and_seeds_multiply_in_order(tmp_path):
     sweep = load_sweep(write(tmp_path, """
 base: {method: 3dgs, scene: synthetic/spot, preset: quick, train: {iterations: 50}}
-grid: {method.densify_grad_threshold: [0.0002, 0.0004]}
+grid: {method.grad_threshold: [0.0002, 0.0004]}
 zip: {train.log_every: [5, 10], train.checkpoint_every: [0, 25]}
 scenes: [synthetic/spot, synthetic/spot-tnt]
 seeds: [0, 1]
@@ -38,9 +39,9 @@ seeds: [0, 1]
     assert len(runs) == 2 * 2 * 2 * 2
     assert sweep["name"] == "sweep"
     first = runs[0].config
-    assert (first.method["densify_grad_threshold"], first.train.log_every, first.train.checkpoint_every,
+    assert (first.method["grad_threshold"], first.train.log_every, first.train.checkpoint_every,
             first.scene, first.seed, first.train.iterations) == (0.0002, 5, 0, "synthetic/spot", 0, 50)
-    assert runs[0].label == "method.densify_grad_threshold=0.0002 train.log_every=5 train.checkpoint_every=0"
+    assert runs[0].label == "method.grad_threshold=0.0002 train.log_every=5 train.checkpoint_every=0"
     assert {(r.config.train.log_every, r.config.train.checkpoint_every) for r in runs} == {(5, 0), (10, 25)}
     assert len({r.run_id for r in runs}) == len(runs)
     assert [r.run_id for r in expand(load_sweep(write(tmp_path, Path(tmp_path / "sweep.yaml").read_text())))] == \
@@ -134,9 +135,11 @@ grid: {seed: [0, 1, 2]}
 
 
 def fake_runs(monkeypatch, fail_seed=None):
-    """runner.run replaced in this process: writes an ok record, or raises for ``fail_seed``; returns the seeds run."""
-    import gsbench.runner as runner
-    from gsbench.records import RunRecord
+    """The sweep's runner replaced in this process: writes an ok record, or raises for ``fail_seed``; returns the
+    seeds run."""
+    import gsbench.runs.runner as runner
+    import gsbench.runs.sweep as sweep_module
+    from gsbench.runs.records import RunRecord
 
     calls = []
 
@@ -147,16 +150,16 @@ def fake_runs(monkeypatch, fail_seed=None):
         folder = runner.run_dir(cfg)
         folder.mkdir(parents=True)
         RunRecord(run_id=cfg.run_id, method="3dgs", scene=cfg.scene, dataset="dtu", seed=cfg.seed,
-                  status="ok").write(folder / runner.RECORD)
+                  status="ok").write(RunFolder(folder).record)
 
-    monkeypatch.setattr(runner, "run", fake_run)
+    monkeypatch.setattr(sweep_module, "run", fake_run)  # the runner the sweep calls
     return calls
 
 
 def test_sweep_skips_finished_runs_survives_a_failure_and_writes_the_manifest(tmp_path, monkeypatch):
     from concurrent.futures import ThreadPoolExecutor
 
-    from gsbench.sweep import run_sweep
+    from gsbench.runs.sweep import run_sweep
 
     runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
     calls = fake_runs(monkeypatch, fail_seed=1)
@@ -213,11 +216,11 @@ class FirstRunThenCtrlC(Executor):
 
 
 def test_ctrl_c_cancels_the_unfinished_runs_keeps_finished_records_and_exits_130(tmp_path, monkeypatch, capsys):
-    import gsbench.executors
+    import gsbench.runs.executors
     from gsbench.cli import main
 
     executor = FirstRunThenCtrlC(total=3)
-    monkeypatch.setattr(gsbench.executors, "make_executor", lambda *a, **k: executor)
+    monkeypatch.setattr(gsbench.runs.executors, "make_executor", lambda *a, **k: executor)
     calls = fake_runs(monkeypatch)
     out = tmp_path / "runs"
     # Python's own SIGINT handler for this test: in the full suite an earlier test left another one

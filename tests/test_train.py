@@ -1,10 +1,9 @@
-"""The Trainer (gsbench.train): schedule scaling, camera sampling, bit-exact resume, outputs that follow
+"""The Trainer (gsbench.training.trainer): schedule scaling, camera sampling, bit-exact resume, outputs that follow
 the active terms, numerical errors, masks, metrics log."""
 
 from __future__ import annotations
 
 import dataclasses
-
 import json
 import math
 
@@ -16,12 +15,21 @@ import gsbench.methods.base as method_base
 from gsbench.data.loader import load_scene
 from gsbench.errors import NumericalError
 from gsbench.registry import METHODS
-from gsbench.runner import resolve_run
-from gsbench.strategies.default import DefaultStrategy
-from gsbench.train import (CHECKPOINT, FINAL_CHECKPOINT, METRICS, CameraSampler, Trainer, _target_images,
-                           load_checkpoint, scale_step, scaled_losses, scaled_strategy)
+from gsbench.run_folder import RunFolder
+from gsbench.runs.runner import resolve_run
+from gsbench.training.strategies.default import DefaultStrategy
+from gsbench.training.trainer import (
+    CameraSampler,
+    Trainer,
+    _target_images,
+    load_checkpoint,
+    scale_step,
+    scaled_losses,
+    scaled_strategy,
+)
+from tests.method_setup import interrupt_at
 
-# Idle OpenMP threads must sleep, not spin (see gsbench.train.set_threads); set at collection, before
+# Idle OpenMP threads must sleep, not spin (see gsbench.training.trainer.set_threads); set at collection, before
 # any test loads the rasterizer extension.
 TINY = ["data.downscale=1", "method.random_init_points=400", "train.log_every=5"]
 
@@ -83,35 +91,28 @@ def test_camera_sampler_draws_every_view_once_per_epoch_and_is_seeded():
 def test_resume_gives_bit_identical_parameters(tiny_spot, tmp_path, monkeypatch, restore_threads, threads):
     """24 steps straight vs 12 + crash + resume + 12, with densification (every 4 steps) in between, at
     the same thread count (the rasterizer's backward deals tiles to threads in a fixed order)."""
-    overrides = (f"threads={threads}", "train.iterations=24", "train.checkpoint_every=12", "method.densify_every=4",
-                 "method.densify_until=30000", "method.opacity_reset_every=30000")
+    overrides = (f"threads={threads}", "train.iterations=24", "train.checkpoint_every=12", "method.refine_every=4",
+                 "method.refine_stop=30000", "method.reset_every=30000")
     straight = make_trainer("3dgs", tiny_spot, tmp_path / "a", *overrides)
     straight.fit()
 
     interrupted = make_trainer("3dgs", tiny_spot, tmp_path / "b", *overrides)
-    step = interrupted.train_step
-
-    def crash_after_checkpoint(t):
-        if t == 13:
-            raise KeyboardInterrupt
-        return step(t)
-
-    monkeypatch.setattr(interrupted, "train_step", crash_after_checkpoint)
+    interrupt_at(interrupted, 13, monkeypatch)  # after the checkpoint at step 12
     with pytest.raises(KeyboardInterrupt):
         interrupted.fit()
-    assert (tmp_path / "b" / CHECKPOINT).is_file() and not (tmp_path / "b" / FINAL_CHECKPOINT).exists()
+    assert (tmp_path / "b" / RunFolder.CHECKPOINT).is_file() and not (tmp_path / "b" / RunFolder.FINAL_CHECKPOINT).exists()
     monkeypatch.undo()
     resumed = make_trainer("3dgs", tiny_spot, tmp_path / "b", *overrides)
     result = resumed.fit()
     assert result.resumed_from == 12 and result.steps == 24
-    assert not (tmp_path / "b" / CHECKPOINT).exists()
+    assert not (tmp_path / "b" / RunFolder.CHECKPOINT).exists()
     assert len(straight.method.gaussians) != 400, "densification should have changed the count"
     for name, param in straight.method.gaussians.params.items():
         assert torch.equal(param, resumed.method.gaussians.params[name]), name
-    a = load_checkpoint(tmp_path / "a" / FINAL_CHECKPOINT)["method"]["optimizer"]["state"]
-    b = load_checkpoint(tmp_path / "b" / FINAL_CHECKPOINT)["method"]["optimizer"]["state"]
+    a = load_checkpoint(tmp_path / "a" / RunFolder.FINAL_CHECKPOINT)["method"]["optimizer"]["state"]
+    b = load_checkpoint(tmp_path / "b" / RunFolder.FINAL_CHECKPOINT)["method"]["optimizer"]["state"]
     assert all(torch.equal(a[k]["exp_avg_sq"], b[k]["exp_avg_sq"]) for k in a)
-    steps = [json.loads(line)["step"] for line in (tmp_path / "b" / METRICS).read_text().splitlines()]
+    steps = [json.loads(line)["step"] for line in (tmp_path / "b" / RunFolder.METRICS).read_text().splitlines()]
     assert steps == [5, 10, 15, 20, 24]
 
 

@@ -8,8 +8,8 @@ import math
 
 import pytest
 
-from gsbench.errors import ConfigError
 from gsbench.bench.train import RASTER_PHASES, WORKLOADS, bench_workload, format_table, run_train_benchmark
+from gsbench.errors import ConfigError
 
 
 @pytest.mark.parametrize("name, terms", [("2dgs", {"l1", "dssim", "normal_consistency", "depth_distortion"}),

@@ -30,8 +30,8 @@ from scipy.spatial import cKDTree
 from gsbench.data.loader import load_scene
 from gsbench.evaluators import pointsets
 from gsbench.evaluators.surface_offset import gt_mesh_file, pixel_footprint, signed_distances
-from gsbench.raster.projection import quat_to_rotmat
-from gsbench.train import FINAL_CHECKPOINT, load_checkpoint
+from gsbench.raster.payload import quat_to_rotmat
+from gsbench.training.trainer import FINAL_CHECKPOINT, load_checkpoint
 
 GATE_PX = 5.0
 CURVATURE_RADIUS_PX = 3.0

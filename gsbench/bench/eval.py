@@ -18,6 +18,7 @@ the evaluator does) and uncapped (what it did before), with the fractions of bot
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 import time
@@ -25,12 +26,14 @@ from pathlib import Path
 
 import numpy as np
 import scipy.io
+import trimesh
 
 from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
 from gsbench.errors import import_open3d
-from gsbench.evaluators import gt_io
-from gsbench.evaluators.base import peak_rss_bytes
+from gsbench.evaluators import gt_io, tnt_f1
 from gsbench.evaluators.dtu_chamfer import DTUChamfer
+from gsbench.evaluators.tnt_f1 import TnTF1
+from gsbench.resources import peak_rss_bytes
 
 SPACING = 0.2  # mm, GT point spacing
 SCAN = 1
@@ -112,8 +115,6 @@ def run_eval_benchmark(n_vertices: int = 1_000_000, n_gt: int = 2_000_000, seed:
         verts, faces = latlong_sphere(n_vertices, radius, noise=0.1, seed=seed)
         scene = _ring_scene(root, n_views, 0.8, scale)
         setup_s, setup_rss = time.perf_counter() - t0, peak_rss_bytes()
-        import trimesh  # noqa: PLC0415
-
         mesh = trimesh.Trimesh(verts / scale, faces, process=False)
         result = DTUChamfer().evaluate(mesh, scene, seed=seed)
     diag = result["diagnostics"]
@@ -134,8 +135,6 @@ def run_eval_benchmark(n_vertices: int = 1_000_000, n_gt: int = 2_000_000, seed:
 def _write_tnt_gt(root: Path, gt: np.ndarray, tau: float, n_views: int) -> Scene:
     """A TnT-layout GT folder (``Bench.ply``, crop ``.json``, identity ``_trans.txt``, ring trajectory
     ``_COLMAP_SfM.log``) and the matching scene (the GT frame is the scene frame)."""
-    import json  # noqa: PLC0415
-
     o3d = import_open3d()
     o3d.io.write_point_cloud(str(root / "Bench.ply"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(gt)))
     h = 1.5
@@ -152,8 +151,6 @@ def _write_tnt_gt(root: Path, gt: np.ndarray, tau: float, n_views: int) -> Scene
 
 def _time_scoring(mesh, scene, tau: float) -> dict:
     """The official point set's scoring (crop, voxel tau/2, both NN directions) capped and uncapped."""
-    from gsbench.evaluators import tnt_f1  # noqa: PLC0415
-
     o3d = import_open3d()
     volume = gt_io.read_crop_volume(Path(scene.gt.root) / "Bench.json")
     gt = o3d.io.read_point_cloud(str(Path(scene.gt.root) / "Bench.ply"))
@@ -171,10 +168,6 @@ def _time_scoring(mesh, scene, tau: float) -> dict:
 
 def run_tnt_benchmark(n_vertices: int = 1_000_000, n_gt: int = 2_000_000, seed: int = 0, n_views: int = 20) -> dict:
     """Time tnt_f1 on a partial and a noisy sphere mesh against ``n_gt`` GT points; see the module doc."""
-    import trimesh  # noqa: PLC0415
-
-    from gsbench.evaluators.tnt_f1 import TnTF1  # noqa: PLC0415
-
     spacing = float(np.sqrt(4 * np.pi / n_gt))
     tau = 0.5 * spacing
     verts, faces = latlong_sphere(n_vertices, 1.0, noise=0.0, seed=seed)

@@ -14,9 +14,15 @@ import time
 
 import torch
 
-from gsbench.geometry.local_geometry import LocalGeometry, apply_alignment, frame_alignment, local_covariance, local_geometry
-from gsbench.methods.ibgs_terms import eigval_term, eigvec_term
+from gsbench.geometry.local_geometry import (
+    LocalGeometry,
+    apply_alignment,
+    frame_alignment,
+    local_covariance,
+    local_geometry,
+)
 from gsbench.geometry.neighbours import NeighbourIndex
+from gsbench.methods.ibgs_terms import eigval_term, eigvec_term
 
 DEFAULT_SIZES = (10_000, 100_000)
 

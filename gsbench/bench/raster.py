@@ -20,7 +20,10 @@ import time
 import numpy as np
 import torch
 
+import gsbench.raster as R
 from gsbench.data.camera import Camera
+from gsbench.raster import profiling, rasterize, reference
+from gsbench.raster.abi import library
 from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
@@ -96,14 +99,12 @@ def _leaves(g: RasterGaussians) -> RasterGaussians:
 
 
 def _bench_one(kernel: str, g: RasterGaussians, cam: Camera, repeats: int, settings: RasterSettings) -> dict:
-    import gsbench.raster as R  # noqa: PLC0415
-
     fwd_ms, tot_ms, phases = [], [], []
     pairs = (0, 0, 0)
     mem = _PeakRSS()
     for it in range(repeats + 1):  # first run = warm-up; its RSS growth is the peak extra memory
         gg = _leaves(g)
-        R.profile = {}
+        profiling.profile = {}
         if it == 0:
             mem.__enter__()
         t0 = time.perf_counter()
@@ -114,8 +115,8 @@ def _bench_one(kernel: str, g: RasterGaussians, cam: Camera, repeats: int, setti
         t2 = time.perf_counter()
         if it == 0:
             mem.__exit__(None, None, None)
-        prof = dict(R.profile)
-        R.profile = None
+        prof = dict(profiling.profile)
+        profiling.profile = None
         if it == 0:
             continue
         fwd_ms.append(1e3 * (t1 - t0))
@@ -148,8 +149,6 @@ def _bench_one(kernel: str, g: RasterGaussians, cam: Camera, repeats: int, setti
 
 def _bench_reference(kernel: str, n: int, width: int, height: int, repeats: int) -> dict:
     """Dense reference vs the fast path on a reduced case (the reference is O(pixels × N) in memory)."""
-    from gsbench.raster import rasterize, reference  # noqa: PLC0415
-
     g, cam = standard_scene(n, width, height, kernel)
     cam = Camera(K=cam.K, R=cam.R, t=cam.t, width=width, height=height)
     res = {"n": n, "width": width, "height": height}
@@ -180,14 +179,12 @@ def run_raster_benchmark(
 
     ``None`` for ``kernels`` or ``workloads`` means all of them (the CLI passes None when a flag is omitted).
     """
-    from gsbench.raster.build import load_library  # noqa: PLC0415
-
     if kernels is None:
         kernels = ("ewa", "rade", "raymax", "surfel")
     if workloads is None:
         workloads = tuple(STANDARD_WORKLOADS)
 
-    load_library()
+    library()
     old_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(int(threads))

@@ -5,14 +5,14 @@ initial points in the masks' visual hull), stepped from a quarter of the cpu sch
 3000, in the densification window) or, when a loss term starts later, from the step after the last
 term starts (GOF / RaDe-GS / IBGS 1501, SuGaR 1801, past the window), so every term is timed; and ``3dgs-random-100k``: 3DGS from 100 000 random points in the scene sphere, stepped from
 step 1 (what a capture without points and masks costs at the start); ``3dgs-visible-adam``: 3DGS
-with the opt-in visible-only Adam (`gsbench.optim`). Each workload runs ``warmup``
-steps, then ``steps`` timed steps of `gsbench.train.Trainer.train_step` (the real step: schedules,
+with the opt-in visible-only Adam (`gsbench.training.optim`). Each workload runs ``warmup``
+steps, then ``steps`` timed steps of `gsbench.training.trainer.Trainer.train_step` (the real step: schedules,
 render, loss, backward, densification, Adam, checks), seeded, in a temporary run folder.
 
 Phases, milliseconds per step (mean over the timed steps):
 
 - ``projection``, ``sort_bin``, ``raster_fwd``, ``raster_bwd``: the rasterizer's own timers
-  (`gsbench.raster.profile`);
+  (`gsbench.raster.profiling.profile`);
 - ``render_rest``: the rest of the method's render call (building the raster input, 3D filter, IBGS's
   kNN covariance, …) = Trainer ``render`` − projection − sort_bin − raster_fwd;
 - ``fwd.<term>``: each loss term's forward (the Trainer's ``loss`` phase split by term), ``loss_rest``
@@ -23,7 +23,7 @@ Phases, milliseconds per step (mean over the timed steps):
 - PGSR's multi-view terms render a neighbouring view themselves (docs/methods/pgsr.md §4.3): that render and its
   backward are in the first active one of the two terms (``fwd.pgsr_geo`` / ``bwd.pgsr_geo``; ``pgsr_ncc``'s when
   ``pgsr_geo`` has weight 0), not in the rasterizer timers above, which time the step's own render;
-  ``neighbour.<phase>`` are the neighbour's rasterizer timers (`gsbench.raster.profile_as`), ``neighbour_raster``
+  ``neighbour.<phase>`` are the neighbour's rasterizer timers (`gsbench.raster.profiling.profile_as`), ``neighbour_raster``
   their sum: parts of those two terms, not more phases of the step;
 - ``backward_rest`` = Trainer ``backward`` − raster_bwd − Σ bwd.<term>: the autograd glue and the
   projection's backward (not timed on its own: the fused projections run inside autograd);
@@ -43,6 +43,14 @@ import time
 from dataclasses import dataclass
 
 import torch
+
+import gsbench.training.trainer as train
+from gsbench.errors import ConfigError
+from gsbench.losses.terms import Batch, active_terms, required_outputs
+from gsbench.raster import profiling
+from gsbench.registry import METHODS
+from gsbench.resources import set_threads
+from gsbench.runs.runner import load_run_scene, resolve_run
 
 WARMUP, STEPS, PROBE_STEPS = 10, 30, 5
 SCENE = "synthetic/spot"
@@ -71,7 +79,7 @@ NEIGHBOUR = "neighbour."  # the profile tag of PGSR's neighbour render (methods/
 
 
 class _TermClock:
-    """Replaces `gsbench.train.total_loss` during the timed steps: the same sum, each term's forward timed."""
+    """Replaces `gsbench.training.trainer.total_loss` during the timed steps: the same sum, each term's forward timed."""
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
@@ -89,8 +97,6 @@ class _TermClock:
 
 def _term_backward_seconds(trainer, step: int) -> dict[str, float]:
     """Each active term's own backward at ``step`` (module docstring, ``bwd.<term>``); no parameter changes."""
-    from gsbench.losses import Batch, active_terms, required_outputs  # noqa: PLC0415
-
     m = trainer.method
     active = active_terms(trainer.losses, step, m.term_params(), m.loss_terms())
     idx = trainer.views[step % len(trainer.views)]
@@ -118,11 +124,6 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
                    probe_steps: int = PROBE_STEPS, threads: int = 2, scenes: dict | None = None,
                    scene_name: str = SCENE) -> dict:
     """Time one workload (module docstring); ``scenes`` caches loaded scenes between workloads."""
-    import gsbench.raster as raster  # noqa: PLC0415
-    import gsbench.train as train  # noqa: PLC0415
-    from gsbench.registry import METHODS  # noqa: PLC0415
-    from gsbench.runner import load_run_scene, resolve_run  # noqa: PLC0415
-
     cfg = resolve_run(workload.method, scene_name, preset="cpu", overrides=(*workload.overrides, "train.checkpoint_every=0"))
     cfg.threads = threads
     scenes = {} if scenes is None else scenes
@@ -131,7 +132,7 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
         scenes[key] = load_run_scene(cfg)
     scene = scenes[key]
     method = METHODS.get(workload.method)()
-    train.set_threads(threads)
+    set_threads(threads)
     train.seed_everything(cfg.seed)
     method.setup(scene, cfg)
     initial = len(method.gaussians)
@@ -143,7 +144,7 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
             trainer.train_step(step)
         trainer.phases = dict.fromkeys(trainer.phases, 0.0)
         clock, original = _TermClock(), train.total_loss
-        raster.profile, train.total_loss = {}, clock
+        profiling.profile, train.total_loss = {}, clock
         n_start = len(method.gaussians)
         per_step = []
         try:
@@ -151,9 +152,9 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
                 t0 = time.perf_counter()
                 trainer.train_step(step)
                 per_step.append(time.perf_counter() - t0)
-            prof = dict(raster.profile)
+            prof = dict(profiling.profile)
         finally:
-            raster.profile, train.total_loss = None, original
+            profiling.profile, train.total_loss = None, original
         n_end = len(method.gaussians)
         probe = [_term_backward_seconds(trainer, first + warmup + steps + k) for k in range(probe_steps)]
     result = _phases_ms(name, workload, per_step, trainer.phases, prof, clock.seconds, probe,
@@ -193,8 +194,6 @@ def run_train_benchmark(workloads=None, *, steps: int = STEPS, warmup: int = WAR
     names = list(workloads or WORKLOADS)
     unknown = [n for n in names if n not in WORKLOADS]
     if unknown:
-        from gsbench.errors import ConfigError  # noqa: PLC0415
-
         raise ConfigError(f"unknown train workload(s) {unknown}; available: {', '.join(WORKLOADS)}")
     scenes: dict = {}
     results = []

@@ -145,6 +145,9 @@ class Scene:
     loaded), so what a scene offers is known before its images are decoded (`has_masks`).
     ``points``/``colors``: optional SfM initialisation (N,3) in the normalised frame, colours in [0,1].
     Cameras are in the normalised frame. ``fmt`` is ``dtu``, ``dtu-colmap`` or ``tnt``.
+    ``holdout_every``: the run's view split (``data.holdout_every``, set when the scene is loaded): every
+    k-th view (``i % k == 0``) is held out of training when k > 0 (3DGS ``--eval`` with k = 8,
+    docs/methods/3dgs.md §1.4); `train_views` and `held_out_views` are the two parts.
     """
 
     name: str
@@ -162,10 +165,24 @@ class Scene:
     gt_missing: str = ""
     source_size: tuple[int, int] | None = None
     downscale: float = 1.0
+    holdout_every: int = 0
 
     @property
     def radius(self) -> float:
         return self.normalisation.radius
+
+    @property
+    def train_views(self) -> list[int]:
+        """Indices of the views trained on (class docstring: all but every ``holdout_every``-th)."""
+        return [i for i in range(len(self.cameras)) if not self._held_out(i)]
+
+    @property
+    def held_out_views(self) -> list[int]:
+        """Indices of the views held out of training (``i % holdout_every == 0``; none when it is 0)."""
+        return [i for i in range(len(self.cameras)) if self._held_out(i)]
+
+    def _held_out(self, view: int) -> bool:
+        return self.holdout_every > 0 and view % self.holdout_every == 0
 
     @property
     def has_masks(self) -> bool:

@@ -15,6 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from gsbench.data.camera import Camera
+from gsbench.data.filecheck.colmap import (
+    COLMAP_FIX,
+    check_colmap_model,
+    colmap_text_count_problem,
+    locate_colmap_text_error,
+)
+from gsbench.data.filecheck.common import one_line
 from gsbench.data.images import list_images
 from gsbench.errors import DataError
 
@@ -61,19 +68,11 @@ def _intrinsics(cam, sparse_dir: Path) -> np.ndarray:
 def read_colmap_model(sparse_dir: Path) -> ColmapModel:
     """Read ``cameras``, ``images`` and ``points3D`` (.bin or .txt) from a COLMAP model folder.
 
-    Binary files are checked against their sizes first (`gsbench.data.filecheck.check_colmap_model`):
+    Binary files are checked against their sizes first (`gsbench.data.filecheck.colmap.check_colmap_model`):
     pycolmap's reader hangs, allocating without bound, on a truncated ``points3D.bin``. Whatever
     pycolmap still rejects becomes a one-line `DataError` naming the file (or the line of a text model).
     """
-    import pycolmap  # noqa: PLC0415
-
-    from gsbench.data.filecheck import (  # noqa: PLC0415
-        COLMAP_FIX,
-        check_colmap_model,
-        colmap_text_count_problem,
-        locate_colmap_text_error,
-        one_line,
-    )
+    import pycolmap  # noqa: PLC0415  (only COLMAP folders need it; its import loads a large native library)
 
     sparse_dir = Path(sparse_dir)
     kind = check_colmap_model(sparse_dir)
@@ -130,7 +129,7 @@ def write_colmap_model(sparse_dir: Path, cameras: list[Camera], points: np.ndarr
     ``colors`` are in [0, 1]. Points have empty tracks (they are an initialisation, not matches).
     Skew in K is not representable in COLMAP and must be zero.
     """
-    import pycolmap  # noqa: PLC0415
+    import pycolmap  # noqa: PLC0415  (only COLMAP folders need it; its import loads a large native library)
 
     rec = pycolmap.Reconstruction()
     camera_ids: dict[tuple, int] = {}

@@ -31,8 +31,13 @@ import re
 from pathlib import Path
 
 import numpy as np
+from scipy.linalg import rq
 
 from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
+from gsbench.data.colmap import colmap_image_paths, read_colmap_model
+from gsbench.data.filecheck.arrays import check_mat, check_npz
+from gsbench.data.filecheck.common import damaged
+from gsbench.data.filecheck.ply import check_ply
 from gsbench.data.images import image_size, list_images, read_views
 from gsbench.data.meta import optional_dir, read_meta
 from gsbench.data.resolution import fit_downscale
@@ -49,8 +54,6 @@ def decompose_projection(P: np.ndarray, source: str = "P") -> tuple[np.ndarray, 
     a positive diagonal; P is defined up to scale, so when det(R) = -1 the whole of P is negated.
     ``source`` names the file/key in error messages.
     """
-    from scipy.linalg import rq  # noqa: PLC0415
-
     P = np.asarray(P, dtype=np.float64)
     if P.shape != (3, 4) or not np.all(np.isfinite(P)):
         raise DataError(f"{source}: projection matrix must be a finite 3x4 array, got {P.tolist()}; fix: regenerate the cameras")
@@ -103,11 +106,9 @@ def _matrix_problem(m: np.ndarray) -> str:
 def read_cameras_npz(path: Path, count: int, names=None) -> tuple[list[np.ndarray], np.ndarray]:
     """Normalised projections ``(world_mat_i @ scale_mat_i)[:3]`` for i < count, and ``scale_mat_0``.
 
-    The archive is checked first (`gsbench.data.filecheck.check_npz`: a valid zip of plain ``.npy``
+    The archive is checked first (`gsbench.data.filecheck.arrays.check_npz`: a valid zip of plain ``.npy``
     arrays whose sizes match their headers); ``names`` (the image of each camera) go into messages.
     """
-    from gsbench.data.filecheck import check_npz, damaged  # noqa: PLC0415
-
     if not path.is_file():
         raise DataError(f"{path}: cameras.npz not found; fix: add the IDR/VolSDF cameras.npz (world_mat_i, scale_mat_i)")
     keys = set(check_npz(path, NPZ_FIX))
@@ -213,8 +214,6 @@ def _mask_paths(root: Path, images: list[Path]) -> list[Path]:
 def check_dtu_ground_truth(gt: GroundTruth | None) -> None:
     """Header checks of the DTU protocol's files that exist (`gsbench.data.filecheck`), so a damaged
     ground truth fails when the scene is loaded, not after training."""
-    from gsbench.data.filecheck import check_mat, check_ply  # noqa: PLC0415
-
     if gt is None:
         return
     fix = "re-download the DTU SampleSet (Points/stl and ObsMask) or re-generate the scene"
@@ -264,8 +263,6 @@ def load_dtu_colmap(root: Path, *, downscale: float = 1.0, max_size=(), load_ima
     The COLMAP cameras are already normalised; without ``cameras.npz`` the normalisation is the
     identity (metrics then stay in the normalised frame).
     """
-    from gsbench.data.colmap import colmap_image_paths, read_colmap_model  # noqa: PLC0415
-
     root = Path(root)
     model = read_colmap_model(root / "sparse" / "0")
     paths = colmap_image_paths(root, model.cameras)

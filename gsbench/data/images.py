@@ -13,7 +13,7 @@ Conventions:
 Decoded-image cache (`read_views`): decoding and box-downscaling every photo is most of a scene's
 load time (49 DTU photos at 1600x1200: ~30 s), paid again by every run and every resume, so the
 decoded, resized views of a scene are kept in ``<cache>/decoded/<key>.npz`` (``<cache>``:
-``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``, `gsbench.data.loader.cache_dir`). The key is a
+``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``, `gsbench.data.cache.cache_dir`). The key is a
 sha1 over each image's and mask's absolute path, size and mtime (ns), the downscale factor, whether
 masks were read and `DECODED_CACHE_VERSION`, so editing, replacing or touching a file, or a new
 downscale, is a miss. The file is an uncompressed ``np.savez`` of the uint8 images as PIL gives them
@@ -31,11 +31,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
+from gsbench.atomic import atomic_path
+from gsbench.data.cache import cache_dir
 from gsbench.errors import DataError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
@@ -62,8 +64,6 @@ def _unreadable(path: Path, exc) -> DataError:
 
 
 def _open(path: Path):
-    from PIL import Image, UnidentifiedImageError  # noqa: PLC0415
-
     try:
         img = Image.open(path)
         img.load()
@@ -88,8 +88,6 @@ def _check_png_end(path: Path) -> None:
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the file header, without decoding the pixels (PNGs: also that the file is
     complete, `_check_png_end`). An image larger than PIL's decompression-bomb limit is an error."""
-    from PIL import Image, UnidentifiedImageError  # noqa: PLC0415
-
     try:
         with Image.open(path) as img:
             size, fmt = img.size, img.format
@@ -101,8 +99,6 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 def _resize(img, downscale: float):
-    from PIL import Image  # noqa: PLC0415
-
     if downscale == 1.0:
         return img
     return img.resize(scaled_size(*img.size, downscale), Image.Resampling.BOX)
@@ -127,8 +123,6 @@ def read_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
 
 def read_mask(path: Path, downscale: float = 1.0) -> np.ndarray:
     """bool HxW: max over channels > 127, then (if downscaled) box-filtered coverage > 0.5."""
-    from PIL import Image  # noqa: PLC0415
-
     arr = np.asarray(_open(path))
     if arr.ndim == 3:
         arr = arr[..., :3].max(axis=2) if arr.shape[2] >= 3 else arr[..., 0]
@@ -141,8 +135,6 @@ def read_mask(path: Path, downscale: float = 1.0) -> np.ndarray:
 
 def write_rgb(path: Path, rgb: np.ndarray) -> None:
     """Write float [0, 1] or uint8 HxWx3 as PNG."""
-    from PIL import Image  # noqa: PLC0415
-
     if rgb.dtype != np.uint8:
         rgb = np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
     Image.fromarray(rgb).save(path)
@@ -150,8 +142,6 @@ def write_rgb(path: Path, rgb: np.ndarray) -> None:
 
 def write_mask(path: Path, mask: np.ndarray) -> None:
     """Write a bool HxW mask as a 3-channel 0/255 PNG (the DTU/IDR mask layout)."""
-    from PIL import Image  # noqa: PLC0415
-
     Image.fromarray(np.repeat((mask.astype(np.uint8) * 255)[..., None], 3, axis=2)).save(path)
 
 
@@ -165,8 +155,6 @@ def image_cache_enabled() -> bool:
 
 def decoded_cache_path(image_paths, mask_paths, downscale: float) -> Path:
     """``<cache>/decoded/<sha1>.npz`` for these files (their path, size, mtime), downscale and mask flag."""
-    from gsbench.data.loader import cache_dir  # noqa: PLC0415  (lazy: loader imports this module's users)
-
     def ident(path):
         st = os.stat(path)
         return [str(Path(path).resolve()), st.st_size, st.st_mtime_ns]
@@ -221,19 +209,11 @@ def _write_cached(path: Path, images, masks) -> None:
     arrays = {f"image{k:05d}": img for k, img in enumerate(images)}
     if masks is not None:
         arrays.update({f"mask{k:05d}": m for k, m in enumerate(masks)})
-    tmp = None
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "wb") as f:
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, **arrays)
-        os.replace(tmp, path)
-        tmp = None
     except OSError:
         pass
-    finally:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
 
 
 def _check_headers(image_paths, mask_paths, sizes) -> None:

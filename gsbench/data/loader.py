@@ -14,25 +14,23 @@ This module imports nothing heavy, so `BUILTIN_SCENES` is cheap to import from h
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from pathlib import Path
 
-from gsbench.data.builtin import BUILTIN_SCENES
+from gsbench.data.cache import cache_dir
 from gsbench.data.camera import Scene
+from gsbench.data.dtu import dtu_ground_truth, dtu_gt_paths, load_dtu, load_dtu_colmap, scan_number
 from gsbench.data.meta import read_meta
+from gsbench.data.synthetic.builtin import BUILTIN_SCENES
+from gsbench.data.synthetic.generator import DEFAULT_SUPERSAMPLE, plan_meta, plan_scene, write_scene
+from gsbench.data.tnt import gt_files, load_tnt, scene_gt_name
 from gsbench.errors import DataError, GsbenchError
 
-__all__ = ["BUILTIN_SCENES", "cache_dir", "check_scene", "detect_format", "load_scene", "make_scene"]
+__all__ = ["BUILTIN_SCENES", "check_scene", "detect_format", "load_scene", "make_scene"]
 
 LAYOUTS = ("dtu: cameras.npz + image/ + mask/; tnt: sparse/0 + images/ (+ {scene}.ply, .json, _trans.txt, "
            "_COLMAP_SfM.log); dtu-colmap: sparse/0 + images/ + mask/")
-
-
-def cache_dir() -> Path:
-    """``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``."""
-    return Path(os.environ.get("GSBENCH_DATA") or Path.home() / ".cache" / "gsbench" / "scenes")
 
 
 def detect_format(root: Path) -> str:
@@ -73,14 +71,15 @@ def _check_gt_root(gt_root) -> None:
                         "DTU Points/ and ObsMask/, or a TnT scene's .ply/.json/_trans.txt/_COLMAP_SfM.log")
 
 
-def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images: bool = True, gt_root=None) -> Scene:
+def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images: bool = True, gt_root=None,
+               holdout_every: int = 0) -> Scene:
     """Load a scene folder or built-in name; the images are divided by
     `gsbench.data.resolution.fit_downscale` of ``downscale`` (>= 1) and ``max_size`` ([long, short] px).
 
     ``load_images=False`` reads cameras and image headers only (``images`` is empty, ``masks`` None,
     ``mask_paths`` set). ``gt_root`` (``--gt``) is the folder holding the ground truth when it is not
     beside the scene: DTU ``Points/`` and ``ObsMask/`` (the official SampleSet), or a TnT scene's four
-    GT files.
+    GT files. ``holdout_every`` is the view split the scene carries (`Scene.train_views`, 0: train on all).
     """
     if downscale < 1.0:
         raise DataError(f"downscale must be >= 1 (it divides the image size), got {downscale}")
@@ -89,13 +88,9 @@ def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images
     fmt = detect_format(root)
     kwargs = {"downscale": downscale, "max_size": tuple(max_size or ()), "load_images": load_images,
               "gt_root": Path(gt_root) if gt_root else None}
-    if fmt == "tnt":
-        from gsbench.data.tnt import load_tnt  # noqa: PLC0415
-
-        return load_tnt(root, **kwargs)
-    from gsbench.data.dtu import load_dtu, load_dtu_colmap  # noqa: PLC0415
-
-    return (load_dtu if fmt == "dtu" else load_dtu_colmap)(root, **kwargs)
+    scene = (load_tnt if fmt == "tnt" else load_dtu if fmt == "dtu" else load_dtu_colmap)(root, **kwargs)
+    scene.holdout_every = int(holdout_every)
+    return scene
 
 
 def has_ground_truth(path_or_name, gt_root=None) -> bool:
@@ -105,18 +100,12 @@ def has_ground_truth(path_or_name, gt_root=None) -> bool:
     root = Path(path_or_name)
     _check_gt_root(gt_root)
     if detect_format(root) == "tnt":
-        from gsbench.data.tnt import gt_files, scene_gt_name  # noqa: PLC0415
-
         folder = Path(gt_root) if gt_root else root
         return all(p.is_file() for p in gt_files(folder, scene_gt_name(root, read_meta(root))).values())
-    from gsbench.data.dtu import dtu_ground_truth, scan_number  # noqa: PLC0415
-
     return dtu_ground_truth(root, scan_number(root, read_meta(root)), Path(gt_root) if gt_root else None)[0] is not None
 
 
 def _default_folder(plan, custom_size: bool) -> Path:
-    from gsbench.data.synthetic import DEFAULT_SUPERSAMPLE  # noqa: PLC0415
-
     cam = plan.cameras[0]
     parts = [plan.short_name]
     if plan.fmt != plan.spec.fmt:
@@ -138,8 +127,6 @@ def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int 
     ``supersample``: rays per pixel side of the images (None: the default 2, area-sampled; 1: one ray
     through each pixel centre, as the rasterizer samples). Nothing is written when ``out`` already holds this exact scene.
     """
-    from gsbench.data.synthetic import plan_meta, plan_scene, write_scene  # noqa: PLC0415
-
     plan = plan_scene(name, fmt, res, seed)
     if supersample is not None:
         if supersample < 1:
@@ -173,12 +160,8 @@ def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int 
 def _ground_truth_files(scene: Scene | None, root: Path, fmt: str, gt_root) -> dict[str, bool]:
     """Every ground-truth file the scene's protocol reads, with the paths filled in: found or not."""
     if fmt == "tnt":
-        from gsbench.data.tnt import gt_files, scene_gt_name  # noqa: PLC0415
-
         folder = Path(gt_root) if gt_root else root
         return {str(p): p.is_file() for p in gt_files(folder, scene_gt_name(root, read_meta(root))).values()}
-    from gsbench.data.dtu import dtu_gt_paths, scan_number  # noqa: PLC0415
-
     scan = scan_number(root, read_meta(root))
     if scan is None:
         return {}

@@ -30,6 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from gsbench.data.camera import Camera, GroundTruth, Normalisation, Scene
+from gsbench.data.colmap import colmap_image_paths, read_colmap_model
+from gsbench.data.filecheck.arrays import check_crop_json, check_log, read_matrix4_text
+from gsbench.data.filecheck.ply import check_ply
+from gsbench.data.images import read_views
 from gsbench.data.meta import optional_dir, read_meta
 from gsbench.data.resolution import fit_downscale
 from gsbench.data.similarity import similarity, transform_camera
@@ -110,8 +114,6 @@ def check_tnt_ground_truth(files: dict[str, Path]) -> None:
     """Header checks of the four TnT GT files (`gsbench.data.filecheck`), so a damaged ground truth
     fails when the scene is loaded, not after training: the point cloud's PLY header against its size,
     the crop volume's JSON, the 4x4 alignment and the trajectory's poses."""
-    from gsbench.data.filecheck import check_crop_json, check_log, check_ply, read_matrix4_text  # noqa: PLC0415
-
     fix = (f"re-download the Tanks and Temples ground truth of the scene (GT/{files['.ply'].stem}/) "
            "or re-generate the scene")
     check_ply(files[".ply"], fix)
@@ -127,9 +129,6 @@ def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bo
     ``gt_root`` (``--gt``): the folder holding the four GT files when it is not the scene folder (the
     official ``GT/{scene}/`` download); the images are divided by `fit_downscale` of ``downscale``
     and ``max_size``."""
-    from gsbench.data.colmap import colmap_image_paths, read_colmap_model  # noqa: PLC0415
-    from gsbench.data.images import read_views  # noqa: PLC0415
-
     root = Path(root)
     model = read_colmap_model(root / "sparse" / "0")
     paths = colmap_image_paths(root, model.cameras)

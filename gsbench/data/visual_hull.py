@@ -19,6 +19,7 @@ share of a mesh outside the hull (floaters).
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 
 from gsbench.data.camera import Camera
 from gsbench.errors import DataError
@@ -27,8 +28,6 @@ from gsbench.errors import DataError
 def _dilated(mask: np.ndarray, pixels: int) -> np.ndarray:
     if pixels <= 0:
         return mask
-    from scipy.ndimage import binary_dilation  # noqa: PLC0415
-
     return binary_dilation(mask, iterations=int(pixels))
 
 

@@ -6,7 +6,7 @@ IBGS (docs/methods/ibgs.md §3.2) decomposes every training step the covariance
 gradient is NaN/inf for repeated eigenvalues (coplanar isotropic patches, collinear or duplicated
 points, K = 2), all of which occur in training (docs/methods/ibgs.md §7). This module implements recipe docs/methods/ibgs.md §3.2, §3.3:
 
-* forward: a float64 closed form in the C++ extension (``gsbench/raster/csrc/eigen3.cpp``, OpenMP
+* forward: a float64 closed form in the C++ extension (``gsbench/geometry/csrc/eigen3.cpp``, OpenMP
   over the batch): trigonometric eigenvalues, the isolated eigenvector by Kopp's cross products, the
   remaining pair by deflation to a 2×2 solved in closed form (see `sym3_eigh`);
 * backward: ``gC = V · sym(diag(gλ) + F ∘ (Vᵀ gV)) · Vᵀ`` with the gap-regularised
@@ -19,19 +19,34 @@ function with ``torch.linalg.eigh`` forward and the backward written plainly in 
 
 from __future__ import annotations
 
+import ctypes
+from pathlib import Path
+
 import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
 from gsbench.errors import NumericalError
-from gsbench.impl_choice import choose_impl
-from gsbench.raster.build import load_library, omp_threads
+from gsbench.native.build import load_library, omp_threads
+from gsbench.native.impl_choice import choose_impl
 
 EIGEN_ENV = "GSBENCH_EIGEN"
 IMPLS = ("fast", "reference")
 # Absolute part of the gap regulariser ε (docs/methods/ibgs.md §3.3); keeps F finite for C = 0. It dominates ε, and so
 # damps eigenvector gradients, when max|λ| < GAP_EPS_FLOOR/gap_eps (1e-9 at the default gap_eps).
 GAP_EPS_FLOOR = 1e-12
+
+
+_i64, _ptr, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+SIGNATURES = {
+    "gs_sym3_eigh_forward": ([_i64] + [_ptr] * 3 + [_i64], ctypes.c_int),
+    "gs_sym3_eigh_backward": ([_i64] + [_ptr] * 4 + [_dbl] * 2 + [_ptr, _i64], ctypes.c_int),
+}
+
+
+def _library() -> ctypes.CDLL:
+    """The native library of the batched symmetric 3x3 eigen-solver (``csrc/eigen3.cpp``, compiled on first use)."""
+    return load_library("eigen3", [Path(__file__).parent / "csrc" / "eigen3.cpp"], SIGNATURES)
 
 
 def sym3_eigh(C: torch.Tensor, gap_eps: float = 1e-3, impl: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -150,7 +165,7 @@ class _FastSym3Eigh(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, C, gap_eps):
-        lib = load_library()
+        lib = _library()
         batch = C.shape[:-2]
         flat = C.detach().reshape(-1, 3, 3).to(device="cpu", dtype=torch.float64).contiguous()
         n = flat.shape[0]
@@ -171,7 +186,7 @@ class _FastSym3Eigh(torch.autograd.Function):
         g_lam64 = g_lam.reshape(n, 3).to(device="cpu", dtype=torch.float64).contiguous()
         g_V64 = g_V.reshape(n, 3, 3).to(device="cpu", dtype=torch.float64).contiguous()
         g_C = torch.empty(n, 3, 3, dtype=torch.float64)
-        rc = load_library().gs_sym3_eigh_backward(
+        rc = _library().gs_sym3_eigh_backward(
             n, lam.data_ptr(), V.data_ptr(), g_lam64.data_ptr(), g_V64.data_ptr(), ctx.gap_eps, GAP_EPS_FLOOR,
             g_C.data_ptr(), omp_threads(),
         )

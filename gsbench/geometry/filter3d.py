@@ -14,7 +14,7 @@ no gradient. GOF/Mip-Splatting use ``near`` = 0.2 in their normalised frame; gsb
 raster near plane (``raster.near_plane`` × scene radius, docs/design.md §12.1), 0.2 for a unit scene.
 
 `Filter3D` holds the current variance of one training run; the method renders with it, the
-`gsbench.strategies.absgrad.AbsGradStrategy` recomputes it on GOF's schedule and uses it in the opacity reset.
+`gsbench.training.strategies.absgrad.AbsGradStrategy` recomputes it on GOF's schedule and uses it in the opacity reset.
 """
 
 from __future__ import annotations

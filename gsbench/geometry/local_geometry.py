@@ -19,16 +19,19 @@ docs/methods/ibgs.md §3, §4, docs/methods/ibgs.md §7.
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch.autograd.function import once_differentiable
 
 from gsbench.geometry.eigen3 import sym3_eigh
-from gsbench.impl_choice import choose_impl
+from gsbench.geometry.rotations import frames_library
+from gsbench.native.build import load_library, omp_threads
+from gsbench.native.impl_choice import choose_impl
 from gsbench.phase_timer import PhaseTimer
-from gsbench.raster.build import load_library, omp_threads
 
 COVARIANCE_ENV = "GSBENCH_LOCAL_COVARIANCE"  # "reference": the PyTorch covariance instead of the fused kernel
 IMPLS = ("fused", "reference")
@@ -36,6 +39,18 @@ COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.
 
 PERMUTATIONS_3D = tuple(itertools.permutations(range(3)))
 PERMUTATIONS_2D = ((0, 1, 2), (1, 0, 2))  # surfels: v3 stays the normal
+
+
+_i64, _ptr, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+SIGNATURES = {
+    "gs_local_covariance_forward": ([_i64] * 4 + [_ptr] * 2 + [_dbl] + [_ptr, _i64], ctypes.c_int),
+    "gs_local_covariance_backward": ([_i64] * 4 + [_ptr] * 4 + [_i64], ctypes.c_int),
+}
+
+
+def _library() -> ctypes.CDLL:
+    """The native library of the kNN neighbourhood covariance and its backward (``csrc/local_covariance.cpp``, compiled on first use)."""
+    return load_library("local_covariance", [Path(__file__).parent / "csrc" / "local_covariance.cpp"], SIGNATURES)
 
 
 @dataclass
@@ -72,7 +87,7 @@ def local_covariance(means: torch.Tensor, index: torch.Tensor, radius: float,
     By the fused C++ kernel (``csrc/local_covariance.cpp``: one pass forward, the backward
     dL/dp = (1/n)(G + Gᵀ)(p − μ̄) per member, scattered in member order) for CPU float32 / float64 means;
     `local_covariance_reference` otherwise, with ``impl="reference"`` or with
-    ``GSBENCH_LOCAL_COVARIANCE=reference`` (`gsbench.impl_choice.choose_impl`).
+    ``GSBENCH_LOCAL_COVARIANCE=reference`` (`gsbench.native.impl_choice.choose_impl`).
     """
     def unsupported():
         if means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64):
@@ -105,7 +120,7 @@ class _FusedLocalCovariance(torch.autograd.Function):
         if N != x.shape[0]:
             raise ValueError(f"local_covariance: index has {N} rows for {x.shape[0]} means")
         C = torch.empty(N, 3, 3, dtype=torch.float64)
-        rc = load_library().gs_local_covariance_forward(N, K, int(include_self), int(x.dtype == torch.float64),
+        rc = _library().gs_local_covariance_forward(N, K, int(include_self), int(x.dtype == torch.float64),
                                                         x.data_ptr(), idx.data_ptr(), jitter, C.data_ptr(), omp_threads())
         if rc != 0:
             raise ValueError(f"local_covariance: neighbour index out of range [0, {N}) or no members (code {rc})")
@@ -120,7 +135,7 @@ class _FusedLocalCovariance(torch.autograd.Function):
         N, K = idx.shape
         g = g_C.to(torch.float64).contiguous()
         g_means = torch.empty(N, 3, dtype=torch.float64)
-        rc = load_library().gs_local_covariance_backward(N, K, int(ctx.include_self), int(x.dtype == torch.float64),
+        rc = _library().gs_local_covariance_backward(N, K, int(ctx.include_self), int(x.dtype == torch.float64),
                                                          x.data_ptr(), idx.data_ptr(), g.data_ptr(), g_means.data_ptr(),
                                                          omp_threads())
         if rc != 0:
@@ -163,7 +178,7 @@ def frame_alignment(vectors: torch.Tensor, previous: torch.Tensor, surfel: bool 
     n = V.shape[0]
     perm = torch.empty(n, 3, dtype=torch.int64)
     signs = torch.empty(n, 3, dtype=torch.float64)
-    rc = load_library().gs_frame_alignment(n, int(surfel), V.data_ptr(), prev.data_ptr(), int(prev.dtype == torch.float64),
+    rc = frames_library().gs_frame_alignment(n, int(surfel), V.data_ptr(), prev.data_ptr(), int(prev.dtype == torch.float64),
                                            perm.data_ptr(), signs.data_ptr(), omp_threads())
     if rc != 0:
         raise RuntimeError(f"gsbench frame_alignment failed (code {rc})")

@@ -2,7 +2,7 @@
 
 ``N(i)`` = the K nearest *other* means of Gaussian i, by a scipy KD-tree (``cKDTree``, all cores),
 held fixed (no gradient) between refreshes. IBGS refreshes it every 100 steps and after every
-densification or pruning, because the rows change (`gsbench.methods.ibgs`, `gsbench.strategies.sparsity`).
+densification or pruning, because the rows change (`gsbench.methods.ibgs`, `gsbench.training.strategies.sparsity`).
 
 Coincident means (clones at one position, a duplicated SfM point) make "self" tie with its twins at
 distance 0, so the tree does not always return i first: the query asks for K + 1 and drops i where it
@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from gsbench.errors import ConfigError, NumericalError
 
@@ -27,8 +28,6 @@ def rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 def nearest_other(points: np.ndarray, k: int) -> np.ndarray:
     """(N, min(k, N−1)) int64 indices of the ``k`` nearest other points of each of ``points`` (N,3)."""
-    from scipy.spatial import cKDTree  # noqa: PLC0415
-
     n = len(points)
     k = min(int(k), max(n - 1, 0))
     if k == 0:

@@ -6,10 +6,25 @@ Quaternions are (w, x, y, z) as in 3DGS (docs/methods/3dgs.md §2.1); ``quat_to_
 
 from __future__ import annotations
 
+import ctypes
+from pathlib import Path
+
 import torch
 import torch.nn.functional as F
 
-from gsbench.raster.build import load_library, omp_threads
+from gsbench.native.build import load_library, omp_threads
+
+_i64, _ptr, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+SIGNATURES = {
+    "gs_frame_alignment": ([_i64] * 2 + [_ptr] * 2 + [_i64] + [_ptr, _ptr, _i64], ctypes.c_int),
+    "gs_rotmat_to_quat": ([_i64, _ptr, _ptr, _i64], ctypes.c_int),
+    "gs_rotmat_to_quat_backward": ([_i64] + [_ptr] * 3 + [_i64], ctypes.c_int),
+}
+
+
+def frames_library() -> ctypes.CDLL:
+    """The native library of IBGS's frame alignment and the rotation -> quaternion conversion (``csrc/frames.cpp``, compiled on first use)."""
+    return load_library("frames", [Path(__file__).parent / "csrc" / "frames.cpp"], SIGNATURES)
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -40,7 +55,7 @@ class _FusedRotmatToQuat(torch.autograd.Function):
     def forward(ctx, R):
         m = R.detach().contiguous()
         q = torch.empty(m.shape[0], 4, dtype=torch.float64)
-        rc = load_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), omp_threads())
+        rc = frames_library().gs_rotmat_to_quat(m.shape[0], m.data_ptr(), q.data_ptr(), omp_threads())
         if rc != 0:
             raise RuntimeError(f"gsbench rotmat_to_quat failed (code {rc})")
         ctx.save_for_backward(m)
@@ -51,7 +66,7 @@ class _FusedRotmatToQuat(torch.autograd.Function):
         (m,) = ctx.saved_tensors
         g = grad_q.to(torch.float64).contiguous()
         grad_R = torch.empty_like(m)
-        rc = load_library().gs_rotmat_to_quat_backward(m.shape[0], m.data_ptr(), g.data_ptr(), grad_R.data_ptr(),
+        rc = frames_library().gs_rotmat_to_quat_backward(m.shape[0], m.data_ptr(), g.data_ptr(), grad_R.data_ptr(),
                                                        omp_threads())
         if rc != 0:
             raise RuntimeError(f"gsbench rotmat_to_quat backward failed (code {rc})")

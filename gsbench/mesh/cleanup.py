@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 
 MIN_CLUSTER_TRIANGLES = 50
 
@@ -35,8 +36,6 @@ def keep_largest_clusters(mesh, n: int, min_triangles: int = MIN_CLUSTER_TRIANGL
 
 def to_trimesh(mesh):
     """An open3d ``TriangleMesh`` as a ``trimesh.Trimesh`` (no processing; colours as uint8 RGBA)."""
-    import trimesh  # noqa: PLC0415
-
     colors = None
     if mesh.has_vertex_colors():
         rgb = np.clip(np.asarray(mesh.vertex_colors) * 255.0 + 0.5, 0, 255).astype(np.uint8)
@@ -55,8 +54,6 @@ def canonical_order(mesh):
     runs. In this order a mesh file, and its metrics, depend on the geometry only (vertices at equal
     positions keep their relative order: extractors that merge vertices per edge have none).
     """
-    import trimesh  # noqa: PLC0415
-
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     order = np.lexsort(vertices.T[::-1])  # x is the primary key
     rank = np.empty_like(order)

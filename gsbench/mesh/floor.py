@@ -7,7 +7,7 @@ training resolution: that mesh is the floor a method's numbers are read against.
    and preset layers matter: ``data.downscale`` and ``data.max_size``, ``data.use_masks`` and the ``mesh`` TSDF settings;
    3DGS's method layer sets no mesh parameter);
 2. re-plan the scene from its ``gsbench_scene.json`` (built-in name, format, resolution, seed) and
-   ray-cast every training camera at the training resolution (`gsbench.data.render.Renderer`, the
+   ray-cast every training camera at the training resolution (`gsbench.data.synthetic.render.Renderer`, the
    object with its surroundings, as the images show it; the
    stored ``gt_depth/`` maps are at the generated resolution, and a downscaled depth map is not the
    depth at the downscaled pixel centres);
@@ -24,16 +24,20 @@ import numpy as np
 from tqdm import tqdm
 
 from gsbench.data.camera import Scene
+from gsbench.data.meta import read_meta
+from gsbench.data.synthetic.generator import plan_scene
+from gsbench.data.synthetic.render import Renderer
 from gsbench.errors import DataError
+from gsbench.evaluators.api import evaluate_mesh_file
+from gsbench.evaluators.resolve import run_options
+from gsbench.mesh.cleanup import canonical_order
+from gsbench.mesh.tsdf import tsdf_fusion
+from gsbench.runs.runner import load_run_scene, plan_run_evaluation, resolve_run
 
 
 def exact_depth_maps(scene: Scene, views=None) -> list[np.ndarray]:
     """Camera-z depth of the cameras ``views`` of ``scene`` (default: all; normalised frame, the scene's loaded
     resolution)."""
-    from gsbench.data.meta import read_meta  # noqa: PLC0415
-    from gsbench.data.render import Renderer  # noqa: PLC0415
-    from gsbench.data.synthetic import plan_scene  # noqa: PLC0415
-
     meta = read_meta(scene.root)
     if "builtin" not in meta:
         raise DataError(f"{scene.root}: not a built-in synthetic scene (no 'builtin' in gsbench_scene.json); "
@@ -49,12 +53,6 @@ def exact_depth_maps(scene: Scene, views=None) -> list[np.ndarray]:
 def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Path) -> dict:
     """Fuse the exact depth of ``scene_name`` and evaluate it (module docstring); the mesh goes to
     ``out/floor.ply``. Returns `gsbench.evaluators.api.evaluate_mesh_file`'s report plus the config."""
-    from gsbench.evaluators.api import evaluate_mesh_file  # noqa: PLC0415
-    from gsbench.evaluators.resolve import run_options  # noqa: PLC0415
-    from gsbench.mesh.cleanup import canonical_order  # noqa: PLC0415
-    from gsbench.mesh.tsdf import tsdf_fusion  # noqa: PLC0415
-    from gsbench.runner import load_run_scene, plan_run_evaluation, resolve_run  # noqa: PLC0415
-
     cfg = resolve_run("3dgs", scene_name, preset=preset, overrides=overrides)
     scene = load_run_scene(cfg)
     depths = exact_depth_maps(scene)

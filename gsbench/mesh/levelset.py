@@ -51,15 +51,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from gsbench.config import MeshConfig
+from gsbench.config.run_config import MeshConfig
 from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError, import_open3d
+from gsbench.geometry.depth import pixel_rays
 from gsbench.mesh import MeshError
 from gsbench.mesh.cleanup import to_trimesh
 from gsbench.raster import RasterGaussians, RasterSettings, rasterize
-from gsbench.raster.projection import pixel_rays, quat_to_rotmat
+from gsbench.raster.payload import quat_to_rotmat
 
 MIN_OPACITY = 0.5  # docs/methods/sugar.md §4.1: Gaussians with opacity <= 0.5 are removed
 KNN = 16  # neighbours of the density field
@@ -95,8 +97,6 @@ class DensityField:
 
     @classmethod
     def of(cls, gaussians: RasterGaussians) -> DensityField:
-        from scipy.spatial import cKDTree  # noqa: PLC0415
-
         means = gaussians.means.detach().to(torch.float64)
         rotations = quat_to_rotmat(torch.nn.functional.normalize(gaussians.quats.detach().to(torch.float64), dim=-1))
         scales = gaussians.scales.detach().to(torch.float64).clamp(min=SCALE_MIN)

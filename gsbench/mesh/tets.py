@@ -49,6 +49,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+import trimesh
 from scipy.spatial import Delaunay, QhullError
 from tqdm import tqdm
 
@@ -56,7 +57,7 @@ from gsbench.data.camera import Camera
 from gsbench.mesh import MeshError
 from gsbench.raster import RasterGaussians, RasterSettings
 from gsbench.raster.opacity_field import OpacityField
-from gsbench.raster.projection import quat_to_rotmat
+from gsbench.raster.payload import quat_to_rotmat
 
 __all__ = [
     "CHUNK",
@@ -266,8 +267,6 @@ def tetra_mesh(
     """GOF's tetrahedra mesh (module docstring, docs/methods/gof.md §7) of the opacity level set ``O(x) = level`` as a
     ``trimesh.Trimesh`` (normals point to free space). Raises `MeshError` naming the parameters when
     there is nothing to triangulate or the mesh is empty or non-finite."""
-    import trimesh  # noqa: PLC0415
-
     cameras = list(cameras)
     n = len(g)
     info = {"gaussians": n, "cameras": len(cameras), "kernel": repr(kernel), "level": level,

@@ -13,7 +13,7 @@ images are now scaled by ``depth_scale`` in ``CreateFromDepthImage``), so metric
 integrates nothing — a plane at z = 2 gives an empty mesh. ``VoxelBlockGrid`` is the same sparse
 TSDF with an explicit ``depth_scale`` (1 here).
 
-Units (docs/design.md §12.1, `gsbench.config.MeshConfig`): ``voxel_size``, ``sdf_trunc`` and ``depth_trunc``
+Units (docs/design.md §12.1, `gsbench.config.run_config.MeshConfig`): ``voxel_size``, ``sdf_trunc`` and ``depth_trunc``
 are multiplied by ``scene_radius`` unless ``absolute`` is true, so a scene in millimetres or
 kilometres gives the same mesh up to scale. The MeshConfig defaults (0.004, 0.016, 3.0) are the
 2DGS DTU/TnT-object values, which 2DGS applies in its normalised (radius ≈ 1) frame.
@@ -33,7 +33,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from gsbench.config import MeshConfig
+from gsbench.config.run_config import MeshConfig
 from gsbench.data.camera import Camera
 from gsbench.errors import import_open3d
 from gsbench.mesh import MeshError

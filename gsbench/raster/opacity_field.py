@@ -35,8 +35,11 @@ from collections.abc import Sequence
 import torch
 
 from gsbench.data.camera import Camera
-from gsbench.raster.build import omp_threads
+from gsbench.native.build import omp_threads
+from gsbench.raster.abi import library
+from gsbench.raster.projection import project
 from gsbench.raster.types import RasterGaussians, RasterSettings
+from gsbench.raster.validation import check_finite, validate_gaussians
 
 ALPHA_SKIP_MARGIN = 0.01  # added to 2 ln(255 o): pre-skip only when q exceeds the α = 1/255 bound by this
 CELL = 4  # pixels per side of the query cells (gcd with the tile size, so that a cell lies in one tile)
@@ -73,16 +76,13 @@ class OpacityField:
         kernel: str = "raymax",
         settings: RasterSettings = RasterSettings(),
     ) -> None:
-        from gsbench.raster import validate_gaussians  # noqa: PLC0415
-        from gsbench.raster.build import load_library  # noqa: PLC0415
-
         if kernel != "raymax":
             raise NotImplementedError(
                 f"integrate is GOF's opacity field, defined for kernel='raymax' only (got {kernel!r}); "
                 "RaDe-GS and 2DGS mesh from rendered depth (TSDF)"
             )
         validate_gaussians(gaussians, kernel)
-        self._lib = load_library()
+        self._lib = library()
         self.dtype = gaussians.means.dtype
         self.settings = settings
         self.cell = math.gcd(CELL, settings.tile_size)
@@ -101,8 +101,6 @@ class OpacityField:
         """(payload (N, 25) = raymax payload + column ``2 ln(255 o) + margin``, cell offsets, cell list) of a
         view: the visible Gaussians sorted by centre depth, binned to their 3σ tile rectangles, the tile
         lists then refined to cells by the α >= 1/255 pixel boxes (csrc/integrate.cpp header)."""
-        from gsbench.raster.projection import project  # noqa: PLC0415
-
         ts, nthreads = self.settings.tile_size, omp_threads()
         W, H = int(cam.width), int(cam.height)
         gx, gy = (W + ts - 1) // ts, (H + ts - 1) // ts
@@ -160,9 +158,20 @@ class OpacityField:
 
 
 def _check_points(points: torch.Tensor) -> None:
-    from gsbench.raster import _check_finite  # noqa: PLC0415
-
     if points.dim() != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be (P, 3), got {tuple(points.shape)}")
-    _check_finite("points", points)
+    check_finite("points", points)
 
+
+def integrate(
+    gaussians: RasterGaussians,
+    cameras: Sequence[Camera],
+    points: torch.Tensor,
+    *,
+    kernel: str = "raymax",
+    settings: RasterSettings = RasterSettings(),
+) -> torch.Tensor:
+    """GOF opacity (P,) of 3D ``points`` (P, 3): min over views of 1 − Π(1 − α_k) (no gradient), by
+    `gsbench.raster.opacity_field.OpacityField` (which serves many queries from one binning)."""
+    with torch.no_grad():
+        return OpacityField(gaussians, cameras, kernel=kernel, settings=settings).values(points)

@@ -3,6 +3,6 @@
 `build.write_report` is the entry point. The modules, in data-flow order: `collect` (read records and
 sweep manifests, label configurations), `metrics` (direction/unit of a metric, the ranking metric of a
 dataset, the papers' reported numbers), `aggregate` (rows × scenes, mean ± std over seeds), `pareto`
-(non-dominated cost/error points), `tables` and `views` (the tables, Markdown, CSV), `plots`
-(matplotlib PNGs) and `html` (the self-contained page).
+(non-dominated cost/error points), `tables` (cells, Markdown), `views` (the tables of boards),
+`run_tables` (the tables of single runs), `leaderboard_csv`, `plots` (matplotlib PNGs) and `html` (the self-contained page).
 """

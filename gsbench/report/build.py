@@ -27,12 +27,27 @@ from gsbench.report.aggregate import Board, ablations, leaderboard
 from gsbench.report.claims import evaluate_claims
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.html import document_html
+from gsbench.report.leaderboard_csv import leaderboard_csv
 from gsbench.report.metrics import COMPANIONS, PAPERS_METRIC, metric_specs, primary_metric, reported
-from gsbench.report.tables import Plot, Section, document_markdown
+from gsbench.report.run_tables import (
+    environment_table,
+    failed_table,
+    nogt_table,
+    protocol_table,
+    runs_table,
+    skipped_table,
+)
 from gsbench.report.stats import comparisons
-from gsbench.report.views import (PAIRED_NOTE, ablation_table, claims_tables, environment_table, failed_table, leaderboard_csv,
-                                  leaderboard_table, nogt_table, paired_table, protocol_table, ranks_table,
-                                  runs_table, skipped_table, speed_table)
+from gsbench.report.tables import Plot, Section, document_markdown
+from gsbench.report.views import (
+    PAIRED_NOTE,
+    ablation_table,
+    claims_tables,
+    leaderboard_table,
+    paired_table,
+    ranks_table,
+    speed_table,
+)
 
 TITLE = "gsbench report"
 PROTOCOLS_NOTE = ("Each dataset is ranked by its official protocol (DTU: the DTUeval script's Chamfer; TnT: the "

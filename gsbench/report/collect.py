@@ -27,8 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gsbench.errors import GsbenchError
+from gsbench.run_folder import RunFolder
 
-RECORD_NAME = "record.json"
+RECORD_NAME = RunFolder.RECORD
 # Identity and execution keys: they never distinguish two configurations of one method.
 NOT_A_VARIANT = ("seed", "scene", "out", "threads")
 REQUIRED = ("run_id", "method", "dataset", "scene")

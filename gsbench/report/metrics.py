@@ -16,11 +16,11 @@ Protocols: DTU's ranking metric is the official script's Chamfer and TnT's the o
 vertices plus face centroids, the convention of the 2DGS / GOF / RaDe-GS scripts with which those papers
 computed their TnT numbers). Every label names its protocol (`DISPLAY`).
 
-Reported numbers: a method plugin class may declare ``REPORTED`` (read from the class itself, not
-inherited, since a subclass is a different method)::
+Reported numbers: a method's declaration ``configs/methods/<method>.yaml`` may hold ``reported:``
+(not inherited through ``extends``, since a variant is a different method)::
 
-    REPORTED = {"dtu": {"metric": "chamfer", "mean": 0.80, "scenes": {"scan24": 0.48, ...},
-                        "source": "2DGS paper, Table 1"}}
+    reported:
+      dtu: {metric: chamfer, mean: 0.80, scenes: {scan24: 0.48, ...}, source: "2DGS paper, Table 1"}
 
 These are numbers on the real datasets (GPU, the paper's schedule). The report shows them beside the
 measured ones and labels them so; they are not comparable with synthetic scenes or CPU budgets.
@@ -29,6 +29,9 @@ measured ones and labels them so; they are not comparable with synthetic scenes 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+from gsbench.config.files import reported_numbers
+from gsbench.registry import EVALUATORS
 
 PRIMARY = {"dtu": "chamfer", "tnt": "f1"}
 PRIMARY_ORDER = ("chamfer", "f1", "psnr")
@@ -43,7 +46,7 @@ DISPLAY = {"chamfer": "Chamfer, official script", "chamfer_sampled": "Chamfer, a
 # Each dataset's other leaderboards, after its ranking one: the tessellation-independent protocol and,
 # for TnT, the point set of the papers' own scripts (where their reported numbers are shown).
 COMPANIONS = {"dtu": ("chamfer_sampled",), "tnt": ("f1_centroids", "f1_sampled")}
-# The metric in which the papers report each dataset (their REPORTED numbers and orderings): DTU the official
+# The metric in which the papers report each dataset (their reported numbers and orderings): DTU the official
 # script's Chamfer, TnT the F1 on vertices + centroids of the 2DGS / GOF / RaDe-GS scripts.
 PAPERS_METRIC = {"dtu": "chamfer", "tnt": "f1_centroids"}
 FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics
@@ -85,8 +88,6 @@ class MetricSpec:
 
 def metric_specs() -> dict[str, MetricSpec]:
     """Every known metric: the registered evaluators' declarations over `FALLBACK`."""
-    from gsbench.registry import EVALUATORS  # noqa: PLC0415
-
     specs = {name: MetricSpec(name, better, unit) for name, (better, unit) in FALLBACK.items()}
     for evaluator in EVALUATORS.names():
         try:
@@ -128,16 +129,13 @@ class Reported:
 
 
 def reported(method: str, dataset: str, warnings: list[str]) -> Reported | None:
-    """The ``REPORTED`` entry of ``method``'s plugin class for ``dataset``; malformed entries and
-    plugins that fail to import add a warning and give None."""
-    from gsbench.registry import METHODS  # noqa: PLC0415
-
+    """The ``reported`` entry of ``method``'s declaration for ``dataset`` (module docstring); an unreadable
+    declaration or a malformed entry adds a warning and gives None."""
     try:
-        cls = METHODS.get(method)
-    except Exception as exc:  # noqa: BLE001  (unknown or broken plugin: no reference numbers)
+        entry = reported_numbers(method).get(dataset)
+    except Exception as exc:  # noqa: BLE001  (an unreadable declaration: no reference numbers)
         warnings.append(f"method '{method}': no reported numbers ({type(exc).__name__}: {exc})")
         return None
-    entry = (vars(cls).get("REPORTED") or {}).get(dataset) if isinstance(cls, type) else None
     if entry is None:
         return None
     try:
@@ -146,5 +144,5 @@ def reported(method: str, dataset: str, warnings: list[str]) -> Reported | None:
                         scenes={str(k): float(v) for k, v in (entry.get("scenes") or {}).items()},
                         source=str(entry.get("source", "")))
     except (AttributeError, KeyError, TypeError, ValueError) as exc:
-        warnings.append(f"method '{method}': malformed REPORTED['{dataset}'] ignored ({type(exc).__name__}: {exc})")
+        warnings.append(f"method '{method}': malformed reported['{dataset}'] ignored ({type(exc).__name__}: {exc})")
         return None

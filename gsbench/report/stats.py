@@ -60,6 +60,7 @@ import statistics
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import binomtest, norm, rankdata, t, wilcoxon
 
 ALPHA = 0.05
 CONFIDENCE = 0.95
@@ -74,8 +75,6 @@ def t_half_width(values, confidence: float = CONFIDENCE) -> float | None:
     n = len(values)
     if n < 2:
         return None
-    from scipy.stats import t  # noqa: PLC0415  (scipy: a dependency; imported when a report needs it)
-
     return float(t.ppf(0.5 + confidence / 2, n - 1)) * statistics.stdev(values) / math.sqrt(n)
 
 
@@ -125,15 +124,11 @@ def sign_test_p(positive: int, negative: int) -> float:
     n = positive + negative
     if n == 0:
         return 1.0
-    from scipy.stats import binomtest  # noqa: PLC0415
-
     return float(binomtest(positive, n, 0.5).pvalue)
 
 
 def wilcoxon_p(differences) -> float:
     """Two-sided Wilcoxon signed-rank p-value of the non-zero ``differences`` (scipy, method "auto")."""
-    from scipy.stats import wilcoxon  # noqa: PLC0415
-
     return float(wilcoxon(differences, zero_method="wilcox", alternative="two-sided", method="auto").pvalue)
 
 
@@ -165,8 +160,6 @@ def pairs_to_decide(test: PairedTest, power: float = POWER) -> int | None:
     None for fewer than 2 pairs or d̄ = 0 (nothing to project from)."""
     if test.sd_diff is None or not test.mean_diff:
         return None
-    from scipy.stats import norm  # noqa: PLC0415
-
     z = float(norm.ppf(1 - ALPHA / 2) + norm.ppf(power))
     n_t = (z * test.sd_diff / abs(test.mean_diff)) ** 2
     return max(MIN_WILCOXON, math.ceil(n_t / WILCOXON_ARE))
@@ -174,8 +167,6 @@ def pairs_to_decide(test: PairedTest, power: float = POWER) -> int | None:
 
 def _signed_rank_sum(differences: list[float]) -> float:
     """W+ − W−: the ranks of |d| (ties: mid-ranks) summed with the signs of d."""
-    from scipy.stats import rankdata  # noqa: PLC0415
-
     d = np.asarray(differences, dtype=float)
     return float(np.sign(d) @ rankdata(np.abs(d)))
 
@@ -222,8 +213,6 @@ def comparisons(board) -> dict[tuple[str, str], PairedTest]:
 
 def _ranks(values: dict[str, float], higher_is_better: bool) -> dict[str, float]:
     """1 = best; ties share the mean of the ranks they span (``scipy.stats.rankdata``, method "average")."""
-    from scipy.stats import rankdata  # noqa: PLC0415
-
     sign = -1.0 if higher_is_better else 1.0
     return dict(zip(values, (float(r) for r in rankdata([sign * v for v in values.values()]))))
 

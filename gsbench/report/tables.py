@@ -125,3 +125,8 @@ def document_markdown(title: str, intro: list[str], sections: list[Section], war
         parts.append("## Warnings\n")
         parts.append("".join(f"- {w}\n" for w in warnings))
     return "\n".join(parts)
+
+
+def join_text(values) -> str:
+    """``a, b, c`` of ``values``, or the missing mark when there are none."""
+    return ", ".join(str(v) for v in values) or MISSING

@@ -1,26 +1,31 @@
-"""The report's tables, built from boards and runs: leaderboard, speed against error, sweep ablations,
-the measures of captures without ground truth and the evaluators skipped, failed runs, protocols,
-environment and the list of every run; and the long-format leaderboard CSV.
+"""The report's tables of boards: leaderboard, ranks, paired tests, the papers' claims, speed against error
+and sweep ablations (the tables of single runs are `gsbench.report.run_tables`, the CSV
+`gsbench.report.leaderboard_csv`).
 
 Every table is sorted deterministically and formats numbers with fixed digits (`gsbench.report.tables`).
 """
 
 from __future__ import annotations
 
-import csv
-import io
-import json
-import math
 from collections import Counter
 
-from gsbench.report.aggregate import SPEED, Board, Row, Stat, natural_key, stat
+from gsbench.report.aggregate import Board, Row, Stat
 from gsbench.report.budget import BUDGET_NOTE, budget_text
 from gsbench.report.collect import Run
-from gsbench.report.metrics import COMPANIONS, NO_GT, REAL_DATASETS, MetricSpec
+from gsbench.report.metrics import COMPANIONS, REAL_DATASETS, MetricSpec
 from gsbench.report.pareto import COSTS, cost_points
-from gsbench.report.stats import ALPHA, POWER, PairedTest, comparisons, compare_rows, mean_ranks, pairs_to_decide, \
-    scene_ranks, significance_ranks
-from gsbench.report.tables import MISSING, Table, TCell, count, metric_cell, mib, number, plain, status_text
+from gsbench.report.stats import (
+    ALPHA,
+    POWER,
+    PairedTest,
+    compare_rows,
+    comparisons,
+    mean_ranks,
+    pairs_to_decide,
+    scene_ranks,
+    significance_ranks,
+)
+from gsbench.report.tables import MISSING, Table, TCell, count, join_text, metric_cell, mib, number, plain, status_text
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
               "the same thread count on an equally loaded machine of the same kind (see Environment).")
@@ -38,10 +43,6 @@ MEMORY_NOTE = ("Memory: the process's peak RSS through training (the record's tr
 
 def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
-
-
-def _join(values) -> str:
-    return ", ".join(str(v) for v in values) or MISSING
 
 
 def cpu_note(runs: list[Run]) -> str:
@@ -102,7 +103,7 @@ def leaderboard_table(board: Board) -> Table:
         protocol_note(board),
     ]
     if board.unscored:
-        notes.append(f"Not on this board: {_join(board.unscored)} — no run there has {board.spec.label}, its "
+        notes.append(f"Not on this board: {join_text(board.unscored)} — no run there has {board.spec.label}, its "
                      f"evaluator was skipped (see Captures without ground truth).")
     sources = sorted((m, r) for m, r in board.reported.items() if r.mean is not None)
     if sources:
@@ -275,7 +276,7 @@ def speed_table(board: Board) -> Table:
         shown = number(value) if complete or value is None else f"{number(value)} (incomplete)"
         front = [short for key, (short, _) in COSTS.items() if key in on.get(row.name, ())]
         rows.append([
-            plain(row.name), plain(_join(row.iterations)), plain(_join(row.threads)),
+            plain(row.name), plain(join_text(row.iterations)), plain(join_text(row.threads)),
             *(_stat_cell(row.speed[key], show) for key, show in SPEED_COLUMNS), plain(budget_text(row.runs)),
             TCell(shown, value, "" if complete else "bad"),
             TCell(", ".join(front) or MISSING, len(front), "front" if front else ""),
@@ -285,7 +286,7 @@ def speed_table(board: Board) -> Table:
              f"Pareto front: no other row (with a value on every scene) is at most as costly and at least as good "
              f"in mean {board.spec.label}; costs: {', '.join(short for short, _ in COSTS.values())}."]
     if len(threads) > 1:
-        notes.append(f"Thread counts differ between runs ({_join(threads)}): compare times only at one thread count.")
+        notes.append(f"Thread counts differ between runs ({join_text(threads)}): compare times only at one thread count.")
     cpus = cpu_note([run for row in board.rows for run in row.runs])
     if cpus:
         notes.append(cpus)
@@ -328,7 +329,7 @@ def ablation_table(board: Board) -> Table:
     rows = []
     for row in board.rows:
         value, complete = board.mean(row)
-        cells = [plain(row.name), plain(_join(row.methods))]
+        cells = [plain(row.name), plain(join_text(row.methods))]
         cells += [metric_cell(row.cells.get(scene), row.name in best[scene]) for scene in board.scenes]
         if several:
             cells.append(TCell(number(value) if complete else MISSING, value if complete else None,
@@ -372,211 +373,3 @@ def _grid_table(board: Board, anchor: str, notes: list[str]) -> Table:
     rows.append([plain("Gaussians")] + [cells[1] for cells in speed])
     rows.append([plain("runs")] + [plain(status_text(row.counts)) for row in board.rows])
     return Table(anchor, board.title, header, rows, notes)
-
-
-def significant(value: float | None, digits: int = 4) -> str:
-    """``value`` to ``digits`` significant digits in fixed notation (whole numbers in full, thousands separated)."""
-    if value is None:
-        return MISSING
-    if value == 0 or not math.isfinite(value):
-        return f"{value:g}"
-    decimals = max(0, digits - 1 - math.floor(math.log10(abs(value))))
-    return f"{value:,.{decimals}f}"
-
-
-NO_GT_FORMAT = {  # metric -> (cell text of a value)
-    "psnr": lambda v: number(v, 2), "ssim": number, "mask_iou": number,
-    "outside_hull_area_share": lambda v: number(v, 4), "components": count,
-    "watertight": lambda v: "yes" if v >= 0.5 else "no", "area": significant,
-}
-
-
-def nogt_table(runs: list[Run], specs: dict[str, MetricSpec]) -> Table:
-    """One line per run with a measure that needs no ground truth (`NO_GT`): its values, training time and
-    Gaussian count; sorted by dataset, scene, row, seed."""
-    header = ["dataset", "scene", "method", "seed", "status"]
-    header += [specs[m].label if m in specs else m for m in NO_GT] + ["train (s)", "Gaussians"]
-    rows = []
-    for r in sorted((r for r in runs if any(m in r.metrics for m in NO_GT)),
-                    key=lambda r: (r.dataset, r.scene, natural_key(r.row), r.seed if r.seed is not None else -1,
-                                   r.run_id)):
-        values = [r.metrics.get(m) for m in NO_GT]
-        train = r.timings.get("train")
-        rows.append([plain(r.dataset), plain(r.scene), plain(r.row), TCell(str(r.seed), r.seed),
-                     plain(r.status, None, "" if r.ok else "bad"),
-                     *(TCell(NO_GT_FORMAT[m](v) if v is not None else MISSING, v) for m, v in zip(NO_GT, values)),
-                     TCell(number(train, 1), train), TCell(count(r.num_gaussians), r.num_gaussians)])
-    notes = [
-        "Per run, with or without ground truth. PSNR / SSIM: renders of the held-out views (`image`); mask IoU: "
-        "mean over views of |silhouette ∩ mask| / |silhouette ∪ mask| and outside-hull area share: the fraction "
-        "of the surface area outside the masks' visual hull, floaters (`silhouette`); components, watertight, "
-        "area: `mesh_stats`.",
-        "Higher is better: PSNR, SSIM, mask IoU, watertight; lower is better: outside-hull area share, components. "
-        "Area (dataset units², DTU: mm²) is descriptive, not a score. None of these ranks the leaderboards.",
-        "Train: the run's wall-clock training seconds, comparable only between runs at the same thread count on an "
-        "equally loaded machine of the same kind (see Environment).",
-    ]
-    return Table("no-ground-truth", "Measures without ground truth", header, rows, notes)
-
-
-def skipped_table(runs: list[Run]) -> Table:
-    """The evaluators a run's scene could not feed, with the reason, grouped by (dataset, scene,
-    evaluator, reason): the methods and how many runs."""
-    groups: dict[tuple, list[Run]] = {}
-    for r in runs:
-        for evaluator, reason in r.skipped.items():
-            groups.setdefault((r.dataset, r.scene, evaluator, reason), []).append(r)
-    rows = [[plain(dataset), plain(scene), plain(evaluator), plain(reason),
-             plain(_join(sorted({r.row for r in group}, key=natural_key))), TCell(str(len(group)), len(group))]
-            for (dataset, scene, evaluator, reason), group in sorted(groups.items())]
-    return Table("skipped-evaluators", "Evaluators skipped", ["dataset", "scene", "evaluator", "reason", "methods",
-                                                              "runs"], rows,
-                 ["An evaluator is skipped when the scene cannot feed it (no ground truth, no masks, no held-out "
-                  "view); the run still trains, meshes and is judged by what can be measured."])
-
-
-def _last_line(text: str) -> str:
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    return lines[-1] if lines else ""
-
-
-def failed_table(runs: list[Run]) -> Table:
-    header = ["run id", "dataset", "scene", "method", "seed", "status", "last error line", "record"]
-    rows = [[plain(r.run_id), plain(r.dataset), plain(r.scene), plain(r.row), plain(str(r.seed)),
-             plain(r.status, None, "bad"), plain(_last_line(r.error_tail) or MISSING), plain(r.path)]
-            for r in runs if not r.ok]
-    return Table("failed-runs", "", header, rows)
-
-
-def protocol_table(runs: list[Run]) -> Table:
-    """Every evaluator protocol behind a number, per dataset: name@version, the options that differ
-    between runs of that evaluator on that dataset, and run counts."""
-    groups: dict[tuple, int] = {}
-    for run in runs:
-        for name, proto in sorted(run.eval_protocol.items()):
-            if isinstance(proto, dict):
-                options = json.dumps({k: v for k, v in proto.items() if k not in ("name", "version")}, sort_keys=True)
-                key = (run.dataset, name, str(proto.get("version")), options)
-                groups[key] = groups.get(key, 0) + 1
-    siblings: dict[tuple, list[dict]] = {}
-    for dataset, name, _, options in groups:
-        siblings.setdefault((dataset, name), []).append(json.loads(options))
-    rows = []
-    for (dataset, name, version, options), n in sorted(groups.items()):
-        others = siblings[(dataset, name)]
-        differing = sorted({k for o in others for k in o if any(p.get(k) != o.get(k) for p in others)})
-        mine = json.loads(options)
-        shown = ", ".join(f"{k}={json.dumps(mine.get(k))}" for k in differing) or "same for all runs"
-        rows.append([plain(dataset), plain(f"{name}@{version}"), plain(shown), TCell(str(n), n)])
-    notes = ["Numbers from different versions of one evaluator are not comparable. Options: those that differ "
-             "between runs of the evaluator on one dataset; some are derived per scene (e.g. a distance gate "
-             "from the ground truth's point spacing), others change the protocol."]
-    return Table("protocol-table", "", ["dataset", "protocol", "options", "runs"], rows, notes)
-
-
-ENV_PACKAGES = ("torch", "numpy", "open3d")
-
-
-def environment_table(runs: list[Run]) -> Table:
-    """Distinct (CPU, cores, threads, versions, commit) combinations and how many runs each produced."""
-    groups: dict[tuple, int] = {}
-    for run in runs:
-        env = run.environment
-        packages = env.get("packages") if isinstance(env.get("packages"), dict) else {}
-        commit = str(env.get("git_commit") or MISSING)[:10] + ("+dirty" if env.get("git_dirty") else "")
-        key = (str(env.get("cpu") or MISSING), str(env.get("cpu_count") or MISSING),
-               str(run.threads if run.threads is not None else MISSING), str(env.get("os") or MISSING),
-               str(env.get("python") or MISSING), str(env.get("gsbench") or MISSING), commit,
-               *(str(packages.get(p) or MISSING) for p in ENV_PACKAGES))
-        groups[key] = groups.get(key, 0) + 1
-    header = ["CPU", "cores", "threads", "OS", "python", "gsbench", "git", *ENV_PACKAGES, "runs"]
-    rows = [[plain(v) for v in key] + [TCell(str(n), n)] for key, n in sorted(groups.items())]
-    note = "One row per machine and software combination that produced runs; threads: OpenMP/torch threads."
-    return Table("environment-table", "", header, rows, [note])
-
-
-def runs_table(runs: list[Run], specs: dict[str, MetricSpec], sweeps: dict[str, list[str]]) -> Table:
-    """Every run: identity, status, its dataset's ranking metric, times, threads, CPU model, protocols, sweeps."""
-    header = ["run id", "dataset", "scene", "method", "seed", "status", "metric", "value", "train (s)", "total (s)",
-              "threads", "CPU", "iterations", "protocols", "sweeps", "record"]
-    rows = []
-    for r in runs:
-        spec = specs.get(r.dataset)
-        value = r.metrics.get(spec.name) if spec else None
-        protocols = ", ".join(f"{n}@{p.get('version')}" for n, p in sorted(r.eval_protocol.items())
-                              if isinstance(p, dict))
-        train, total = r.timings.get("train"), r.timings.get("total")
-        rows.append([plain(r.run_id), plain(r.dataset), plain(r.scene), plain(r.row), TCell(str(r.seed), r.seed),
-                     plain(r.status, None, "" if r.ok else "bad"), plain(spec.label if spec else MISSING),
-                     TCell(number(value), value), TCell(number(train, 1), train), TCell(number(total, 1), total),
-                     plain(str(r.threads if r.threads is not None else MISSING)),
-                     plain(str(r.environment.get("cpu") or MISSING)),
-                     plain(str(r.iterations if r.iterations is not None else MISSING)),
-                     plain(protocols or MISSING), plain("; ".join(sweeps.get(r.run_id, [])) or MISSING), plain(r.path)])
-    return Table("runs-table", "", header, rows)
-
-
-CSV_COLUMNS = ("dataset", "metric", "unit", "higher_is_better", "method", "variant", "scene", "n_ok", "n_other",
-               "n_missing", "mean", "std", "best", "complete", "reported", "iterations", "threads", "train_s",
-               "total_s", "train_peak_rss_mib", "gaussians", "ci95_low", "ci95_high", "rank", "rank_paired")
-
-
-def _csv_number(value) -> str:
-    return "" if value is None else f"{value:.6g}"
-
-
-def leaderboard_csv(boards: list[Board], tests: list[dict[tuple[str, str], PairedTest]]) -> str:
-    """Long format: one line per (dataset, row, scene) and one ``scene=mean`` line per row. ``ci95_low`` /
-    ``ci95_high``: the 95% t-interval of a cell's mean over seeds (n ≥ 2); ``rank``: the rank on the scene,
-    or on the mean line the mean rank; ``rank_paired``: the significance rank (`gsbench.report.stats`) from
-    ``tests``, each board's paired tests (`comparisons`), in the order of ``boards``."""
-    out = io.StringIO()
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(CSV_COLUMNS)
-    for k, board in enumerate(boards):
-        spec = board.spec
-        best = {column: board.best(column) for column in [*board.scenes, "mean"]}
-        per_scene = scene_ranks(board)
-        mean_rank = mean_ranks(board, per_scene)
-        shared = significance_ranks(board, tests[k])
-        for row in board.rows:
-            variant = row.runs[0].variant if row.runs else ""
-            method = row.methods[0] if len(row.methods) == 1 else ";".join(row.methods)
-            ref = board.reported.get(method)
-            base = [board.dataset, spec.name, spec.unit, int(spec.higher_is_better), method, variant]
-            for scene in board.scenes:
-                cell = row.cells.get(scene)
-                runs = cell.runs if cell else []
-                statuses = cell.statuses if cell else {}
-                value = cell.stat if cell else None
-                writer.writerow(base + [scene, statuses.get("ok", 0),
-                                        sum(n for k, n in statuses.items() if k not in ("ok", "missing")),
-                                        statuses.get("missing", 0),
-                                        _csv_number(value.mean if value else None),
-                                        _csv_number(value.std if value else None), int(row.name in best[scene]), "",
-                                        _csv_number(ref.scene_value(scene) if ref else None)] + _csv_speed(runs)
-                                + [*_csv_interval(value), _csv_number(per_scene[row.name].get(scene)), ""])
-            mean, complete = board.mean(row)
-            counts = row.counts
-            writer.writerow(base + ["mean", counts.get("ok", 0),
-                                    sum(n for k, n in counts.items() if k not in ("ok", "missing")),
-                                    counts.get("missing", 0), _csv_number(mean), "", int(row.name in best["mean"]),
-                                    int(complete), _csv_number(ref.mean if ref else None)] + _csv_speed(row.runs)
-                            + ["", "", _csv_number(mean_rank[row.name]), _csv_number(shared.get(row.name))])
-    return out.getvalue()
-
-
-def _csv_interval(value: Stat | None) -> list[str]:
-    interval = value.interval if value else None
-    return [_csv_number(interval[0]), _csv_number(interval[1])] if interval else ["", ""]
-
-
-def _csv_speed(runs: list[Run]) -> list[str]:
-    ok = [r for r in runs if r.ok]
-    iterations = ";".join(str(i) for i in sorted({r.iterations for r in runs if r.iterations is not None}))
-    threads = ";".join(str(t) for t in sorted({r.threads for r in runs if r.threads is not None}))
-    means = {key: stat(read(r) for r in ok) for key, read in SPEED.items()}
-    rss = means["train_rss"].mean / 2**20 if means["train_rss"] else None
-    return [iterations, threads, _csv_number(means["train"].mean if means["train"] else None),
-            _csv_number(means["total"].mean if means["total"] else None), _csv_number(rss),
-            _csv_number(means["gaussians"].mean if means["gaussians"] else None)]

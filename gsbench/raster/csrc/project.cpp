@@ -1,14 +1,14 @@
 // gsbench fused per-Gaussian projection (kernels ewa, rade, raymax and surfel): forward and a
 // hand-written backward, one OpenMP loop over Gaussians each.
 //
-// Mirrors gsbench/raster/projection.py `project_torch` operation for operation (that PyTorch code is the
+// Mirrors gsbench/raster/projection_torch.py `project_torch` operation for operation (that PyTorch code is the
 // oracle; tests/test_raster_projection.py (ewa, rade) and tests/test_projection_fused_raymax_surfel.py
 // (raymax, surfel) compare the two in float64 and gradcheck this one). Storage
 // type T is float or double; every per-Gaussian quantity is computed in double (a few hundred flops per
 // Gaussian, so this costs nothing measurable and removes the float32 overflow cases of 1/det for tiny
 // covariances). The backward recomputes the forward intermediates instead of saving them.
 //
-// Payload columns: see projection.py (common 0-8, ewa 9-12, rade 9-14, raymax 9-23, surfel 9-20).
+// Payload columns: see gsbench/raster/payload.py (common 0-8, ewa 9-12, rade 9-14, raymax 9-23, surfel 9-20).
 // surfel reads only scales[:, :2] (the caller pads a third column, whose gradient is written as 0).
 
 #include <algorithm>
@@ -356,7 +356,7 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
 
 inline D clampd(D x, D lo, D hi) { return std::min(std::max(x, lo), hi); }
 
-// _raymax_bounds (projection.py): pixel box of the rays within Mahalanobis² k = 2τ of μ (τ > 0 checked by the caller).
+// _raymax_bounds (projection_torch.py): pixel box of the rays within Mahalanobis² k = 2τ of μ (τ > 0 checked by the caller).
 inline void raymax_bounds(const ProjArgs& A, const Fw& f, D tau, D* bnd) {
     const D k = std::max(2.0 * tau, 0.0);
     D S[9];
@@ -381,7 +381,7 @@ inline void raymax_bounds(const ProjArgs& A, const Fw& f, D tau, D* bnd) {
     }
 }
 
-// _surfel_bounds (projection.py): the exact box of u²+v² <= 2τ ∪ the low-pass disc k|Δ|² <= 2τ.
+// _surfel_bounds (projection_torch.py): the exact box of u²+v² <= 2τ ∪ the low-pass disc k|Δ|² <= 2τ.
 inline void surfel_bounds(const ProjArgs& A, const Fw& f, D tau, D mx, D my, D* bnd) {
     const D k = std::max(2.0 * tau, 0.0);
     const D* X2 = f.X + 6;

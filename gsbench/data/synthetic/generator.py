@@ -1,0 +1,441 @@
+"""Built-in synthetic scenes with exact ground truth, written in the official DTU or TnT layouts.
+
+A scene is planned (`plan_scene`: object, cameras, frames, normalisation; deterministic from the seed)
+and then written (`write_scene`). Frames, all similarities composed in float64:
+
+    object frame (shapes.py: z up, extent 1)  --obj_to_gt-->  GT frame (DTU: mm world; TnT: metres)
+    GT frame  --gt_to_dataset-->  dataset frame (DTU: the same; TnT: the COLMAP frame)
+    normalised training frame  --normalisation-->  dataset frame
+
+Rendering happens in the object frame (small coordinates, float32-safe even for ``spot-km``).
+
+DTU layout (``dtu``; ``dtu-colmap`` writes the 2DGS variant: ``images/`` + ``sparse/0`` instead of
+``image/``): ``image/000000.png``, ``mask/000.png``, ``cameras.npz`` (world_mat_i in mm, integer
+pixel centres; scale_mat_i with ``s = 1.1 x`` the object's bounding-sphere radius, centre = the
+object's bounding-box centre), and GT ``Points/stl/stl{scan:03d}_total.ply`` (surface samples 0.2 mm
+apart seen by >= 2 views; the object is 100 mm long, which gives about 120-250 thousand points),
+``ObsMask/ObsMask{scan}_10.mat`` (``Res`` = 1 mm; surface samples 0.5 mm apart seen by >= 2 views,
+dilated by 4 mm) and
+``ObsMask/Plane{scan}.mat`` (``P`` = z > lowest GT point - 1 mm; the GT frame is z up). Scan numbers
+are 1001 + the scene's index in `BUILTIN_SCENES`.
+
+Why the DTU ``stl`` holds only samples seen by >= 2 views (generator v6): DTU's reference scans come
+from a structured-light scanner on the same robot arm as the cameras, so they contain the surface
+the cameras observe and nothing else (no underside, no occluded folds). A complete-surface stl made
+completeness measure the camera cap instead of the method: on ``synthetic/spot`` 21% of the samples
+are unseen, and TSDF of the *exact* GT depth at 200x150 scored completeness 2.18 mm, 7.3 mm on the
+unseen samples. TnT's GT is a laser scan independent of the images, so the TnT ``{name}.ply`` stays
+the whole surface (the crop box bounds it, as in the official data). ``gt_mesh.ply`` is always whole.
+
+TnT layout (``tnt``): ``images/000000.png``, ``sparse/0`` (PINHOLE, points3D = 10,000 noisy surface
+samples with their albedo), ``{name}.ply`` (GT samples tau/2 apart), ``{name}.json`` (crop: the convex
+hull of the GT in xy grown by 2% of the object size, z range likewise), ``{name}_trans.txt``
+(COLMAP -> GT), ``{name}_COLMAP_SfM.log`` (camera-to-world, COLMAP frame, image-name order).
+tau = 0.5% of the object size (GT units), stored in the meta file.
+
+Scenes with an environment (added in generator v7, which left the older scenes' content unchanged
+and only fixed the ``.mat`` header text so that equal scenes are equal bytes; ``environment.py``,
+objects in ``objects.py``, textures in ``textures.py``): the object stands on a table in a room
+(``dtu-*``: Spot, a stool with thin legs, a bowl with a handle, stepped prisms with sharp edges, a
+finely patterned vase, a uniform pebble stack) or on the ground among props, buildings or under a
+sky dome (``tnt-spot``, ``tnt-yard``, ``tnt-sky``). Object and environment are ray-cast together;
+images are full views (no black background), masks are the pixels whose centre ray first hits the
+object (DTU masks), and ``gt_depth``/``gt_normal`` are the first hit of anything. Their GT:
+
+- DTU: the stl holds the object samples and the table-top samples within 0.8 object sizes (80 mm)
+  of the object's axis (minus the footprint), each kept when seen by >= 2 views (`seen_by_views`:
+  the test of `visible_counts` for depth maps without background); ``ObsMask`` is built from the
+  same samples; ``Plane`` = z > table top + 1 mm (``DTU_PLANE_ABOVE_TABLE``), so completeness
+  ignores the table while accuracy still scores reconstructed table points inside ``ObsMask``
+  against the stl table. They are written in the 2DGS ``dtu-colmap`` layout by default.
+- TnT: ``{name}.ply`` holds the object and the ground inside the crop volume (``World.gt_polygon`` x
+  ``gt_z``, written as the crop json), samples tau/2 apart; props and backdrops lie outside the crop.
+- SfM-like init points (`_init_points`): 25,000 noisy first hits of random pixel rays of the views,
+  so they cover the object, the table and the room as the images do.
+- ``gt_mesh.ply`` is the object only; ``gt_scene_mesh.ply`` is everything ray-cast (object and
+  environment, dataset frame, not subdivided).
+
+Both layouts also get ``gt_depth/{stem}.npy`` (camera z, normalised frame) and ``gt_normal/{stem}.npy``
+(camera-space unit normals) per view, and the ``gsbench_scene.json`` meta file.
+
+Resolution: ``res`` None (default 0.25 of the full 1600x1200 DTU / 1920x1080 TnT size), a float
+factor of the full size, or an explicit ``(W, H)``; fx = fy = focal x W, principal point at the image
+centre.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.io import savemat
+from scipy.spatial import ConvexHull
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
+
+from gsbench.data.camera import Camera, Normalisation
+from gsbench.data.colmap import write_colmap_model
+from gsbench.data.dtu import write_cameras_npz
+from gsbench.data.images import write_mask, write_rgb
+from gsbench.data.meta import write_meta
+from gsbench.data.similarity import decompose, similarity, transform_camera, transform_points
+from gsbench.data.synthetic.builtin import BUILTIN_SCENES
+from gsbench.data.synthetic.environment import World, make_environment
+from gsbench.data.synthetic.groundtruth import (
+    observation_mask,
+    sample_init_points,
+    sample_surface,
+    sample_view_points,
+    sample_world_gt,
+    seen_by_views,
+    visible_counts,
+    write_point_cloud,
+)
+from gsbench.data.synthetic.primitives import Surface
+from gsbench.data.synthetic.render import Renderer
+from gsbench.data.synthetic.rigs import make_rig
+from gsbench.data.synthetic.shapes import make_surface
+from gsbench.data.tnt import nerfpp_normalisation, write_crop_json, write_log
+from gsbench.errors import DataError, RegistryError
+
+GENERATOR_VERSION = 7
+DEFAULT_RES = 0.25
+SCAN_BASE = 1001
+GT_MESH_NAME = "gt_mesh.ply"
+DTU_GT_SPACING = 0.2
+DTU_OBS_RES = 1.0
+DTU_OBS_DILATION = 4.0
+DTU_MIN_VIEWS = 2  # a GT sample is 'scanned' (stl) and 'observed' (ObsMask) when seen by this many views
+TAU_FRACTION = 0.005
+INIT_POINTS = 10_000
+INIT_NOISE = 0.004
+CROP_MARGIN = 0.02
+WORLD_INIT_POINTS = 25_000
+WORLD_INIT_NOISE = 0.002  # x the distance from the camera
+DTU_PLANE_ABOVE_TABLE = 1.0  # mm
+SCENE_MESH_NAME = "gt_scene_mesh.ply"
+DEFAULT_SUPERSAMPLE = 2  # rays per pixel side of the RGB images (area sampling); 1 = the pixel centre only
+
+
+@dataclass(frozen=True)
+class FormatDefaults:
+    """Per-layout defaults: full image size, views, fx/W, rig, distance in object radii, object size
+    and position in the GT frame, rotation of the object about GT z (degrees), GT units."""
+
+    full_size: tuple[int, int]
+    views: int
+    focal: float
+    rig: str
+    distance: float
+    size: float
+    offset: tuple[float, float, float]
+    yaw: float
+    units: str
+
+
+FORMATS = {
+    "dtu": FormatDefaults((1600, 1200), 49, 1.1, "cap", 3.5, 100.0, (30.0, -20.0, 600.0), 0.0, "mm"),
+    "tnt": FormatDefaults((1920, 1080), 48, 0.6, "ring", 4.0, 1.5, (2.0, -1.0, 0.5), 30.0, "m"),
+}
+
+
+@dataclass(frozen=True)
+class SyntheticSpec:
+    """What makes a built-in scene special; None fields take the layout's `FormatDefaults`.
+
+    ``fmt`` is the layout it is written in by default (``dtu``, ``dtu-colmap`` or ``tnt``);
+    ``environment`` (``environment.py``: room, ground, yard, sky) puts the object in surroundings.
+    ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
+    rotation ``colmap_euler`` (xyz degrees), object centre at ``colmap_center``) apply only when the
+    scene is written in its own layout ``fmt``.
+    """
+
+    shape: str = "spot"
+    albedo: str = "texture"
+    fmt: str = "dtu"
+    rig: str | None = None
+    distance: float | None = None
+    specular: float = 0.0
+    size: float | None = None
+    offset: tuple[float, float, float] | None = None
+    units: str | None = None
+    colmap_scale: float = 0.4
+    colmap_euler: tuple[float, float, float] = (20.0, -35.0, 110.0)
+    colmap_center: tuple[float, float, float] = (0.3, -1.2, 2.0)
+    environment: str | None = None
+
+
+SPECS = {
+    "synthetic/spot": SyntheticSpec(),
+    "synthetic/spot-tnt": SyntheticSpec(fmt="tnt"),
+    "synthetic/thin-plate": SyntheticSpec(shape="plate", albedo="procedural", rig="band"),
+    "synthetic/textureless": SyntheticSpec(albedo="uniform"),
+    "synthetic/spot-far": SyntheticSpec(distance=12.0),
+    "synthetic/spot-km": SyntheticSpec(fmt="tnt", size=1500.0, offset=(512_300.0, 4_205_700.0, 850.0),
+                                       units="m (km-scale object, UTM-like coordinates)", colmap_scale=1e-3,
+                                       colmap_center=(1200.0, -800.0, 40.0)),
+    "synthetic/dtu-spot": SyntheticSpec(fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-stool": SyntheticSpec(shape="stool", albedo="wood", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-bowl": SyntheticSpec(shape="bowl", albedo="glaze", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-blocks": SyntheticSpec(shape="blocks", albedo="painted", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-fine": SyntheticSpec(shape="vase", albedo="fine", fmt="dtu-colmap", environment="room"),
+    "synthetic/dtu-plain": SyntheticSpec(shape="pebbles", albedo="uniform", fmt="dtu-colmap", environment="room"),
+    "synthetic/tnt-spot": SyntheticSpec(fmt="tnt", environment="ground"),
+    "synthetic/tnt-yard": SyntheticSpec(shape="yard", albedo="facade", fmt="tnt", environment="yard", distance=1.8, size=20.0,
+                                        offset=(35.0, -12.0, 3.0), colmap_scale=0.1),
+    "synthetic/tnt-sky": SyntheticSpec(fmt="tnt", environment="sky"),
+}
+
+
+@dataclass
+class ScenePlan:
+    """Everything needed to write a synthetic scene (see the module docstring for the frames)."""
+
+    name: str
+    fmt: str
+    seed: int
+    spec: SyntheticSpec
+    surface: Surface
+    cameras: list[Camera]
+    obj_to_gt: np.ndarray
+    gt_to_dataset: np.ndarray
+    normalisation: Normalisation
+    units: str
+    scan: int | None = None
+    tau: float | None = None
+    world: World | None = None
+    supersample: int = DEFAULT_SUPERSAMPLE
+
+    @property
+    def rendered(self) -> Surface:
+        """What the views see: the object in its environment, or the object alone."""
+        return self.surface if self.world is None else self.world.surface
+
+    @property
+    def obj_to_dataset(self) -> np.ndarray:
+        return self.gt_to_dataset @ self.obj_to_gt
+
+    @property
+    def dataset_cameras(self) -> list[Camera]:
+        return [transform_camera(c, self.obj_to_dataset) for c in self.cameras]
+
+    @property
+    def normalised_cameras(self) -> list[Camera]:
+        """The cameras a loader must recover, in the normalised training frame."""
+        norm = self.normalisation
+        to_norm = similarity(1.0 / norm.scale, None, -norm.center / norm.scale) @ self.obj_to_dataset
+        return [transform_camera(c, to_norm) for c in self.cameras]
+
+    @property
+    def depth_scale(self) -> float:
+        """Object-frame lengths -> normalised-frame lengths."""
+        return decompose(self.obj_to_dataset)[0] / self.normalisation.scale
+
+    @property
+    def short_name(self) -> str:
+        return self.name.split("/", 1)[-1]
+
+
+def _image_size(full: tuple[int, int], res) -> tuple[int, int]:
+    if res is None:
+        res = DEFAULT_RES
+    if isinstance(res, (int, float)):
+        if res <= 0:
+            raise DataError(f"resolution factor must be positive, got {res}; fix: e.g. --res 400 300")
+        return max(8, int(round(full[0] * res))), max(8, int(round(full[1] * res)))
+    w, h = (int(v) for v in res)
+    if w < 8 or h < 8:
+        raise DataError(f"image size {w}x{h} is too small; fix: at least 8x8")
+    return w, h
+
+
+def canonical_name(name: str) -> str:
+    """``spot`` or ``synthetic/spot`` -> ``synthetic/spot``; unknown names raise with the known list."""
+    full = name if name.startswith("synthetic/") else f"synthetic/{name}"
+    if full not in SPECS:
+        raise RegistryError(f"unknown built-in scene {name!r}; expected one of {sorted(SPECS)}")
+    return full
+
+
+def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0) -> ScenePlan:
+    """Plan a built-in scene: object, cameras, frames and normalisation (no rendering)."""
+    name = canonical_name(name)
+    spec = SPECS[name]
+    fmt = fmt or spec.fmt
+    if fmt not in ("dtu", "dtu-colmap", "tnt"):
+        raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
+    base = fmt.split("-")[0]
+    d = FORMATS[base]
+    own = base == spec.fmt.split("-")[0]
+    size = spec.size if own and spec.size else d.size
+    offset = spec.offset if own and spec.offset else d.offset
+    width, height = _image_size(d.full_size, res)
+    f = d.focal * width
+    K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    surface = make_surface(spec.shape, spec.albedo, seed)
+    world = None
+    if spec.environment:
+        world = make_environment(spec.environment, surface, seed)
+    r = surface.radius
+    poses = make_rig(spec.rig or d.rig, d.views, (spec.distance or d.distance) * r, 0.03 * r, np.random.default_rng(seed))
+    cameras = [Camera(K=K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png") for k, (R, t) in enumerate(poses)]
+    obj_to_gt = similarity(size, Rotation.from_euler("z", d.yaw, degrees=True).as_matrix(), offset)
+    plan = ScenePlan(name=name, fmt=fmt, seed=seed, spec=spec, surface=surface, cameras=cameras, obj_to_gt=obj_to_gt,
+                     gt_to_dataset=np.eye(4), normalisation=Normalisation(), units=(spec.units if own else None) or d.units,
+                     world=world)
+    if base == "dtu":
+        plan.normalisation = Normalisation(scale=1.1 * r * size, center=np.asarray(offset, dtype=np.float64), radius=1.0)
+        plan.scan = SCAN_BASE + list(BUILTIN_SCENES).index(name)
+    else:
+        cs = spec.colmap_scale if own else SyntheticSpec.colmap_scale
+        rot = Rotation.from_euler("xyz", spec.colmap_euler, degrees=True).as_matrix()
+        center = np.asarray(spec.colmap_center if own else SyntheticSpec.colmap_center)
+        plan.gt_to_dataset = similarity(cs, rot, center - cs * rot @ np.asarray(offset))
+        plan.normalisation = nerfpp_normalisation(np.array([c.center for c in plan.dataset_cameras]))
+        plan.tau = TAU_FRACTION * size
+    return plan
+
+
+def plan_meta(plan: ScenePlan) -> dict:
+    """The ``gsbench_scene.json`` content of a plan (compared to skip re-generation)."""
+    cam = plan.cameras[0]
+    meta = {"name": plan.short_name, "builtin": plan.name, "format": plan.fmt, "seed": plan.seed,
+            "resolution": [cam.width, cam.height], "units": plan.units, "generator_version": GENERATOR_VERSION,
+            "description": BUILTIN_SCENES[plan.name].description}
+    if plan.scan is not None:
+        meta["scan"] = plan.scan
+    if plan.tau is not None:
+        meta["tau"] = plan.tau
+    if plan.supersample != DEFAULT_SUPERSAMPLE:
+        meta["supersample"] = plan.supersample
+    return meta
+
+
+def write_scene(plan: ScenePlan, out: Path) -> None:
+    """Render every view and write images, masks, GT maps, cameras and GT files into ``out``."""
+    out = Path(out)
+    image_dir = out / ("image" if plan.fmt == "dtu" else "images")
+    dirs = [image_dir, out / "gt_depth", out / "gt_normal"] + ([out / "mask"] if plan.fmt != "tnt" else [])
+    for folder in dirs:
+        folder.mkdir(parents=True, exist_ok=True)
+    renderer = Renderer(plan.rendered, specular=plan.spec.specular, supersample=plan.supersample)
+    depths = []
+    for k, cam in enumerate(tqdm(plan.cameras, desc=f"rendering {plan.name}", unit="view", disable=None)):
+        view = renderer.render(cam)
+        stem = Path(cam.name).stem
+        write_rgb(image_dir / cam.name, view.rgb)
+        if plan.fmt != "tnt":
+            write_mask(out / "mask" / f"{k:03d}.png", view.mask)
+        np.save(out / "gt_depth" / f"{stem}.npy", (view.depth * plan.depth_scale).astype(np.float32))
+        np.save(out / "gt_normal" / f"{stem}.npy", view.normal)
+        depths.append(view.depth)
+    if plan.fmt == "tnt":
+        _write_tnt(plan, out)
+    else:
+        _write_dtu(plan, out, depths)
+    max_edge = None if plan.tau is None else plan.tau / decompose(plan.obj_to_gt)[0]
+    write_gt_mesh(out / GT_MESH_NAME, plan.surface, plan.obj_to_dataset, max_edge)
+    if plan.world is not None:
+        write_gt_mesh(out / SCENE_MESH_NAME, plan.world.surface, plan.obj_to_dataset, None)
+    write_meta(out, plan_meta(plan))
+
+
+def write_gt_mesh(path: Path, surface: Surface, to_dataset: np.ndarray, max_edge: float | None) -> None:
+    """The exact surface in the dataset frame (DTU: mm world; TnT: the COLMAP frame of the cameras).
+
+    Real datasets have no such file; synthetic scenes ship it so a test or a user can evaluate the
+    true surface as a perfect reconstruction (`gsbench eval --mesh gt_mesh.ply --frame dataset`) and
+    see the protocol's floor. The TnT protocol scores mesh vertices and face centroids, not the surface,
+    so for TnT scenes the mesh is subdivided until every edge is at most τ (``max_edge``, object units;
+    every surface point is then within about 0.6τ of a vertex or centroid); otherwise even the exact
+    surface loses recall where its triangles are larger than τ (measured: recall 0.32 on spot-tnt).
+    """
+    vertices, triangles = surface.vertices, surface.triangles
+    if max_edge is not None:
+        vertices, triangles = trimesh.remesh.subdivide_to_size(vertices, triangles, max_edge=max_edge)
+    trimesh.Trimesh(transform_points(to_dataset, vertices), triangles, process=False).export(path)
+
+
+def _init_points(plan: ScenePlan, to_frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SfM-like init points mapped into ``to_frame``: noisy object surface samples with albedo colours,
+    or, for a scene with an environment, noisy first hits of random pixel rays of the views."""
+    if plan.world is None:
+        points, colors = sample_init_points(plan.surface, INIT_POINTS, INIT_NOISE, plan.seed)
+    else:
+        points, colors = sample_view_points(plan.world.surface, plan.cameras, WORLD_INIT_POINTS, WORLD_INIT_NOISE, plan.seed)
+    return transform_points(to_frame, points), colors
+
+
+def save_mat(path: Path, arrays: dict, **kwargs) -> None:
+    """``scipy.io.savemat`` with a fixed header text (scipy writes the creation time into it), so the
+    same scene gives the same bytes."""
+    savemat(path, arrays, **kwargs)
+    with open(path, "r+b") as f:
+        f.write(b"MATLAB 5.0 MAT-file, written by gsbench".ljust(116, b" "))
+
+
+def _write_dtu(plan: ScenePlan, out: Path, depths: list[np.ndarray]) -> None:
+    size = decompose(plan.obj_to_gt)[0]
+
+    def samples(spacing):
+        if plan.world is None:
+            return sample_surface(plan.surface, spacing / size, plan.seed)
+        return sample_world_gt(plan.world, spacing / size, plan.seed)[0]
+
+    points_obj = samples(DTU_GT_SPACING)
+    points_mm = transform_points(plan.obj_to_gt, points_obj)
+    if plan.world is None:
+        scanned = visible_counts(points_obj, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    else:  # full depth maps (no background): see groundtruth.visible_counts
+        scanned = seen_by_views(points_obj, plan.cameras, depths, TAU_FRACTION, DTU_MIN_VIEWS)
+    write_point_cloud(out / "Points" / "stl" / f"stl{plan.scan:03d}_total.ply", points_mm[scanned])
+    if plan.world is None:
+        coarse = samples(DTU_OBS_RES / 2)  # ObsMask needs only ~voxel density
+        seen = visible_counts(coarse, plan.cameras, depths, tol=TAU_FRACTION) >= DTU_MIN_VIEWS
+    else:  # generator v6 made ObsMask from its own coarser samples; the new scenes reuse the stl samples
+        coarse, seen = points_obj, scanned
+    obs, bb = observation_mask(transform_points(plan.obj_to_gt, coarse), seen, DTU_OBS_RES, DTU_OBS_DILATION)
+    (out / "ObsMask").mkdir()
+    save_mat(out / "ObsMask" / f"ObsMask{plan.scan}_10.mat", {"ObsMask": obs, "BB": bb, "Res": np.array([[DTU_OBS_RES]])},
+             do_compression=True)
+    if plan.world is None:
+        plane = np.array([[0.0], [0.0], [1.0], [-(points_mm[:, 2].min() - 1.0)]])
+    else:
+        table_top = transform_points(plan.obj_to_gt, np.array([[0.0, 0.0, plan.world.ground_z]]))[0, 2]
+        plane = np.array([[0.0], [0.0], [1.0], [-(table_top + DTU_PLANE_ABOVE_TABLE)]])
+    save_mat(out / "ObsMask" / f"Plane{plan.scan}.mat", {"P": plane})
+    norm = plan.normalisation
+    scale_mat = similarity(norm.scale, None, norm.center)
+    write_cameras_npz(out / "cameras.npz", plan.dataset_cameras, scale_mat)
+    if plan.fmt == "dtu-colmap":
+        to_norm = np.linalg.inv(scale_mat) @ plan.obj_to_dataset
+        points, colors = _init_points(plan, to_norm)
+        write_colmap_model(out / "sparse" / "0", plan.normalised_cameras, points, colors)
+
+
+def _write_tnt(plan: ScenePlan, out: Path) -> None:
+    name = plan.short_name
+    size = decompose(plan.obj_to_gt)[0]
+    if plan.world is None:
+        points_gt = transform_points(plan.obj_to_gt, sample_surface(plan.surface, plan.tau / 2 / size, plan.seed))
+        xy = points_gt[:, :2]
+        hull = xy[ConvexHull(xy).vertices]
+        centre = hull.mean(axis=0)
+        grown = centre + (hull - centre) * (1.0 + CROP_MARGIN * size / np.linalg.norm(hull - centre, axis=1, keepdims=True))
+        margin = CROP_MARGIN * size
+        z_range = (points_gt[:, 2].min() - margin, points_gt[:, 2].max() + margin)
+    else:
+        world = plan.world
+        points_gt = transform_points(plan.obj_to_gt, sample_world_gt(world, plan.tau / 2 / size, plan.seed)[0])
+        polygon = np.column_stack([world.gt_polygon, np.full(len(world.gt_polygon), world.ground_z)])
+        grown = transform_points(plan.obj_to_gt, polygon)[:, :2]  # the GT frame's z is the object's (yaw only)
+        z_range = tuple(transform_points(plan.obj_to_gt, np.array([[0.0, 0.0, z] for z in world.gt_z]))[:, 2])
+    write_point_cloud(out / f"{name}.ply", points_gt)
+    write_crop_json(out / f"{name}.json", grown, *z_range)
+    np.savetxt(out / f"{name}_trans.txt", np.linalg.inv(plan.gt_to_dataset))
+    cameras = plan.dataset_cameras
+    write_log(out / f"{name}_COLMAP_SfM.log", [c.camera_to_world for c in cameras])
+    points, colors = _init_points(plan, plan.obj_to_dataset)
+    write_colmap_model(out / "sparse" / "0", cameras, points, colors)

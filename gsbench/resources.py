@@ -1,0 +1,30 @@
+"""The machine resources a run uses: its threads and its peak memory.
+
+`set_threads` is the one place the thread count is set: ``OMP_NUM_THREADS`` (read by torch's and the
+native libraries' OpenMP runtimes when they load) and torch's intra-op threads when torch is loaded, which
+every native call passes on (`gsbench.native.build.omp_threads`). ``OMP_WAIT_POLICY=PASSIVE`` is set when
+gsbench is imported (`gsbench/__init__.py`).
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import sys
+
+
+def set_threads(threads: int) -> int:
+    """Use ``threads`` threads (0 = every core) from now on; returns the number set."""
+    n = threads if threads > 0 else (os.cpu_count() or 1)
+    os.environ["OMP_NUM_THREADS"] = str(n)
+    torch = sys.modules.get("torch")  # a process that has not loaded torch reads OMP_NUM_THREADS when it does
+    if torch is not None:
+        torch.set_num_threads(n)
+    return n
+
+
+def peak_rss_bytes() -> int:
+    """Peak resident set size of this process and its waited-for children, in bytes (``ru_maxrss``, which never
+    decreases: KiB on Linux, bytes on macOS)."""
+    peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    return int(peak if sys.platform == "darwin" else peak * 1024)

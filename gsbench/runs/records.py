@@ -1,0 +1,152 @@
+"""Run records: one JSON per run, written atomically, with the environment that produced it.
+
+Schema (docs/design.md §8.2, docs/design.md §8.2), version `SCHEMA_VERSION`:
+identity (method, scene, dataset, seed, run_id, status — ok, failed, interrupted (Ctrl-C or SIGTERM,
+resumable), … — and error_tail), resolved config and effective loss
+terms, ``inputs`` (what was trained on: the resolution and the size on disk, the downscale factor, the
+views trained and held out, masks, the initial Gaussian count), eval protocols, metrics, ``skipped``
+evaluators with the reason each could not score the scene, timings per stage in seconds (``load``, ``train``, ``extract``,
+``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of each part of
+the training step, ``render``, ``loss``, ``backward``, ``densify``, ``optimizer``, ``checks``, and
+of method-specific phases inside them, e.g. IBGS ``train.knn``; gsbench/training/trainer.py "Phases"), iterations/s, Gaussian count,
+``densify_budget`` (``max_gaussians``, ``first_cut_step``: the first step at which the budget left
+densification candidates out, null if never, ``candidates_cut``; gsbench/training/trainer.py "Budget"; empty in
+records of runs trained before it was tracked), peak RSS per
+stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
+threads, OS, host, UTC start/end).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import platform
+import socket
+import subprocess
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+
+import gsbench
+from gsbench.atomic import atomic_path
+
+SCHEMA_VERSION = 1
+STATUSES = ("ok", "failed", "interrupted", "running")  # running: a record in memory until the run ends
+TRACKED_PACKAGES = ("torch", "numpy", "scipy", "open3d", "pymeshlab", "trimesh", "scikit-image", "pycolmap")
+
+
+@dataclass
+class RunRecord:
+    """Everything one run produced; `write` stores it as ``record.json`` in the run folder."""
+
+    run_id: str
+    method: str
+    scene: str
+    dataset: str
+    seed: int
+    status: str = "running"
+    error_tail: str = ""
+    config: dict = field(default_factory=dict)
+    losses: dict = field(default_factory=dict)
+    inputs: dict = field(default_factory=dict)
+    eval_protocol: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    it_per_s: float | None = None
+    num_gaussians: int | None = None
+    densify_budget: dict = field(default_factory=dict)
+    peak_rss_bytes: dict = field(default_factory=dict)
+    mesh: dict = field(default_factory=dict)
+    environment: dict = field(default_factory=dict)
+    schema_version: int = SCHEMA_VERSION
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def write(self, path: Path) -> None:
+        if self.status not in STATUSES:
+            raise ValueError(f"record status must be one of {STATUSES}, got '{self.status}'")
+        write_json_atomic(Path(path), self.to_dict())
+
+    @classmethod
+    def read(cls, path: Path) -> "RunRecord":
+        data = json.loads(Path(path).read_text())
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def write_json_atomic(path: Path, obj) -> None:
+    """Write JSON to a temp file in the same folder, fsync, then `os.replace` (atomic on POSIX)."""
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        json.dump(obj, fh, indent=2, sort_keys=True, default=_json_default)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _json_default(obj):
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"cannot store {type(obj).__name__} in a run record")
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(chunk), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _git_state() -> dict:
+    root = Path(gsbench.__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        if commit.returncode != 0:
+            return {"git_commit": None, "git_dirty": None}
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain"], capture_output=True, text=True, timeout=5)
+        return {"git_commit": commit.stdout.strip(), "git_dirty": bool(dirty.stdout.strip())}
+    except (OSError, subprocess.SubprocessError):
+        return {"git_commit": None, "git_dirty": None}
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _package_versions() -> dict:
+    versions = {}
+    for name in TRACKED_PACKAGES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def capture_environment(threads: int | None = None) -> dict:
+    """What produced a number: versions, commit, CPU, thread count, OS, host, UTC time."""
+    return {
+        "gsbench": gsbench.__version__,
+        **_git_state(),
+        "python": platform.python_version(),
+        "packages": _package_versions(),
+        "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "threads": threads,
+        "os": f"{platform.system()} {platform.release()}",
+        "hostname": socket.gethostname(),
+        "time_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }

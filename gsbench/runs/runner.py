@@ -1,0 +1,257 @@
+"""One run as cached stages: load → train → extract → evaluate → record (docs/design.md §1, docs/design.md §8).
+
+Folder: ``<out>/<dataset>/<scene>/<method>/<run_id>/`` holding ``config.yaml`` (the resolved config),
+``checkpoint.pt`` / ``checkpoint-final.pt`` and ``metrics.jsonl`` (`gsbench.training.trainer`), ``mesh.ply``,
+``eval.json``, ``stages.json`` (seconds and peak RSS of each stage when it was computed) and
+``record.json`` (`gsbench.runs.records.RunRecord`).
+
+A stage is skipped when its output exists (final checkpoint, ``mesh.ply``, ``eval.json``), so running
+the same config again resumes it; an interrupted training resumes from ``checkpoint.pt``. The scene is
+always loaded; the trained model is loaded from the final checkpoint only when a later stage needs it.
+Timings in the record are the stored ones of the invocation that computed each stage (``train``
+counts optimisation steps only, over all resumes; ``extract`` and ``evaluate`` likewise exclude the
+rest); ``total`` is their sum and ``wall_this_invocation`` the wall time of this call. Peak RSS is the
+process high-water mark at the end of each stage (``ru_maxrss`` never decreases, so a stage's value
+includes the earlier ones in that process).
+
+Evaluation is planned before anything is loaded (`gsbench.evaluators.resolve.plan_evaluation` on the
+scene read without its images): ``eval.evaluators`` when named (each must apply, else an error before
+loading), else the dataset's defaults, each skipped with its reason in the record (``skipped``) when
+the scene lacks what it needs, so a capture without ground truth runs to ``ok``. ``dtu_chamfer`` gets
+``cull = eval.dtu_culling`` (2dgs, gof or none; `gsbench.evaluators.culling`), as does ``normal_similarity``
+on DTU scenes. The held-out views (``data.holdout_every``; by default every 8th view of
+a scene without ground truth) are rendered and scored by the ``image`` evaluator (inside the masks
+when ``data.use_masks``). ``eval.json`` is recomputed when the plan differs from the one it holds
+(e.g. ``--gt`` given after a first run). A failure anywhere after the plan writes the record with
+status ``failed`` and the traceback tail, then re-raises.
+
+Progress: one line per stage on stderr (`gsbench.training.progress.stage`), and training's own progress lines
+when stderr is not a terminal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import threading
+import time
+import traceback
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+import yaml
+
+from gsbench.config.checks import check_run_config
+from gsbench.config.run_config import RunConfig, dataset_of, resolve
+from gsbench.data.loader import load_scene
+from gsbench.errors import Interrupted
+from gsbench.evaluators.api import evaluate_mesh_file, format_table
+from gsbench.evaluators.resolve import get_evaluator, plan_evaluation, run_options
+from gsbench.registry import METHODS
+from gsbench.resources import peak_rss_bytes, set_threads
+from gsbench.run_folder import RunFolder
+from gsbench.runs.records import RunRecord, capture_environment, sha256_file, write_json_atomic
+from gsbench.runs.run_lock import run_lock
+from gsbench.training.progress import stage
+from gsbench.training.trainer import Trainer, load_checkpoint, scaled_losses, schedule_scale
+
+ERROR_TAIL_LINES = 30
+
+
+def resolve_run(method: str, scene: str, *, preset: str = "cpu", user_files=(), overrides=(),
+                seed: int | None = None, gt: str | None = None) -> RunConfig:
+    """`gsbench.config.run_config.resolve` with the method plugin's ``Config`` (its paper defaults)."""
+    cls = METHODS.get(method)
+    return resolve(method, scene, preset=preset, user_files=user_files, overrides=overrides,
+                   method_config_cls=cls.Config, seed=seed, gt=gt)
+
+
+def load_run_scene(cfg: RunConfig, *, load_images: bool = True):
+    """The scene of ``cfg`` at its resolution (``data.downscale``, ``data.max_size``) with its ``--gt``."""
+    return load_scene(cfg.scene, downscale=cfg.data.downscale, max_size=cfg.data.max_size,
+                      load_images=load_images, gt_root=cfg.gt or None, holdout_every=cfg.data.holdout_every)
+
+
+def plan_run_evaluation(cfg: RunConfig, scene):
+    """`plan_evaluation` of ``cfg``'s evaluators on ``scene`` (loaded with or without images)."""
+    return plan_evaluation(scene, dataset_of(cfg.scene), cfg.eval.evaluators, len(scene.held_out_views))
+
+
+def scene_inputs(scene, cfg: RunConfig) -> dict:
+    """The record's ``inputs``: what the run trains on (`gsbench.runs.records` module docstring)."""
+    cam = scene.cameras[0]
+    return {"resolution": [cam.width, cam.height], "source_resolution": list(scene.source_size or ()),
+            "downscale": scene.downscale, "views_trained": len(scene.train_views), "views_held_out": len(scene.held_out_views),
+            "masks": scene.has_masks, "sfm_points": 0 if scene.points is None else int(len(scene.points)),
+            "ground_truth": None if scene.gt is None else str(scene.gt.root)}
+
+
+def run_dir(cfg: RunConfig) -> Path:
+    """``<out>/<dataset>/<scene name>/<method>/<run_id>`` (the scene name is its last path part)."""
+    scene_name = Path(str(cfg.scene).rstrip("/")).name
+    return Path(cfg.out) / dataset_of(cfg.scene) / scene_name / cfg.method["name"] / cfg.run_id
+
+
+class _Stages:
+    """``stages.json``: per stage {seconds, peak_rss_bytes}, written when the stage completes."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = json.loads(path.read_text()) if path.is_file() else {}
+
+    def done(self, name: str, seconds: float, **extra) -> None:
+        self.data[name] = {"seconds": float(seconds), "peak_rss_bytes": peak_rss_bytes(), **extra}
+        write_json_atomic(self.path, self.data)
+
+
+def _flatten_metrics(report: dict) -> dict:
+    """{metric: value} over evaluators; a name two evaluators share is prefixed with the evaluator."""
+    flat: dict = {}
+    for name, res in report["results"].items():
+        for metric, value in res["metrics"].items():
+            flat[f"{name}.{metric}" if metric in flat else metric] = value
+    return flat
+
+
+def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
+    options = run_options(cfg.eval.dtu_culling, plan.mesh)
+    report = evaluate_mesh_file(mesh_path, scene, plan.mesh, options) if plan.mesh else \
+        {"mesh": str(mesh_path), "scene": scene.name, "results": {}}
+    report["plan"], report["skipped"] = list(plan.names), plan.skipped
+    held_out = scene.held_out_views
+    if plan.image:
+        with torch.no_grad():
+            renders = [method.render(scene.cameras[i], {"rgb"}).rgb.clamp(0, 1).numpy() for i in held_out]
+        use_masks = bool(cfg.data.use_masks and scene.masks is not None)
+        report["results"]["image"] = get_evaluator("image").evaluate(renders, scene, indices=tuple(held_out),
+                                                                     use_masks=use_masks)
+    return report
+
+
+def run(cfg: RunConfig, *, echo=print) -> RunRecord:
+    """Run (or resume) every stage of ``cfg``, write and return its record, print the metrics table.
+
+    The configuration is checked (`gsbench.config.checks`) and the evaluation planned before anything is read
+    or written; the run folder is locked while this process works in it (`gsbench.runs.run_lock`). Ctrl-C or
+    SIGTERM records status ``interrupted`` (the run resumes from its last checkpoint), any other
+    exception ``failed`` with its traceback tail; both re-raise."""
+    check_run_config(cfg)
+    threads = set_threads(cfg.threads)
+    stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
+    header = load_run_scene(cfg, load_images=False)
+    plan = plan_run_evaluation(cfg, header)
+    for name, reason in plan.skipped.items():
+        stage(f"evaluator {name} skipped: {reason}")
+    folder = run_dir(cfg)
+    with run_lock(folder), interrupts_raised():
+        return _run_locked(cfg, folder, header, plan, threads, echo)
+
+
+def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) -> RunRecord:
+    """`run` once it holds the folder's lock: the record, the stages, the status."""
+    RunFolder(folder).config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    record = RunRecord(run_id=cfg.run_id, method=cfg.method["name"], scene=cfg.scene, dataset=dataset_of(cfg.scene),
+                       seed=cfg.seed, config=cfg.to_dict(),
+                       losses={"schedule": scaled_losses(cfg.losses, schedule_scale(cfg.train.iterations))},
+                       environment=capture_environment(threads), inputs=scene_inputs(header, cfg),
+                       skipped=dict(plan.skipped))
+    stages = _Stages(RunFolder(folder).stages)
+    start = time.perf_counter()
+    try:
+        report = _run_stages(cfg, folder, stages, record, plan)
+        record.status = "ok"
+    except (KeyboardInterrupt, Interrupted):
+        record.status = "interrupted"
+        raise
+    except BaseException:
+        record.status = "failed"
+        record.error_tail = "".join(traceback.format_exc().splitlines(keepends=True)[-ERROR_TAIL_LINES:])
+        raise
+    finally:
+        keys = ("load", "train", "extract", "evaluate")
+        record.timings = {k: stages.data[k]["seconds"] for k in keys if k in stages.data}
+        record.timings["total"] = sum(record.timings.values())
+        record.timings["wall_this_invocation"] = time.perf_counter() - start
+        phases = stages.data.get("train", {}).get("phases", {})
+        record.timings.update({f"train.{name}": seconds for name, seconds in phases.items()})
+        record.peak_rss_bytes = {k: stages.data[k]["peak_rss_bytes"] for k in keys if k in stages.data}
+        record.environment["time_end_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        record.write(RunFolder(folder).record)
+    echo(format_table(report))
+    echo(f"record written to {RunFolder(folder).record}")
+    return record
+
+
+@contextmanager
+def interrupts_raised():
+    """Turn SIGTERM into `Interrupted` for the block (main thread only: elsewhere signals stay as they are)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _raise(signum, _frame):
+        raise Interrupted(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, _raise)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _stored_report(eval_path: Path, plan) -> dict | None:
+    """``eval.json`` when it holds this plan's evaluators, else None (the stage is recomputed)."""
+    if not eval_path.is_file():
+        return None
+    report = json.loads(eval_path.read_text())
+    return report if report.get("plan") == list(plan.names) else None
+
+
+def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord, plan) -> dict:
+    """The stages proper; fills ``record`` and returns the evaluation report."""
+    t0 = time.perf_counter()
+    cam = record.inputs["resolution"]
+    stage(f"loading {record.inputs['views_trained'] + record.inputs['views_held_out']} views at {cam[0]}x{cam[1]}")
+    scene = load_run_scene(cfg)
+    stages.done("load", time.perf_counter() - t0)
+
+    method = METHODS.get(cfg.method["name"])()
+    method.setup(scene, cfg)
+    record.inputs["initial_gaussians"] = len(method.gaussians)
+    record.losses["params"] = method.term_params()
+    files = RunFolder(folder)
+    final, mesh_path, eval_path = files.final_checkpoint, files.mesh, files.eval
+    report = _stored_report(eval_path, plan)
+    if not final.is_file():
+        stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
+        result = Trainer(method, scene, cfg, folder).fit()
+        stages.done("train", result.seconds, it_per_s=result.it_per_s, num_gaussians=result.num_gaussians,
+                    steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
+    elif not (mesh_path.is_file() and report is not None):
+        method.load_state_dict(load_checkpoint(final)["method"])
+
+    if not mesh_path.is_file():
+        stage(f"extracting the mesh ({cfg.mesh.extractor})")
+        t0 = time.perf_counter()
+        size = method.extract_mesh(scene, cfg, mesh_path)
+        stages.done("extract", time.perf_counter() - t0, **size)
+        report = None
+
+    if report is None:
+        stage(f"evaluating: {', '.join(plan.names) or 'nothing applies'}")
+        t0 = time.perf_counter()
+        report = _evaluate(method, scene, cfg, mesh_path, plan)
+        write_json_atomic(eval_path, report)
+        stages.done("evaluate", time.perf_counter() - t0)
+
+    train, extract = stages.data["train"], stages.data["extract"]
+    record.metrics = _flatten_metrics(report)
+    record.eval_protocol = {n: r["protocol"] for n, r in report["results"].items()}
+    record.it_per_s, record.num_gaussians = train["it_per_s"], train["num_gaussians"]
+    record.densify_budget = train.get("budget", {})  # stages written before the budget was tracked: none
+    record.mesh = {"path": str(mesh_path), "sha256": sha256_file(mesh_path), "checkpoint": str(final),
+                   "vertices": extract["vertices"], "faces": extract["faces"]}
+    return report

@@ -1,0 +1,401 @@
+"""Sweep files: a grid of runs over one pipeline (docs/design.md §10.1), expanded and validated.
+
+A sweep file (``configs/sweeps/*.yaml``)::
+
+    name: ibgs_k                     # optional; default: the file name
+    description: ...                 # optional, free text
+    base: {method: ibgs, scene: synthetic/spot, preset: cpu, train.iterations: 1000}
+    variants:                        # optional named rows (ablations); each may set method/preset too
+      full: {}
+      no_sadc: {method.sadc: false}
+    grid: {method.knn_k: [2, 3, 4]}  # optional, cartesian product
+    zip: {a.b: [1, 2], c.d: [3, 4]}  # optional, lists of one length, taken together
+    scenes: [synthetic/spot]         # optional; default: base.scene
+    suite: dtu-like                  # optional, instead of scenes: configs/suites/dtu-like.yaml
+    seeds: [0]                       # optional; default: the suite's seeds, else [base seed or 0]
+    executor: {kind: local, workers: 1, threads: 2, address: null}  # optional defaults of the CLI options
+
+Every key other than ``method``, ``scene``, ``preset`` and ``seed`` is a config path (dotted, or
+nested mappings that are flattened to dotted paths) applied as a ``--set`` override after the
+method/dataset/preset layers. The runs are variants × grid × zip × scenes × seeds, in that order.
+A ``suite`` (`gsbench.config.suites`) gives the scenes and, unless the sweep has ``seeds``, the seeds; it
+excludes ``scenes``. `with_suite` applies the command line's ``--suite`` / ``--seeds`` to a loaded sweep.
+`expand` resolves every run (`gsbench.runs.runner.resolve_run`: unknown keys and bad types fail with the
+run's label) and checks its loss-term names against the registry, so a sweep fails before it
+starts. Each run's id is its resolved config's (`gsbench.config.run_config.run_id`), so re-running a sweep
+finds the finished runs.
+
+Running (`run_sweep`): every unfinished run is one task (`run_one`) on an executor
+(`gsbench.runs.executors`: local processes or Ray); a manifest (`Manifest`) records the sweep's runs and
+their statuses for the report, and a summary (`SweepSummary`) says how it ended.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import time
+import traceback
+from concurrent.futures import FIRST_COMPLETED, CancelledError, wait
+from contextlib import suppress
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from gsbench.config.checks import check_run_config
+from gsbench.config.files import load_yaml
+from gsbench.config.run_config import RunConfig, parse_override
+from gsbench.config.suites import SUITE_PREFIX, load_suite
+from gsbench.errors import ConfigError
+from gsbench.run_folder import RunFolder
+from gsbench.runs.records import RunRecord, write_json_atomic
+from gsbench.runs.runner import ERROR_TAIL_LINES, resolve_run, run, run_dir
+
+SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "suite", "seeds", "executor")
+IDENTITY_KEYS = ("method", "scene", "preset", "seed")
+EXECUTOR_KEYS = ("kind", "workers", "threads", "address")
+# The sweep waits for runs in slices of this many seconds: a SIGINT the kernel delivers to another
+# thread (torch's, tqdm's) only sets CPython's flag, and an untimed wait would never look at it.
+SIGNAL_POLL_SECONDS = 0.5
+
+
+@dataclass
+class SweepRun:
+    """One expanded run: its row ``label`` (variant and grid/zip values), the resolved ``config``."""
+
+    label: str
+    config: RunConfig
+
+    @property
+    def run_id(self) -> str:
+        return self.config.run_id
+
+
+def flatten(mapping: dict, prefix: str = "") -> dict:
+    """Nested mappings -> {dotted.path: leaf}; ``method: <name>`` stays one key."""
+    flat = {}
+    for key, value in mapping.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict) and value and path != "method":
+            flat.update(flatten(value, f"{path}."))
+        else:
+            flat[path] = value
+    return flat
+
+
+def load_sweep(path) -> dict:
+    """The sweep file as a checked mapping (unknown top-level keys and malformed sections fail)."""
+    path = Path(path)
+    data = load_yaml(path)
+    unknown = set(data) - set(SWEEP_KEYS)
+    if unknown:
+        raise ConfigError(f"{path}: unknown sweep keys {sorted(unknown)}; valid: {', '.join(SWEEP_KEYS)}")
+    for key in ("base", "variants", "grid", "zip", "executor"):
+        if not isinstance(data.get(key, {}), dict):
+            raise ConfigError(f"{path}: '{key}' must be a mapping")
+    unknown = set(data.get("executor", {})) - set(EXECUTOR_KEYS)
+    if unknown:
+        raise ConfigError(f"{path}: unknown executor keys {sorted(unknown)}; valid: {', '.join(EXECUTOR_KEYS)}")
+    for key in ("grid", "zip"):
+        for name, values in data.get(key, {}).items():
+            if not isinstance(values, list) or not values:
+                raise ConfigError(f"{path}: {key}.{name} must be a non-empty list of values")
+    lengths = {len(v) for v in data.get("zip", {}).values()}
+    if len(lengths) > 1:
+        raise ConfigError(f"{path}: every zip list must have the same length, got {sorted(lengths)}")
+    for key in ("scenes", "seeds"):
+        if key in data and (not isinstance(data[key], list) or not data[key]):
+            raise ConfigError(f"{path}: '{key}' must be a non-empty list")
+    if "suite" in data:
+        if "scenes" in data:
+            raise ConfigError(f"{path}: give 'suite' (its scenes and seeds) or 'scenes', not both")
+        if not isinstance(data["suite"], str):
+            raise ConfigError(f"{path}: 'suite' must be the name of one suite (configs/suites/<name>.yaml)")
+        try:
+            load_suite(data["suite"])
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from exc
+    data.setdefault("name", path.stem)
+    return data
+
+
+def with_suite(sweep: dict, suite: str | None = None, seeds=None) -> dict:
+    """``sweep`` with its scenes replaced by ``suite``'s (``--suite``; seeds from the suite unless the sweep
+    has its own) and its seeds by ``seeds`` (``--seeds``); unchanged when both are None."""
+    sweep = dict(sweep)
+    if suite is not None:
+        load_suite(suite)  # unknown names fail here, with the list of suites
+        sweep.pop("scenes", None)
+        sweep["suite"] = str(suite).removeprefix(SUITE_PREFIX)
+    if seeds:
+        sweep["seeds"] = [int(s) for s in seeds]
+    return sweep
+
+
+def scenes_and_seeds(sweep: dict) -> tuple[list | None, list | None]:
+    """(scenes, seeds) of a sweep: its own, or its suite's (the sweep's ``seeds`` win); None: not given."""
+    scenes, seeds = sweep.get("scenes"), sweep.get("seeds")
+    if sweep.get("suite"):
+        suite = load_suite(sweep["suite"])
+        scenes, seeds = list(suite.scenes), seeds or list(suite.seeds)
+    return scenes, seeds
+
+
+def _rows(section: dict) -> list[dict]:
+    """grid -> the cartesian product of its lists as dicts; zip -> its lists taken together."""
+    keys = list(section)
+    return [dict(zip(keys, values)) for values in itertools.product(*(section[k] for k in keys))]
+
+
+def _label(variant: str | None, values: dict) -> str:
+    parts = ([variant] if variant else []) + [f"{k}={v}" for k, v in values.items()]
+    return " ".join(parts) or "base"
+
+
+def expand(sweep: dict, overrides=()) -> list[SweepRun]:
+    """Resolve every run of ``sweep`` (module docstring); ``overrides`` (``a.b=c`` texts, e.g. a
+    smaller budget) apply to every run after the sweep's own settings. Every run is checked
+    (`gsbench.config.checks.check_run_config`), so a bad grid value fails here, before any run starts (also with
+    ``--dry-run``); errors name the run's label."""
+    extra = {}
+    for text in overrides:
+        extra.update(flatten(parse_override(text)))
+
+    base = flatten(sweep.get("base", {}))
+    variants = {str(k): flatten(v or {}) for k, v in sweep.get("variants", {}).items()} or {None: {}}
+    grid = _rows(sweep.get("grid", {}))
+    zipped = sweep.get("zip", {})
+    zip_rows = [dict(zip(zipped, values)) for values in zip(*zipped.values())] if zipped else [{}]
+    scenes, seeds = scenes_and_seeds(sweep)
+    runs = []
+    for (variant, changes), point, paired in itertools.product(variants.items(), grid, zip_rows):
+        settings = {**base, **changes, **point, **paired, **extra}
+        label = _label(variant, {**point, **paired})
+        for scene in scenes or [settings.get("scene")]:
+            for seed in seeds or [settings.get("seed", 0)]:
+                runs.append(SweepRun(label, _resolve(settings, scene, seed, label, resolve_run, check_run_config)))
+    return runs
+
+
+def _resolve(settings: dict, scene, seed, label: str, resolve_run, check_run_config) -> RunConfig:
+    method = settings.get("method")
+    if not method or not scene:
+        raise ConfigError(f"sweep run '{label}': needs a method and a scene (in base, variants, grid or scenes)")
+    overrides = [f"{k}={json.dumps(v)}" for k, v in settings.items() if k not in IDENTITY_KEYS]
+    try:
+        cfg = resolve_run(str(method), str(scene), preset=str(settings.get("preset", "cpu")),
+                          overrides=overrides, seed=int(seed))
+        check_run_config(cfg)
+    except ConfigError as exc:
+        raise ConfigError(f"sweep run '{label}' ({method} on {scene}): {exc}") from exc
+    return cfg
+
+
+def format_runs(runs: list[SweepRun]) -> str:
+    """A plain-text table of the runs: id, method, scene, seed, label."""
+    rows = [("run id", "method", "scene", "seed", "label")]
+    rows += [(r.run_id, r.config.method["name"], r.config.scene, str(r.config.seed), r.label) for r in runs]
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(row[:4], widths)) + "  " + row[4] for row in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths) + "  " + "-" * 5)
+    return "\n".join(lines)
+
+
+@dataclass
+class RunOutcome:
+    """What a task sends back to the sweep: small and picklable, whatever the executor."""
+
+    run_id: str
+    status: str  # ok | failed
+    seconds: float
+    error_tail: str = ""
+
+
+def _quiet(*_args) -> None:
+    """The runner's per-run printing, dropped: the sweep reports progress."""
+
+
+def run_one(cfg: RunConfig) -> RunOutcome:
+    """The task every executor runs: ``cfg`` in this process with its own thread count (``cfg.threads``).
+    A failing run returns status failed with its traceback tail (the runner has written the failed
+    record), so it never takes the sweep down."""
+    start = time.perf_counter()
+    try:
+        run(cfg, echo=_quiet)
+    except Exception:  # noqa: BLE001  (recorded by the runner; the sweep goes on)
+        tail = "".join(traceback.format_exc().splitlines(keepends=True)[-ERROR_TAIL_LINES:])
+        return RunOutcome(cfg.run_id, "failed", time.perf_counter() - start, tail)
+    return RunOutcome(cfg.run_id, "ok", time.perf_counter() - start)
+
+
+def is_finished(cfg: RunConfig) -> bool:
+    """The run's record exists with status ok."""
+    path = RunFolder(run_dir(cfg)).record
+    return path.is_file() and RunRecord.read(path).status == "ok"
+
+
+class Manifest:
+    """``<out>/sweeps/<name>.json``, what the report builds ablation tables from::
+
+        {"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed", "dir", "status"}]}
+
+    ``dir`` is the run folder relative to ``<out>``; ``status`` is pending, skipped (finished by an
+    earlier invocation), ok, failed or cancelled (interrupted, or never started). Rewritten atomically
+    on every change."""
+
+    def __init__(self, path: Path, *, name: str, description: str, file: str, runs: list[SweepRun], out: Path,
+                 finished: set):
+        self.path = path
+        entries = [{"run_id": r.run_id, "label": r.label, "method": r.config.method["name"], "scene": r.config.scene,
+                    "seed": r.config.seed, "dir": str(run_dir(r.config).relative_to(out)),
+                    "status": "skipped" if r.run_id in finished else "pending"} for r in runs]
+        self.data = {"name": name, "description": description, "file": file, "runs": entries}
+        self._by_id = {entry["run_id"]: entry for entry in entries}
+
+    def set(self, run_id: str, status: str) -> None:
+        self._by_id[run_id]["status"] = status
+        self.write()
+
+    def write(self) -> None:
+        write_json_atomic(self.path, self.data)
+
+
+@dataclass
+class SweepSummary:
+    """How a sweep ended: counts (ok, skipped, failed, cancelled), wall time, the failed runs."""
+
+    name: str
+    counts: dict
+    seconds: float
+    failures: list  # (SweepRun, RunOutcome)
+    interrupted: bool = False
+
+    def format(self, tail_lines: int = 5) -> str:
+        c = self.counts
+        lines = [f"sweep {self.name}{' interrupted' if self.interrupted else ''}: {c['ok']} ok, {c['skipped']} skipped "
+                 f"(finished earlier), {c['failed']} failed, {c['cancelled']} cancelled in {self.seconds:.1f} s"]
+        for sweep_run, outcome in self.failures:
+            lines.append(f"failed: {outcome.run_id} ({sweep_run.label}), {sweep_run.config.method['name']} "
+                         f"on {sweep_run.config.scene}:")
+            lines += ["    " + line for line in outcome.error_tail.strip().splitlines()[-tail_lines:]]
+        return "\n".join(lines)
+
+
+def _unique(runs: list[SweepRun]) -> list[SweepRun]:
+    """Runs with the same resolved config share a folder: each id runs once (its first row)."""
+    first: dict = {}
+    for sweep_run in runs:
+        first.setdefault(sweep_run.run_id, sweep_run)
+    return list(first.values())
+
+
+def _outcome(future, sweep_run: SweepRun) -> RunOutcome:
+    """The task's outcome; an executor error (a worker that died, a Ray error) is a failed run."""
+    try:
+        return future.result()
+    except Exception as exc:  # noqa: BLE001
+        return RunOutcome(sweep_run.run_id, "failed", 0.0, f"{type(exc).__name__}: {exc}")
+
+
+class _Tally:
+    """A running sweep's counts, failures and unfinished runs, mirrored to the manifest, the bar and ``echo``."""
+
+    def __init__(self, todo: list[SweepRun], skipped: int, manifest: Manifest, name: str, echo):
+        self.counts = {"ok": 0, "skipped": skipped, "failed": 0, "cancelled": 0}
+        self.failures: list = []
+        self.unfinished = {sweep_run.run_id: sweep_run for sweep_run in todo}
+        self.manifest, self.echo = manifest, echo
+        self.bar = tqdm(total=len(todo), desc=f"sweep {name}", unit="run", disable=None)
+
+    def finish(self, sweep_run: SweepRun, outcome: RunOutcome) -> None:
+        del self.unfinished[sweep_run.run_id]
+        self.counts[outcome.status] += 1
+        if outcome.status == "failed":
+            self.failures.append((sweep_run, outcome))
+        self.manifest.set(sweep_run.run_id, outcome.status)
+        self.bar.update()
+        cfg = sweep_run.config
+        self.echo(f"{outcome.status:<6} {cfg.method['name']} on {cfg.scene}, seed {cfg.seed} ({sweep_run.label}), "
+                  f"run {cfg.run_id}, {outcome.seconds:.1f} s")
+
+    def cancel_unfinished(self) -> None:
+        for run_id in list(self.unfinished):
+            del self.unfinished[run_id]
+            self.counts["cancelled"] += 1
+            self.manifest.set(run_id, "cancelled")
+
+
+def _apply(runs: list[SweepRun], out: str | None, threads: int | None) -> list[SweepRun]:
+    """Each resolved config once, with ``out`` (made absolute) and ``threads`` set when given."""
+    runs = _unique(runs)
+    for sweep_run in runs:
+        cfg = sweep_run.config
+        cfg.out = str(Path(out if out is not None else cfg.out).resolve())
+        if threads is not None:
+            cfg.threads = threads
+    return runs
+
+
+def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", description: str = "", file: str = "",
+              out: str | None = None, threads: int | None = None, echo=tqdm.write) -> SweepSummary:
+    """Run ``runs`` on ``executor`` (a `concurrent.futures.Executor`, see `gsbench.runs.executors`) and return
+    the summary, also echoed.
+
+    ``out`` and ``threads`` replace every run's own; ``out`` is made absolute, so that workers elsewhere
+    write to the same (shared) folder. Runs whose record has status ok are skipped, so re-running a
+    sweep resumes it; a failing run is recorded and the others go on. The manifest (`Manifest`) is
+    written when the sweep starts and updated as runs finish.
+
+    Ctrl-C: the runs not started are cancelled and the running ones are stopped at once
+    (``executor.terminate_workers()``; an executor without it lets them finish). A stopped run keeps
+    what it had written (finished stages, its last checkpoint), so re-running the sweep resumes it;
+    finished records are untouched (written atomically). Both count as cancelled, and the summary has
+    ``interrupted`` set.
+    """
+    start = time.perf_counter()
+    runs = _apply(runs, out, threads)
+    finished = {sweep_run.run_id for sweep_run in runs if is_finished(sweep_run.config)}
+    todo = [sweep_run for sweep_run in runs if sweep_run.run_id not in finished]
+    root = Path(runs[0].config.out)
+    manifest = Manifest(root / "sweeps" / f"{name}.json", name=name, description=description, file=str(file),
+                        runs=runs, out=root, finished=finished)
+    manifest.write()
+    tally = _Tally(todo, len(finished), manifest, name, echo)
+    futures: dict = {}
+    interrupted = False
+    try:
+        for sweep_run in todo:
+            futures[executor.submit(run_one, sweep_run.config)] = sweep_run
+        pending = set(futures)
+        while pending:  # a timed wait: a Ctrl-C delivered to another thread still wakes this one
+            done, pending = wait(pending, timeout=SIGNAL_POLL_SECONDS, return_when=FIRST_COMPLETED)
+            for future in sorted(done, key=list(futures).index):
+                tally.finish(futures[future], _outcome(future, futures[future]))
+    except KeyboardInterrupt:
+        interrupted = True
+        echo(f"interrupted: cancelling {len(tally.unfinished)} unfinished runs")
+        _stop(executor, futures)
+        for future, sweep_run in futures.items():
+            if sweep_run.run_id in tally.unfinished and not future.cancelled() and future.exception() is None:
+                tally.finish(sweep_run, future.result())  # finished while the sweep was stopping
+        tally.cancel_unfinished()
+    finally:
+        tally.bar.close()
+    summary = SweepSummary(name, tally.counts, time.perf_counter() - start, tally.failures, interrupted)
+    echo(summary.format())
+    return summary
+
+
+def _stop(executor, futures: dict) -> None:
+    """Cancel what has not started, stop what runs (when the executor can), and block until every future
+    is finished or cancelled (`concurrent.futures.wait` would hang on a future cancelled by a shutdown:
+    it never reaches the "cancelled and notified" state that `wait` counts)."""
+    terminate = getattr(executor, "terminate_workers", None)
+    if terminate is not None:
+        terminate()
+    else:
+        executor.shutdown(wait=True, cancel_futures=True)
+    for future in futures:
+        with suppress(CancelledError):
+            future.exception()

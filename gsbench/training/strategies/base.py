@@ -1,0 +1,119 @@
+"""Densification strategies with external state (gsplat-style; docs/design.md §3.3).
+
+A strategy keeps no tensors itself: `Strategy.init_state` returns a plain dict of tensors the caller
+checkpoints, and the caller runs, per training step (``step`` = 1-based iteration, as 3DGS
+``train.py`` counts them)::
+
+    out = method.render(...);  strategy.step_pre_backward(out)
+    loss.backward();           strategy.step_post_backward(gaussians, optimizer, state, step, out)
+    optimizer.step()
+
+The strategies: `gsbench.training.strategies.default.DefaultStrategy` (3DGS 2023, docs/methods/3dgs.md §5.3),
+`gsbench.training.strategies.absgrad.AbsGradStrategy` (GOF's and RaDe-GS's, docs/methods/gof.md §5, with the 3D
+filter of docs/methods/gof.md §2) and `gsbench.training.strategies.sparsity.SparsityAwareStrategy` (IBGS). This
+module holds the interface and the optimizer-aware parameter surgery they share. Densify and prune keep the Adam state in step with the rows of every
+parameter group (`append_params`, `keep_params`): new rows get zero moments, removed rows drop
+theirs. Replaced parameters have no ``.grad``, so the Adam step right after a densification skips
+them — faithful to 3DGS (docs/methods/3dgs.md §5.3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+from gsbench.errors import ConfigError
+from gsbench.geometry.filter3d import filter_coefficient
+from gsbench.raster.reference_projection import quat_to_rotmat
+from gsbench.raster.types import RenderOutput
+from gsbench.training.gaussians import Gaussians
+
+REFERENCE_ITERATIONS = 30000  # the 3DGS schedule the step-based defaults belong to
+
+
+# ---- optimizer-aware parameter surgery ----------------------------------------------------------
+
+
+def _group(optimizer: torch.optim.Optimizer, name: str) -> dict | None:
+    for group in optimizer.param_groups:
+        if group.get("name") == name:
+            if len(group["params"]) != 1:
+                raise ConfigError(f"optimizer group '{name}' holds {len(group['params'])} tensors; the strategy "
+                                  "needs one parameter per group, named as in Gaussians.params")
+            return group
+    return None
+
+
+def _swap(gaussians: Gaussians, optimizer: torch.optim.Optimizer, name: str, value: torch.Tensor,
+          moments) -> None:
+    """Replace parameter ``name`` by ``value``; ``moments(old_moment) -> new_moment`` maps the Adam state."""
+    old = gaussians.params[name]
+    new = torch.nn.Parameter(value.detach().contiguous(), requires_grad=old.requires_grad)
+    gaussians.params[name] = new
+    group = _group(optimizer, name)
+    if group is None:
+        return
+    group["params"][0] = new
+    state = optimizer.state.pop(old, None)
+    if state:
+        optimizer.state[new] = {k: moments(v) if k in ("exp_avg", "exp_avg_sq") else v for k, v in state.items()}
+
+
+def append_params(gaussians: Gaussians, optimizer: torch.optim.Optimizer, new: Mapping[str, torch.Tensor]) -> None:
+    """Append rows ``new[name]`` to every parameter; their Adam moments start at zero."""
+    for name, param in list(gaussians.params.items()):
+        rows = new[name].to(param.dtype)
+
+        def grow(m, rows=rows):
+            return torch.cat([m, torch.zeros((len(rows),) + m.shape[1:], dtype=m.dtype)])
+
+        _swap(gaussians, optimizer, name, torch.cat([param.detach(), rows]), grow)
+
+
+def keep_params(gaussians: Gaussians, optimizer: torch.optim.Optimizer, keep: torch.Tensor) -> None:
+    """Keep the rows where the (N,) bool ``keep`` is true, in parameters and Adam moments."""
+    for name, param in list(gaussians.params.items()):
+        _swap(gaussians, optimizer, name, param.detach()[keep], lambda m: m[keep])
+
+
+def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value: float,
+                  filter3d: torch.Tensor | None = None) -> None:
+    """o ← min(o, value) stored as a logit, and zero that group's Adam moments (3DGS ``reset_opacity``).
+
+    With a 3D-filter variance ``filter3d`` (N,) the *filtered* opacity is reset (docs/methods/gof.md §2.5): with
+    c = `filter_coefficient`, o_eff = o·c ← min(o_eff, value), stored as o = o_eff / c (<= o).
+    """
+    o = gaussians.opacities.detach()
+    if filter3d is None:
+        o = torch.clamp(o, max=value)
+    else:
+        coef = filter_coefficient(gaussians.scales.detach(), filter3d.to(o.dtype))
+        o = torch.clamp(o * coef, max=value) / coef
+    _swap(gaussians, optimizer, "opacity_logits", torch.logit(o), torch.zeros_like)
+
+
+def _sample_offsets(rows: Mapping[str, torch.Tensor], quats: torch.Tensor) -> torch.Tensor:
+    """R (s ⊙ ε) per row, R the rotation of ``quats`` (N,4), ε ~ N(0, I) from torch's global RNG (in the
+    surfel plane for 2D scales)."""
+    scales = torch.exp(rows["log_scales"])
+    std = torch.cat([scales, torch.zeros(len(scales), 3 - scales.shape[1], dtype=scales.dtype)], -1)
+    offsets = torch.normal(torch.zeros_like(std), std)
+    return torch.einsum("nij,nj->ni", quat_to_rotmat(quats), offsets)
+
+
+class Strategy:
+    """Interface: state dict in, Gaussians/optimizer modified in place, a small info dict out."""
+
+    def init_state(self, n: int) -> dict:
+        return {}
+
+    def step_pre_backward(self, render_out: RenderOutput) -> None:
+        """Make sure ``render_out.means2d.grad`` is filled by the coming backward."""
+        m = render_out.means2d
+        if m is not None and m.requires_grad and not m.is_leaf:
+            m.retain_grad()
+
+    def step_post_backward(self, gaussians: Gaussians, optimizer: torch.optim.Optimizer, state: dict, step: int,
+                           render_out: RenderOutput) -> dict:
+        return {"cloned": 0, "split": 0, "pruned": 0, "reset": False}

@@ -1,0 +1,57 @@
+"""The check both projection test files make: the fused C++ projection against the PyTorch one (its oracle),
+payload, detached outputs and integer outputs, and the gradients of every parameter through a random
+weighting of the payload."""
+
+from __future__ import annotations
+
+import torch
+
+from gsbench.raster import RasterGaussians
+from gsbench.raster.payload import NUM_PARAMS
+from gsbench.raster.projection import project_fused, project_torch
+from tests.raster_scenes import look_at_camera, with_grad
+
+PARAMS = ("means", "quats", "scales", "opacities", "sh")
+DETACHED = ("means2d", "depth", "bounds")
+EXACT = ("radii", "visible", "rect", "rect_radius")
+
+
+def posed_camera(W=64, H=48):
+    return look_at_camera((0.3, 0.2, -0.5), (0.0, 0.0, 3.0), width=W, height=H)
+
+
+def compare_projections(g: RasterGaussians, cam, kernel, settings, fwd_tol=1e-10, grad_tol=1e-8, seed=0,
+                        per_element=False):
+    """Fused vs PyTorch projection of ``g``; returns both. The payload agrees within ``fwd_tol`` relative to its
+    largest entry, or, with ``per_element`` (columns that differ by orders of magnitude, e.g. c' ~ 1e16 for
+    scales of 1e-8), relative to each entry (at least 1); gradients within ``grad_tol`` relative."""
+    ga, gb = with_grad(g), with_grad(g)
+    pa = project_torch(ga, cam, kernel, settings)
+    pb = project_fused(gb, cam, kernel, settings)
+    assert pb.params.shape == pa.params.shape == (len(g), NUM_PARAMS[kernel])
+    assert pb.params.dtype == pa.params.dtype
+    assert bool(torch.isfinite(pb.params).all()), "non-finite fused payload"
+    a, b = pa.params.detach(), pb.params.detach()
+    if per_element:
+        rel = float(((a - b).abs() / a.abs().clamp_min(1.0)).max())
+        assert rel <= fwd_tol, f"{kernel}: payload differs (relative {rel:.3g})"
+    else:
+        diff = float((a - b).abs().max())
+        assert diff <= fwd_tol * max(1.0, float(a.abs().max())), f"{kernel}: payload differs by {diff:.3g}"
+    for k in DETACHED:
+        x, y = getattr(pa, k), getattr(pb, k)
+        assert x.dtype == y.dtype and x.shape == y.shape, k
+        assert float((x - y).abs().max()) <= fwd_tol * max(1.0, float(x.abs().max())), k
+    for k in EXACT:
+        assert torch.equal(getattr(pa, k), getattr(pb, k)), k
+    gen = torch.Generator().manual_seed(seed)
+    w = torch.randn(pa.params.shape, generator=gen, dtype=pa.params.dtype)
+    (pa.params * w).sum().backward()
+    (pb.params * w).sum().backward()
+    for p in PARAMS:
+        x, y = getattr(ga, p).grad, getattr(gb, p).grad
+        x = torch.zeros_like(getattr(ga, p)) if x is None else x
+        assert y is not None and y.shape == x.shape and bool(torch.isfinite(y).all()), f"{kernel}: grad of {p}"
+        err = float((x - y).abs().max()) / max(float(x.abs().max()), 1e-30)
+        assert err <= grad_tol, f"{kernel}: gradient of {p} differs (relative {err:.3g})"
+    return pa, pb
