@@ -35,13 +35,14 @@ def format_table(report: dict) -> str:
     """A small fixed-width text table of an `evaluate_mesh_file` report, warnings and skipped evaluators
     (``report["skipped"]``, {name: reason}) listed below it."""
     rows = [("evaluator", "metric", "value", "unit", "better")]
+    better = {True: "higher", False: "lower", None: "(describes)"}
     warnings = []
     for name, res in report["results"].items():
         info = get_evaluator(name).metrics
         for metric, value in res["metrics"].items():
             mi = info[metric]
             rows.append((f"{name}@{res['protocol']['version']}", metric, f"{value:.4f}", mi.unit,
-                         "higher" if mi.higher_is_better else "lower"))
+                         better[mi.higher_is_better]))
         warnings += [f"warning ({name}): {w}" for w in res["diagnostics"].get("warnings", [])]
     skipped = [f"skipped ({name}): {reason}" for name, reason in report.get("skipped", {}).items()]
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]

@@ -31,9 +31,10 @@ from gsbench.resources import peak_rss_bytes
 
 @dataclass(frozen=True)
 class MetricInfo:
-    """How to read one metric: ``higher_is_better`` and its ``unit`` (``""`` when unitless)."""
+    """How to read one metric: ``higher_is_better`` (None: a description of the mesh, shown and never ranked)
+    and its ``unit`` (``""`` when unitless)."""
 
-    higher_is_better: bool
+    higher_is_better: bool | None
     unit: str
     description: str = ""
 

@@ -3,9 +3,9 @@
 They describe the mesh; they do not score it against anything. A mesh of one object should be one
 closed piece, so ``components`` (lower is better: stray pieces are floaters or fragments) and
 ``watertight`` (higher is better) read as quality signals; ``area``, ``vertices`` and ``faces`` are
-descriptive only — they are declared ``higher_is_better=False`` (a smaller mesh for the same object is
-cheaper, and extra area is mostly floaters), but no ranking should be built on them, and the report
-never ranks a leaderboard by them (`gsbench.report.metrics`).
+descriptive only — declared ``higher_is_better=None``, so they are shown and never ranked (``gsbench
+eval`` and the run's table print no direction for them; the report never ranks by them,
+`gsbench.report.metrics`).
 
 Definitions (the mesh as read, ``process=False``):
 
@@ -55,9 +55,9 @@ class MeshStats(Evaluator):
     metrics = {
         "components": MetricInfo(False, "", "connected components of faces (shared edges); 1 for one closed object"),
         "watertight": MetricInfo(True, "", "1.0 when every edge has exactly two faces, else 0.0"),
-        "area": MetricInfo(False, "units^2", "surface area in the dataset frame (DTU: mm^2); descriptive, not a score"),
-        "vertices": MetricInfo(False, "", "vertex count; descriptive, not a score"),
-        "faces": MetricInfo(False, "", "face count; descriptive, not a score"),
+        "area": MetricInfo(None, "units^2", "surface area in the dataset frame (DTU: mm^2); descriptive, not a score"),
+        "vertices": MetricInfo(None, "", "vertex count; descriptive, not a score"),
+        "faces": MetricInfo(None, "", "face count; descriptive, not a score"),
     }
     Options = MeshStatsOptions
 

@@ -13,6 +13,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from gsbench.errors import ConfigError
+
 
 @contextmanager
 def atomic_path(path, *, keep_suffix: bool = False) -> Iterator[Path]:
@@ -28,3 +30,21 @@ def atomic_path(path, *, keep_suffix: bool = False) -> Iterator[Path]:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def check_writable(folder, option: str) -> Path:
+    """A ConfigError naming ``folder`` and ``option`` (the setting that chose it) unless files can be written
+    there: its nearest existing ancestor must be a writable folder. Checked before any work whose results go
+    there; nothing is created."""
+    folder = Path(folder)
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        problem = f"{existing} is a file, not a folder"
+    elif not os.access(existing, os.W_OK | os.X_OK):
+        problem = f"{existing} is not writable (read-only folder or file system)"
+    else:
+        return folder
+    raise ConfigError(f"{folder}: cannot write there: {problem}; fix: choose another folder with {option} or make "
+                      "it writable")

@@ -11,6 +11,7 @@ import json
 import sys
 from pathlib import Path
 
+from gsbench.atomic import check_writable
 from gsbench.errors import DataError, GsbenchError, Interrupted
 from gsbench.resources import set_threads
 
@@ -124,13 +125,15 @@ def cmd_sweep(args) -> int:
     if args.dry_run:
         print(format_runs(runs))
         return 0
+    for folder in sorted({args.out or r.config.out for r in runs}):
+        check_writable(folder, "--out (or out: in the sweep's base)")
     settings = sweep.get("executor", {})
     workers = args.workers or settings.get("workers", 1)
     threads = threads_per_run(args.threads or settings.get("threads") or max(r.config.threads for r in runs), workers)
     with make_executor(args.executor or settings.get("kind", "local"), workers=workers, threads=threads,
                        address=args.address or settings.get("address")) as executor:
         summary = run_sweep(runs, executor, name=sweep["name"], description=sweep.get("description", ""),
-                            file=args.config, out=args.out, threads=threads)
+                            file=args.config, out=args.out, threads=threads, other_code=args.other_code)
     if summary.interrupted:
         return 130
     return 1 if summary.counts["failed"] else 0
@@ -147,6 +150,8 @@ def cmd_eval(args) -> int:
         raise DataError(f"{args.mesh}: mesh file not found; fix: --mesh names a .ply (a run folder's mesh.ply)")
     size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt}
     header = load_scene(args.scene, load_images=False, **size)
+    if args.out:
+        check_writable(Path(args.out).parent, "--out")  # before the evaluation, not after it
     plan = plan_evaluation(header, dataset_of(args.scene), args.evaluator or (), held_out=0)
     scene = load_scene(args.scene, **size)
     culling = run_options(args.dtu_culling, plan.mesh)
@@ -190,6 +195,7 @@ def cmd_gaussians(args) -> int:
 def cmd_report(args) -> int:
     from gsbench.report.build import write_report
 
+    check_writable(args.out, "--out")
     written = write_report(Path(args.runs_dir), Path(args.out), plots=not args.no_plots,
                            warn=lambda message: print(f"gsbench: warning: {message}", file=sys.stderr))
     plots = sum(1 for p in written if p.suffix == ".png")
@@ -257,6 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     sweep = sub.add_parser("sweep", help="expand a sweep file (configs/sweeps/) and run its runs, skipping finished ones")
     sweep.add_argument("config", help="sweep YAML file")
     sweep.add_argument("--dry-run", action="store_true", help="validate and print the runs and their ids only")
+    sweep.add_argument("--other-code", choices=("refuse", "rerun", "keep"), default="refuse",
+                       help="finished records made by another code version (commit): refuse to mix them (default), "
+                            "run them again, or keep them (the report flags boards that mix versions)")
     sweep.add_argument("--suite", default=None, metavar="NAME",
                        help="run over this suite's scenes (configs/suites/, see `gsbench list`) instead of the "
                             "file's; seeds: the file's, else the suite's")

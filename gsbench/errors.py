@@ -28,6 +28,10 @@ class EvaluationError(GsbenchError):
     """A mesh or point cloud cannot be evaluated (empty, NaN, wrong units, missing GT file)."""
 
 
+class CheckpointError(GsbenchError):
+    """A checkpoint that cannot be read back as data (damaged, or holding objects to unpickle)."""
+
+
 class BuildError(GsbenchError):
     """The C++ rasterizer extension could not be compiled or loaded."""
 
@@ -47,7 +51,16 @@ def import_open3d():
         import open3d  # noqa: PLC0415
     except ImportError as exc:  # pragma: no cover - depends on the machine
         hint = "pip install open3d"
-        if "libusb" in str(exc) or "libGL" in str(exc) or ".so" in str(exc):
-            hint = f"install the missing system library ({exc}); on Debian/Ubuntu: apt-get install libusb-1.0-0"
+        if "libusb" in str(exc):
+            hint = (f"open3d needs libusb-1.0 ({exc}): pip install libusb-package (a gsbench dependency on Linux, "
+                    "loaded when gsbench is imported), or the system package (Debian/Ubuntu: apt-get install libusb-1.0-0)")
+        elif "libGL" in str(exc) or ".so" in str(exc):
+            hint = f"install the missing system library ({exc})"
         raise missing_dependency("open3d", hint) from exc
     return open3d
+
+
+def one_line(text, limit: int = 300) -> str:
+    """``text`` with runs of whitespace (newlines included) collapsed, cut to ``limit`` characters."""
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."

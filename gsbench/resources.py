@@ -1,4 +1,4 @@
-"""The machine resources a run uses: its threads and its peak memory.
+"""The machine resources a run uses: its threads and its peak memory, and the memory there is.
 
 `set_threads` is the one place the thread count is set: ``OMP_NUM_THREADS`` (read by torch's and the
 native libraries' OpenMP runtimes when they load) and torch's intra-op threads when torch is loaded, which
@@ -28,3 +28,21 @@ def peak_rss_bytes() -> int:
     decreases: KiB on Linux, bytes on macOS)."""
     peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
     return int(peak if sys.platform == "darwin" else peak * 1024)
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the system can give a new process now (``MemAvailable`` of ``/proc/meminfo``), or None where
+    that is not known (not Linux)."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
+def gib(n_bytes: float) -> str:
+    """``12.3 GiB``."""
+    return f"{n_bytes / 2**30:.1f} GiB"

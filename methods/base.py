@@ -60,7 +60,7 @@ from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import ConfigError, DataError
 from gsbench.losses.terms import TermSpec, active_terms
 from gsbench.mesh.cleanup import canonical_order
-from gsbench.mesh.tets import tetra_mesh
+from gsbench.mesh.tets import MAX_POINTS, tetra_mesh
 from gsbench.mesh.tsdf import tsdf_fusion
 from gsbench.raster import RasterGaussians, RasterSettings, RenderOutput, rasterize
 from gsbench.training.gaussians import Gaussians
@@ -74,6 +74,7 @@ DEPTH_OUTPUTS = {"expected": "depth", "median": "median_depth"}  # mesh.depth ->
 INIT_REGIONS = ("visual_hull", "sphere")  # method.random_init_region
 HULL_INIT_FLOOR = 1000  # fewest random points kept in a visual hull (min with random_init_points)
 HULL_INIT_MAX_BATCHES = 50  # candidate batches drawn at most to reach that floor
+TETRA_BYTES_PER_POINT = 2800  # peak RSS of the Delaunay tetrahedralisation per point (gsbench.mesh.tets, measured)
 
 
 @dataclass(frozen=True)
@@ -191,6 +192,29 @@ class Method:
         method = cls()
         method.configure(cfg)
         active_terms(cfg.losses, 0, method.term_params(), method.loss_terms())
+
+    @classmethod
+    def memory_estimate(cls, cfg: RunConfig) -> dict[str, int]:
+        """Bytes the run will need at its largest, by item, from the configuration alone (`memory_check`):
+
+        - the Gaussians at the budget N = ``train.max_gaussians`` (else ``method.random_init_points``): P float32
+          parameters each (means 3, log-scales 3, quaternion 4, opacity 1, SH 3(d+1)² at ``raster.sh_degree`` d),
+          held 4 times (values, gradients, Adam's two moments), plus the projection payload and its gradient
+          (24 float64 each at most) and the densification statistics (8 float32);
+        - one render's buffers at the largest trained image (``data.max_size``, long x short side): 16 float64
+          maps and their gradients per pixel.
+        - with ``mesh.extractor: tets``, the Delaunay tetrahedralisation of 9 points per Gaussian (at most
+          `gsbench.mesh.tets.MAX_POINTS`), measured at 2.8 kB per point (`gsbench.mesh.tets`).
+        The scene's images are not counted (their number is not known before the scene is read); methods add
+        their own items (IBGS's kNN tables)."""
+        p = cls.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
+        n = cfg.train.max_gaussians if cfg.train.max_gaussians > 0 else p.random_init_points
+        params = 11 + 3 * (cfg.raster.sh_degree + 1) ** 2
+        pixels = cfg.data.max_size[0] * cfg.data.max_size[1] if len(cfg.data.max_size) == 2 else 0
+        items = {"Gaussians": n * (4 * params * 4 + 2 * 24 * 8 + 8 * 4), "render buffers": pixels * 16 * 8 * 2}
+        if cfg.mesh.extractor == "tets":
+            items["tetrahedra"] = min(9 * n, MAX_POINTS) * TETRA_BYTES_PER_POINT
+        return items
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
         """Create the Gaussians and the optimizer for ``scene`` under the resolved ``cfg``; the scene carries the

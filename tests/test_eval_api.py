@@ -35,6 +35,8 @@ def test_evaluate_mesh_file_and_table(tmp_path):
     assert set(report["results"]) == {"dtu_chamfer", "normal_similarity", "silhouette", "mesh_stats"}
     table = api.format_table(report)
     assert "dtu_chamfer@1" in table and "accuracy" in table and "mm" in table and "lower" in table
+    vertices = next(line for line in table.splitlines() if line.split()[:2] == ["mesh_stats@1", "vertices"])
+    assert vertices.endswith("(describes)") and "lower" not in vertices  # a description is shown, not ranked
     with pytest.raises(RegistryError, match="renders"):
         api.evaluate_mesh_file(mesh, scene, names=["image"])
     with pytest.raises(EvaluationError, match="tnt"):

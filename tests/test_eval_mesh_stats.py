@@ -71,4 +71,5 @@ def test_registered_and_applies_to_every_scene():
     assert isinstance(ev, MeshStats) and ev.needs == () and ev.version == 1
     ev.validate(_scene())  # no ground truth, no masks: nothing to miss
     assert not ev.metrics["components"].higher_is_better and ev.metrics["watertight"].higher_is_better
+    assert all(ev.metrics[m].higher_is_better is None for m in ("area", "vertices", "faces"))  # shown, never ranked
     assert ev.metrics["area"].unit == "units^2"

@@ -103,6 +103,34 @@ def test_stage_prints_one_line_terminal_or_not(capsys):
     assert tty.getvalue() == "gsbench: training\n"
 
 
+class _Writes:
+    """A non-terminal stream that keeps each ``write`` call apart."""
+
+    def __init__(self):
+        self.writes = []
+
+    def write(self, text):
+        self.writes.append(text)
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return False
+
+
+def test_stage_and_progress_lines_are_written_whole_so_parallel_workers_cannot_split_them():
+    """Sweep workers share stderr: each line must reach it in one write, text and newline together."""
+    out = _Writes()
+    stage("training 3000 steps from 7770 Gaussians", stream=out)
+    p = ProgressLines("train 3dgs", 10, interval=0, stream=out, enabled=True)
+    p.update(5, 0.25, 100)
+    p.close()
+    assert len(out.writes) >= 3
+    assert all(w.endswith("\n") and w.count("\n") == 1 for w in out.writes), out.writes
+    assert out.writes[0] == "gsbench: training 3000 steps from 7770 Gaussians\n"
+
+
 def test_is_terminal_and_durations():
     assert not is_terminal(io.StringIO()) and is_terminal(Tty()) and not is_terminal(object())
     closed = io.StringIO()

@@ -10,6 +10,9 @@ import signal
 import pytest
 
 from gsbench.cli import main
+from gsbench.config.checks import memory_check
+from gsbench.errors import ConfigError
+from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord
 from gsbench.runs.run_lock import run_lock
@@ -23,7 +26,9 @@ BAD = [("3dgs", "train.iterations=0", "train.iterations must be >= 1"),
        ("3dgs", "losses.nope=1", "unknown loss term 'nope'"),
        ("sugar", "method.regularizer=sdff", "regulariser mode"),
        ("2dgs", "mesh.extractor=tets", "supports mesh.extractor"),
-       ("3dgs", "eval.dtu_culling=wide", "eval.dtu_culling must be one of 2dgs, gof, none")]
+       ("3dgs", "eval.dtu_culling=wide", "eval.dtu_culling must be one of 2dgs, gof, none"),
+       ("3dgs", "losses.l1.weight=-1", "losses.l1.weight must be a finite number >= 0"),
+       ("ibgs", "method.knn_k=100000", "this run needs about 134.1 GiB (kNN tables 134.1 GiB")]
 
 
 @pytest.mark.parametrize("method, override, message", BAD)
@@ -103,3 +108,15 @@ def test_report_names_damaged_records_on_the_console(tmp_path, capsys):
     (only / record.relative_to(runs)).write_text(text[: len(text) // 2])
     assert main(["report", str(only), "--out", str(tmp_path / "r2")]) == 2
     assert "no readable run record" in capsys.readouterr().err
+
+
+def test_the_memory_check_names_what_dominates_and_passes_what_fits():
+    cfg = resolve_run("ibgs", "synthetic/spot", preset="cpu")
+    items = METHODS.get("ibgs").memory_estimate(cfg)
+    assert set(items) == {"Gaussians", "render buffers", "kNN tables"}
+    assert items["kNN tables"] == 72 * cfg.train.max_gaussians * cfg.method["knn_k"]
+    memory_check(cfg, METHODS.get("ibgs").memory_estimate, available=2**30)  # ~0.2 GiB fits in 1 GiB
+    with pytest.raises(ConfigError, match=r"needs about 0\.2 GiB \(Gaussians 0\.1 GiB.*but 0\.1 GiB is available"):
+        memory_check(cfg, METHODS.get("ibgs").memory_estimate, available=2**30 // 10)
+    tets = resolve_run("gof", "synthetic/spot-tnt", preset="cpu")
+    assert tets.mesh.extractor == "tets" and "tetrahedra" in METHODS.get("gof").memory_estimate(tets)

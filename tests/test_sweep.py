@@ -139,6 +139,7 @@ def fake_runs(monkeypatch, fail_seed=None):
     seeds run."""
     import gsbench.runs.runner as runner
     import gsbench.runs.sweep as sweep_module
+    from gsbench.runs.records import git_state
     from gsbench.runs.records import RunRecord
 
     calls = []
@@ -148,9 +149,9 @@ def fake_runs(monkeypatch, fail_seed=None):
         if cfg.seed == fail_seed:
             raise RuntimeError("boom")
         folder = runner.run_dir(cfg)
-        folder.mkdir(parents=True)
-        RunRecord(run_id=cfg.run_id, method="3dgs", scene=cfg.scene, dataset="dtu", seed=cfg.seed,
-                  status="ok").write(RunFolder(folder).record)
+        folder.mkdir(parents=True, exist_ok=True)
+        RunRecord(run_id=cfg.run_id, method="3dgs", scene=cfg.scene, dataset="dtu", seed=cfg.seed, status="ok",
+                  environment=git_state()).write(RunFolder(folder).record)  # made by this code
 
     monkeypatch.setattr(sweep_module, "run", fake_run)  # the runner the sweep calls
     return calls
@@ -235,3 +236,35 @@ def test_ctrl_c_cancels_the_unfinished_runs_keeps_finished_records_and_exits_130
     assert [e["status"] for e in manifest["runs"]] == ["ok", "cancelled", "cancelled"]
     assert json.loads((out / manifest["runs"][0]["dir"] / "record.json").read_text())["status"] == "ok"
     assert "interrupted: 1 ok, 0 skipped (finished earlier), 0 failed, 2 cancelled" in capsys.readouterr().out
+
+
+def test_records_made_by_other_code_are_refused_rerun_or_kept_as_asked(tmp_path, monkeypatch):
+    """A sweep must not average runs of different commits without saying so: by default it refuses to skip
+    finished records of another code version; ``rerun`` runs them again, ``keep`` keeps them and says so."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import gsbench.runs.sweep as sweep_module
+    from gsbench.runs.sweep import run_sweep
+
+    runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
+    calls = fake_runs(monkeypatch)
+    out = tmp_path / "runs"
+
+    def sweep(**kwargs):
+        messages = []
+        with ThreadPoolExecutor(1) as executor:
+            summary = run_sweep(runs, executor, name="seeds", out=str(out), echo=messages.append, **kwargs)
+        return summary, messages
+
+    sweep()
+    assert sorted(calls) == [0, 1, 2]
+    monkeypatch.setattr(sweep_module, "current_code", lambda: "a-newer-commit")
+    with pytest.raises(ConfigError, match=r"3 of the sweep's 3 finished runs were made by other code .*now "
+                                          r"a-newer-commit\); fix: --other-code rerun .* or --other-code keep"):
+        sweep()
+    summary, messages = sweep(other_code="keep")
+    assert summary.counts["skipped"] == 3 and sorted(calls) == [0, 1, 2]
+    assert any("kept (--other-code keep)" in m for m in messages)
+    summary, messages = sweep(other_code="rerun")
+    assert summary.counts["ok"] == 3 and sorted(calls) == [0, 0, 1, 1, 2, 2]
+    assert any("running them again (--other-code rerun)" in m for m in messages)

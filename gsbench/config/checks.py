@@ -9,6 +9,7 @@ the loaders).
 - ``threads`` >= 0 (0: every core); ``train.iterations`` >= 1; ``train.log_every`` >= 1;
   ``train.checkpoint_every`` >= 0 (0: only the final checkpoint); ``train.max_gaussians`` >= 0;
 - ``eval.dtu_culling`` one of the DTU culling conventions (`gsbench.evaluators.culling`) or ``none``;
+- the memory the run needs (`memory_check`, the method's ``memory_estimate``) against what is available;
 - the method's own parameters, mesh and raster options (`gsbench.methods.base.Method.check_config`,
   when the plugin has it), and every configured loss term: its name and the parameters the method
   binds to it.
@@ -20,6 +21,7 @@ from gsbench.config.run_config import RunConfig
 from gsbench.errors import ConfigError
 from gsbench.evaluators.culling import CULL_CONVENTIONS, NO_CULLING
 from gsbench.registry import METHODS
+from gsbench.resources import available_memory_bytes, gib
 
 NON_NEGATIVE = {"train.checkpoint_every": "0: only the final checkpoint", "train.max_gaussians": "0: no cap"}
 
@@ -39,6 +41,24 @@ def check_run_config(cfg: RunConfig) -> None:
     if cfg.eval.dtu_culling not in (*CULL_CONVENTIONS, NO_CULLING):
         raise ConfigError(f"eval.dtu_culling must be one of {', '.join((*CULL_CONVENTIONS, NO_CULLING))}, "
                           f"got {cfg.eval.dtu_culling!r}")
-    check_method = getattr(METHODS.get(cfg.method["name"]), "check_config", None)  # plugins need not have it
+    method = METHODS.get(cfg.method["name"])
+    check_method = getattr(method, "check_config", None)  # plugins need not have it
     if check_method is not None:
         check_method(cfg)
+    memory_check(cfg, getattr(method, "memory_estimate", None))
+
+
+def memory_check(cfg: RunConfig, estimate, available: int | None = None) -> None:
+    """ConfigError when the method's `memory_estimate` of ``cfg`` (bytes by item) exceeds the memory available
+    (`gsbench.resources.available_memory_bytes`, unless given), naming the items, so a run that cannot fit is
+    refused before anything is read instead of being killed by the kernel mid-training."""
+    available = available_memory_bytes() if available is None else available
+    if estimate is None or available is None:
+        return
+    items = estimate(cfg)
+    total = sum(items.values())
+    if total > available:
+        parts = ", ".join(f"{name} {gib(size)}" for name, size in sorted(items.items(), key=lambda kv: -kv[1]))
+        raise ConfigError(f"this run needs about {gib(total)} ({parts}; the scene's images come on top) but "
+                          f"{gib(available)} is available; fix: lower what dominates (e.g. method.knn_k, "
+                          "train.max_gaussians or data.max_size) or run it on a larger machine")

@@ -28,6 +28,7 @@ import copy
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -252,7 +253,14 @@ def _build_losses(data: dict) -> dict:
             spec = {"weight": spec}
         if not isinstance(spec, dict):
             raise ConfigError(f"losses.{name} must be a mapping {{weight, start, end}} or a number, found {spec!r}")
-        terms[name] = dataclasses.asdict(_build(LossTerm, spec, f"losses.{name}."))
+        term = _build(LossTerm, spec, f"losses.{name}.")
+        if not math.isfinite(term.weight) or term.weight < 0:
+            raise ConfigError(f"losses.{name}.weight must be a finite number >= 0 (0 switches the term off; a "
+                              f"negative weight would reward the loss it weighs), got {term.weight}")
+        if term.start < 0 or term.end < -1:
+            raise ConfigError(f"losses.{name}: start must be >= 0 and end >= -1 (-1: until the last step), got "
+                              f"start {term.start}, end {term.end}")
+        terms[name] = dataclasses.asdict(term)
     return terms
 
 

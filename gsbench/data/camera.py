@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gsbench.errors import DataError
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -183,6 +185,30 @@ class Scene:
 
     def _held_out(self, view: int) -> bool:
         return self.holdout_every > 0 and view % self.holdout_every == 0
+
+    def views_facing_scene(self) -> list[int]:
+        """Indices of the cameras that look at the scene: the centre of the scene sphere (the origin of the
+        normalised frame) is in front of the camera (z > 0) and its image, widened by the sphere's projected
+        radius f·r/z, overlaps the picture. A camera that fails it sees nothing of the scene."""
+        facing = []
+        for i, cam in enumerate(self.cameras):
+            pixel, z = cam.project(np.zeros((1, 3)))
+            if z[0] <= 0:
+                continue
+            reach = max(cam.fx, cam.fy) * self.radius / z[0]
+            x, y = pixel[0]
+            if -reach <= x <= cam.width + reach and -reach <= y <= cam.height + reach:
+                facing.append(i)
+        return facing
+
+    def check_cameras_face_scene(self) -> None:
+        """DataError when no training camera looks at the scene (`views_facing_scene`): training could only
+        end in an empty model. Names the fix."""
+        if not set(self.train_views) & set(self.views_facing_scene()):
+            raise DataError(f"scene '{self.name}': none of its {len(self.train_views)} training cameras looks at the "
+                            f"scene (the sphere of radius {self.radius:.4g} about the origin of the normalised frame is "
+                            "behind or outside every image); fix: check the camera poses (world-to-camera versus "
+                            "camera-to-world, the sign of the viewing axis) and the normalisation")
 
     @property
     def has_masks(self) -> bool:

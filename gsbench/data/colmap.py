@@ -21,9 +21,8 @@ from gsbench.data.filecheck.colmap import (
     colmap_text_count_problem,
     locate_colmap_text_error,
 )
-from gsbench.data.filecheck.common import one_line
 from gsbench.data.images import list_images
-from gsbench.errors import DataError
+from gsbench.errors import DataError, one_line
 
 PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 

@@ -104,9 +104,19 @@ def _resize(img, downscale: float):
     return img.resize(scaled_size(*img.size, downscale), Image.Resampling.BOX)
 
 
+def _eight_bit(img):
+    """``img`` with 8 bits per channel. 16-bit grayscale (Pillow modes ``I;16*``, and ``I`` as older Pillow reads a
+    16-bit PNG) is scaled by 255/65535 and rounded; Pillow's own conversion would clip every value above 255 to
+    white, leaving a 16-bit image black and white."""
+    if img.mode.startswith("I;16") or img.mode == "I":
+        wide = np.asarray(img, dtype=np.int64)
+        return Image.fromarray(((np.clip(wide, 0, 65535) * 255 + 32767) // 65535).astype(np.uint8), mode="L")
+    return img
+
+
 def decode_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
-    """uint8 HxWx3 after the box resize (what the decoded-image cache stores)."""
-    return np.asarray(_resize(_open(path).convert("RGB"), downscale), dtype=np.uint8)
+    """uint8 HxWx3 after the box resize (what the decoded-image cache stores); 16-bit grayscale scaled to 8 bits."""
+    return np.asarray(_resize(_eight_bit(_open(path)).convert("RGB"), downscale), dtype=np.uint8)
 
 
 def to_float(rgb: np.ndarray) -> np.ndarray:
@@ -122,8 +132,9 @@ def read_rgb(path: Path, downscale: float = 1.0) -> np.ndarray:
 
 
 def read_mask(path: Path, downscale: float = 1.0) -> np.ndarray:
-    """bool HxW: max over channels > 127, then (if downscaled) box-filtered coverage > 0.5."""
-    arr = np.asarray(_open(path))
+    """bool HxW: max over channels > 127 (16-bit masks scaled to 8 bits first), then (if downscaled) box-filtered
+    coverage > 0.5."""
+    arr = np.asarray(_eight_bit(_open(path)))
     if arr.ndim == 3:
         arr = arr[..., :3].max(axis=2) if arr.shape[2] >= 3 else arr[..., 0]
     mask = arr > 127 if arr.dtype != bool else arr

@@ -190,6 +190,12 @@ def check_scene(path, gt_root=None) -> dict:
         report["masks"] = len(scene.mask_paths or ())
         report["gt_depth_maps"] = scene.gt is not None and scene.gt.depth_maps is not None
         report["gt_normal_maps"] = scene.gt is not None and scene.gt.normal_maps is not None
+        facing = scene.views_facing_scene()
+        report["cameras_facing_scene"] = len(facing)
+        try:
+            scene.check_cameras_face_scene()
+        except GsbenchError as exc:
+            report["errors"].append(str(exc))
     if report["format"]:
         report["ground_truth"] = {
             "found": scene is not None and scene.gt is not None,

@@ -25,7 +25,7 @@ from pathlib import Path
 from gsbench.report import plots as figures
 from gsbench.report.aggregate import Board, ablations, leaderboard
 from gsbench.report.claims import evaluate_claims
-from gsbench.report.collect import label_variants, load_manifests, load_runs
+from gsbench.report.collect import label_variants, load_manifests, load_runs, unfinished_folders
 from gsbench.report.html import document_html
 from gsbench.report.leaderboard_csv import leaderboard_csv
 from gsbench.report.metrics import COMPANIONS, PAPERS_METRIC, metric_specs, primary_metric, reported
@@ -36,6 +36,7 @@ from gsbench.report.run_tables import (
     protocol_table,
     runs_table,
     skipped_table,
+    unfinished_table,
 )
 from gsbench.report.stats import comparisons
 from gsbench.report.tables import Plot, Section, document_markdown
@@ -192,6 +193,9 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     (damaged records left out, …), e.g. to print them on the console."""
     runs_dir, out = Path(runs_dir), Path(out)
     runs, warnings = load_runs(runs_dir)
+    unfinished = unfinished_folders(runs_dir)
+    warnings += [f"{folder}: a run folder without a record (unfinished, listed under Failed and unfinished runs)"
+                 for folder in unfinished]
     runs = label_variants(runs)
     manifests, manifest_warnings = load_manifests(runs_dir)
     warnings += manifest_warnings
@@ -217,7 +221,8 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
                      claims_tables(evaluate_claims(runs, manifests, specs), specs))
     sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked), significance, claims,
                 speed, *([without_gt] if without_gt else []), sweeps,
-                Section("failed", "Failed and unfinished runs", [], [failed_table(runs)]),
+                Section("failed", "Failed and unfinished runs", [],
+                        [failed_table(runs), *([unfinished_table(unfinished)] if unfinished else [])]),
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),
                 Section("environment", "Environment", [], [environment_table(runs)])]
     warnings = list(dict.fromkeys(warnings))

@@ -144,6 +144,15 @@ def _keep_first(copies: list[Run]) -> list[Run]:
     return ordered
 
 
+def unfinished_folders(runs_dir: Path) -> list[str]:
+    """Run folders below ``runs_dir`` (relative paths) that hold a run's config or checkpoint but no record: runs
+    killed before they wrote one (`gsbench run` with the same settings resumes them)."""
+    runs_dir = Path(runs_dir)
+    folders = {p.parent for name in (RunFolder.CONFIG, RunFolder.CHECKPOINT, RunFolder.FINAL_CHECKPOINT)
+               for p in runs_dir.rglob(name)}
+    return sorted(f.relative_to(runs_dir).as_posix() for f in folders if not RunFolder(f).record.is_file())
+
+
 def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
     """Every readable record below ``runs_dir`` (one per run id), sorted; and the warnings.
 
@@ -166,6 +175,11 @@ def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
             warnings.append(f"{rel}: record without {', '.join(missing)} skipped")
             continue
         run = _run(data, rel)
+        non_finite = sorted(k for k, v in (data.get("metrics") or {}).items() if _number(v) is not None
+                            and not math.isfinite(v))
+        if run.ok and non_finite:
+            warnings.append(f"{rel}: status ok, but {', '.join(non_finite)} not finite (NaN or infinite): shown as "
+                            "missing; fix: look at that run's evaluation (eval.json) and re-run it")
         found.setdefault(run.run_id, []).append(run)
     if not found and warnings:
         raise GsbenchError(f"no readable run record under '{runs_dir}': {len(warnings)} damaged: {'; '.join(warnings)} "

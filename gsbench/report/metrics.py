@@ -49,7 +49,7 @@ COMPANIONS = {"dtu": ("chamfer_sampled",), "tnt": ("f1_centroids", "f1_sampled")
 # The metric in which the papers report each dataset (their reported numbers and orderings): DTU the official
 # script's Chamfer, TnT the F1 on vertices + centroids of the 2DGS / GOF / RaDe-GS scripts.
 PAPERS_METRIC = {"dtu": "chamfer", "tnt": "f1_centroids"}
-FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics
+FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics; None: descriptive, never ranked
     "chamfer": (False, "mm"), "accuracy": (False, "mm"), "completeness": (False, "mm"),
     "chamfer_sampled": (False, "mm"), "accuracy_sampled": (False, "mm"), "completeness_sampled": (False, "mm"),
     "f1": (True, ""), "precision": (True, ""), "recall": (True, ""),
@@ -59,8 +59,8 @@ FALLBACK = {  # (higher_is_better, unit) of the built-in evaluators' metrics
     "normal_consistency_gated": (True, ""), "normal_accuracy_gated": (True, ""),
     "normal_completeness_gated": (True, ""), "psnr": (True, "dB"), "ssim": (True, ""),
     "mask_iou": (True, ""), "mask_iou_min": (True, ""), "outside_hull_area_share": (False, ""),
-    "components": (False, ""), "watertight": (True, ""), "area": (False, "units^2"), "vertices": (False, ""),
-    "faces": (False, ""),
+    "components": (False, ""), "watertight": (True, ""), "area": (None, "units^2"), "vertices": (None, ""),
+    "faces": (None, ""),
 }
 # The no-ground-truth table's metrics, in column order (names as in a record's ``metrics``).
 NO_GT = ("psnr", "ssim", "mask_iou", "outside_hull_area_share", "components", "watertight", "area")
@@ -71,7 +71,7 @@ UNRANKED = frozenset({"mask_iou", "mask_iou_min", "outside_hull_area_share", "co
 @dataclass(frozen=True)
 class MetricSpec:
     name: str
-    higher_is_better: bool
+    higher_is_better: bool | None  # None: describes a mesh, never ranked (in `UNRANKED`)
     unit: str
     evaluator: str = ""  # the evaluator that reports it ("" when only `FALLBACK` knows it)
 
@@ -83,7 +83,7 @@ class MetricSpec:
 
     @property
     def direction(self) -> str:
-        return "higher is better" if self.higher_is_better else "lower is better"
+        return {True: "higher is better", False: "lower is better"}.get(self.higher_is_better, "descriptive")
 
 
 def metric_specs() -> dict[str, MetricSpec]:
@@ -95,7 +95,8 @@ def metric_specs() -> dict[str, MetricSpec]:
         except Exception:  # noqa: BLE001  (a broken plugin must not stop the report; FALLBACK stands)
             continue
         for name, info in declared.items():
-            specs[name] = MetricSpec(name, bool(info.higher_is_better), str(info.unit), evaluator)
+            better = None if info.higher_is_better is None else bool(info.higher_is_better)
+            specs[name] = MetricSpec(name, better, str(info.unit), evaluator)
     return specs
 
 

@@ -87,6 +87,13 @@ def failed_table(runs: list[Run]) -> Table:
     return Table("failed-runs", "", header, rows)
 
 
+def unfinished_table(folders: list[str]) -> Table:
+    """Run folders without a record (`gsbench.report.collect.unfinished_folders`)."""
+    rows = [[plain(folder), plain("no record: killed before it finished? `gsbench run` with its settings resumes it")]
+            for folder in folders]
+    return Table("unfinished-runs", "", ["run folder", "state"], rows)
+
+
 def protocol_table(runs: list[Run]) -> Table:
     """Every evaluator protocol behind a number, per dataset: name@version, the options that differ
     between runs of that evaluator on that dataset, and run counts."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections import Counter
 
-from gsbench.report.aggregate import Board, Row, Stat
+from gsbench.report.aggregate import Board, Row, Stat, natural_key
 from gsbench.report.budget import BUDGET_NOTE, budget_text
 from gsbench.report.collect import Run
 from gsbench.report.metrics import COMPANIONS, REAL_DATASETS, MetricSpec
@@ -57,6 +57,30 @@ def cpu_note(runs: list[Run]) -> str:
             f"between runs on one CPU model (the page's list of runs and Environment say which).")
 
 
+def code_version(run: Run) -> str:
+    """The commit a run's record names (12 hex digits, ``+dirty`` for uncommitted changes; ``unknown``)."""
+    commit = run.environment.get("git_commit")
+    if not commit:
+        return "unknown"
+    return str(commit)[:12] + ("+dirty" if run.environment.get("git_dirty") else "")
+
+
+def code_version_note(board: Board) -> str:
+    """A warning when the board's ok runs come from more than one code version (the records' commits), with
+    the rows of each: their numbers need not be comparable (a change of code can move them). Empty when one."""
+    rows_of: dict[str, set[str]] = {}
+    for row in board.rows:
+        for run in row.runs:
+            if run.ok:
+                rows_of.setdefault(code_version(run), set()).add(row.name)
+    if len(rows_of) < 2:
+        return ""
+    listed = "; ".join(f"{version}: {join_text(sorted(rows, key=natural_key))}"
+                       for version, rows in sorted(rows_of.items()))
+    return (f"**Code versions differ** between this board's runs ({listed}): numbers made by different code need not "
+            f"compare; re-run the rows of the other versions at one commit (gsbench sweep --other-code rerun).")
+
+
 def protocol_note(board: Board) -> str:
     """Which evaluator version(s) produced the board's numbers, with run counts."""
     evaluator = board.spec.evaluator
@@ -102,6 +126,9 @@ def leaderboard_table(board: Board) -> Table:
         "Runs: ok, failed and other statuses, and missing (scene, seed) pairs among the seeds a row has.",
         protocol_note(board),
     ]
+    versions = code_version_note(board)
+    if versions:
+        notes.insert(0, versions)
     if board.unscored:
         notes.append(f"Not on this board: {join_text(board.unscored)} — no run there has {board.spec.label}, its "
                      f"evaluator was skipped (see Captures without ground truth).")

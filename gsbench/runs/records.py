@@ -104,7 +104,7 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
     return digest.hexdigest()
 
 
-def _git_state() -> dict:
+def git_state() -> dict:
     root = Path(gsbench.__file__).resolve().parent.parent
     try:
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
@@ -140,7 +140,7 @@ def capture_environment(threads: int | None = None) -> dict:
     """What produced a number: versions, commit, CPU, thread count, OS, host, UTC time."""
     return {
         "gsbench": gsbench.__version__,
-        **_git_state(),
+        **git_state(),
         "python": platform.python_version(),
         "packages": _package_versions(),
         "cpu": _cpu_model(),

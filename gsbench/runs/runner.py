@@ -44,6 +44,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from gsbench.atomic import check_writable
 from gsbench.config.checks import check_run_config
 from gsbench.config.run_config import RunConfig, dataset_of, resolve
 from gsbench.data.loader import load_scene
@@ -139,9 +140,11 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     SIGTERM records status ``interrupted`` (the run resumes from its last checkpoint), any other
     exception ``failed`` with its traceback tail; both re-raise."""
     check_run_config(cfg)
+    check_writable(cfg.out, "--out (or out: in a config file)")
     threads = set_threads(cfg.threads)
     stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
     header = load_run_scene(cfg, load_images=False)
+    header.check_cameras_face_scene()
     plan = plan_run_evaluation(cfg, header)
     for name, reason in plan.skipped.items():
         stage(f"evaluator {name} skipped: {reason}")

@@ -49,7 +49,7 @@ from gsbench.config.run_config import RunConfig, parse_override
 from gsbench.config.suites import SUITE_PREFIX, load_suite
 from gsbench.errors import ConfigError
 from gsbench.run_folder import RunFolder
-from gsbench.runs.records import RunRecord, write_json_atomic
+from gsbench.runs.records import RunRecord, git_state, write_json_atomic
 from gsbench.runs.runner import ERROR_TAIL_LINES, resolve_run, run, run_dir
 
 SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "suite", "seeds", "executor")
@@ -229,10 +229,55 @@ def run_one(cfg: RunConfig) -> RunOutcome:
     return RunOutcome(cfg.run_id, "ok", time.perf_counter() - start)
 
 
+OTHER_CODE = ("refuse", "rerun", "keep")  # what a sweep does with finished records made by other code
+
+
 def is_finished(cfg: RunConfig) -> bool:
     """The run's record exists with status ok."""
     path = RunFolder(run_dir(cfg)).record
     return path.is_file() and RunRecord.read(path).status == "ok"
+
+
+def record_code(cfg: RunConfig) -> str | None:
+    """The commit (``+dirty`` with uncommitted changes) the run's record was made by; None when unknown."""
+    environment = RunRecord.read(RunFolder(run_dir(cfg)).record).environment or {}
+    commit = environment.get("git_commit")
+    return None if not commit else str(commit) + ("+dirty" if environment.get("git_dirty") else "")
+
+
+def current_code() -> str | None:
+    """The commit of the code running now, as `record_code` writes it; None outside a git checkout."""
+    state = git_state()
+    return None if not state["git_commit"] else state["git_commit"] + ("+dirty" if state["git_dirty"] else "")
+
+
+def settle_other_code(runs: list[SweepRun], finished: set, policy: str, echo) -> set:
+    """The finished runs to skip, given ``policy`` for those whose record another code version made
+    (`OTHER_CODE`): ``refuse`` (a ConfigError listing them, before any run starts), ``rerun`` (their folders'
+    outputs are removed and they run again), ``keep`` (skipped, and said). Records of unknown code count as
+    other code; so does everything when the running code's own version is unknown."""
+    if policy not in OTHER_CODE:
+        raise ConfigError(f"--other-code must be one of {', '.join(OTHER_CODE)}, got {policy!r}")
+    now = current_code()
+    other = {r.run_id: r for r in runs if r.run_id in finished and (now is None or record_code(r.config) != now)}
+    if not other:
+        return finished
+    versions = sorted({str(record_code(r.config)) for r in other.values()})
+    what = (f"{len(other)} of the sweep's {len(finished)} finished runs were made by other code ({', '.join(versions)}; "
+            f"now {now or 'unknown'})")
+    if policy == "refuse":
+        raise ConfigError(f"{what}; fix: --other-code rerun (run them again with this code) or --other-code keep "
+                          "(keep their numbers; the report flags boards that mix versions)")
+    if policy == "keep":
+        echo(f"{what}: kept (--other-code keep)")
+        return finished
+    echo(f"{what}: running them again (--other-code rerun)")
+    for sweep_run in other.values():
+        files = RunFolder(run_dir(sweep_run.config))
+        for path in (files.record, files.eval, files.mesh, files.stages, files.final_checkpoint, files.checkpoint,
+                     files.metrics):
+            path.unlink(missing_ok=True)
+    return finished - set(other)
 
 
 class Manifest:
@@ -338,13 +383,15 @@ def _apply(runs: list[SweepRun], out: str | None, threads: int | None) -> list[S
 
 
 def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", description: str = "", file: str = "",
-              out: str | None = None, threads: int | None = None, echo=tqdm.write) -> SweepSummary:
+              out: str | None = None, threads: int | None = None, other_code: str = "refuse",
+              echo=tqdm.write) -> SweepSummary:
     """Run ``runs`` on ``executor`` (a `concurrent.futures.Executor`, see `gsbench.runs.executors`) and return
     the summary, also echoed.
 
     ``out`` and ``threads`` replace every run's own; ``out`` is made absolute, so that workers elsewhere
     write to the same (shared) folder. Runs whose record has status ok are skipped, so re-running a
-    sweep resumes it; a failing run is recorded and the others go on. The manifest (`Manifest`) is
+    sweep resumes it, when the records were made by this code; ``other_code`` says what happens to those made
+    by another (`settle_other_code`). A failing run is recorded and the others go on. The manifest (`Manifest`) is
     written when the sweep starts and updated as runs finish.
 
     Ctrl-C: the runs not started are cancelled and the running ones are stopped at once
@@ -356,6 +403,7 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
     start = time.perf_counter()
     runs = _apply(runs, out, threads)
     finished = {sweep_run.run_id for sweep_run in runs if is_finished(sweep_run.config)}
+    finished = settle_other_code(runs, finished, other_code, echo)
     todo = [sweep_run for sweep_run in runs if sweep_run.run_id not in finished]
     root = Path(runs[0].config.out)
     manifest = Manifest(root / "sweeps" / f"{name}.json", name=name, description=description, file=str(file),

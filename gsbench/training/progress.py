@@ -45,10 +45,17 @@ def format_duration(seconds: float) -> str:
     return f"{s // 3600}h{(s % 3600) // 60:02d}m"
 
 
+def write_line(text: str, stream) -> None:
+    """``text`` and its newline in one ``write`` call, then a flush: processes that share the stream (sweep
+    workers) interleave whole lines, never the pieces of one (``print`` writes the text and the newline
+    separately)."""
+    stream.write(text + "\n")
+    stream.flush()
+
+
 def stage(message: str, stream=None) -> None:
-    """Print ``gsbench: <message>`` on its own line to stderr (or ``stream``) and flush."""
-    stream = sys.stderr if stream is None else stream
-    print(f"gsbench: {message}", file=stream, flush=True)
+    """``gsbench: <message>`` on its own line to stderr (or ``stream``), written whole (`write_line`)."""
+    write_line(f"gsbench: {message}", sys.stderr if stream is None else stream)
 
 
 class ProgressLines:
@@ -96,7 +103,7 @@ class ProgressLines:
         return " ".join(parts)
 
     def _emit(self, text: str) -> None:
-        print(text, file=self.stream, flush=True)
+        write_line(text, self.stream)
         self.lines += 1
 
     def update(self, step: int, loss: float | None = None, num_gaussians: int | None = None) -> None:

@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 import random
 import time
 from dataclasses import dataclass
@@ -83,7 +84,7 @@ from tqdm import tqdm
 from gsbench.atomic import atomic_path
 from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
-from gsbench.errors import ConfigError, NumericalError
+from gsbench.errors import CheckpointError, ConfigError, NumericalError, one_line
 from gsbench.losses.terms import Batch, active_terms, required_outputs, total_loss
 from gsbench.resources import set_threads
 from gsbench.run_folder import RunFolder
@@ -151,8 +152,40 @@ def save_atomic(obj, path: Path) -> None:
 
 
 def load_checkpoint(path: Path) -> dict:
-    """Read a checkpoint written by `Trainer` (our own file: numpy RNG state needs full unpickling)."""
-    return torch.load(path, map_location="cpu", weights_only=False)
+    """A checkpoint read as data: ``torch.load(weights_only=True)`` accepts tensors and plain values (numbers,
+    strings, lists, tuples, dicts) and never runs code from the file. A file that holds anything else (an
+    object to unpickle, as a checkpoint made to run code does, or a gsbench checkpoint from before the RNG
+    states were stored as tensors) or that is damaged is a `CheckpointError` naming it, before anything in it
+    is executed."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        raise CheckpointError(
+            f"{path} is refused: it holds objects other than tensors and plain values, which loading would run "
+            f"as code ({one_line(exc, 160)}); gsbench checkpoints are data. Fix: delete it, and the run trains "
+            "again from the start (a checkpoint written by gsbench before 2026-11-27 stored the RNG states as "
+            "numpy objects), or get the run folder from a source you trust") from None
+    except (OSError, RuntimeError, EOFError) as exc:
+        raise CheckpointError(f"{path} cannot be read ({type(exc).__name__}: {one_line(exc, 160)}); fix: delete it "
+                              "and the run trains again from the start") from None
+
+
+def rng_state() -> dict:
+    """The python, numpy and torch RNG states as plain values and tensors (what `load_checkpoint` reads back)."""
+    algorithm, keys, position, has_gauss, cached_gaussian = np.random.get_state()
+    return {"python": random.getstate(),
+            "numpy": {"algorithm": str(algorithm), "keys": torch.from_numpy(keys.astype(np.int64)),
+                      "position": int(position), "has_gauss": int(has_gauss), "cached_gaussian": float(cached_gaussian)},
+            "torch": torch.get_rng_state()}
+
+
+def set_rng_state(state: dict) -> None:
+    """Restore the states `rng_state` stored."""
+    random.setstate(state["python"])
+    numpy = state["numpy"]
+    np.random.set_state((numpy["algorithm"], numpy["keys"].numpy().astype(np.uint32), numpy["position"],
+                         numpy["has_gauss"], numpy["cached_gaussian"]))
+    torch.set_rng_state(state["torch"])
 
 
 class CameraSampler:
@@ -271,7 +304,7 @@ class Trainer:
                 "strategy": {k: v.clone() for k, v in self.strategy_state.items()},
                 "budget": dataclasses.asdict(self.budget),
                 "sampler": self.sampler.state_dict(),
-                "rng": {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}}
+                "rng": rng_state()}
 
     def load_state_dict(self, state: dict) -> None:
         self.method.load_state_dict(state["method"])
@@ -279,9 +312,7 @@ class Trainer:
         # checkpoints written before the budget was tracked resume with no cut counted
         self.budget = DensifyBudget(**{**dataclasses.asdict(self.budget), **state.get("budget", {})})
         self.sampler.load_state_dict(state["sampler"])
-        random.setstate(state["rng"]["python"])
-        np.random.set_state(state["rng"]["numpy"])
-        torch.set_rng_state(state["rng"]["torch"])
+        set_rng_state(state["rng"])
         self.step, self.seconds = int(state["step"]), float(state["seconds"])
         self.phases = dict.fromkeys(STEP_PHASES, 0.0)  # checkpoints from before phases existed: zeros
         self.phases.update({k: float(v) for k, v in state.get("phases", {}).items()})

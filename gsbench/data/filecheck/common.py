@@ -8,18 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gsbench.errors import DataError
+from gsbench.errors import DataError, one_line
 
 
 def damaged(path, what: str, fix: str) -> DataError:
     """``<path> is damaged: <what>; fix: <fix>`` (one line)."""
     return DataError(f"{path} is damaged: {one_line(what)}; fix: {fix}")
-
-
-def one_line(text, limit: int = 300) -> str:
-    """``text`` with runs of whitespace (newlines included) collapsed, cut to ``limit`` characters."""
-    text = " ".join(str(text).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 class PastEnd(Exception):

@@ -1,0 +1,87 @@
+"""Inputs that used to get through (issue 38): cameras that face away from the scene, output folders that
+cannot be written. Each is one line naming the file or setting and the fix, before any work."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import gsbench.atomic as atomic
+from gsbench.cli import main
+from gsbench.data.camera import Camera
+from gsbench.data.dtu import write_cameras_npz
+from gsbench.data.images import write_mask, write_rgb
+from gsbench.data.loader import check_scene, load_scene
+from gsbench.data.synthetic.rigs import look_at
+from gsbench.errors import DataError
+
+W, H, N = 16, 12, 4
+TURN = np.diag([-1.0, 1.0, -1.0])  # half a turn about the camera's y axis: same centre, looking the other way
+
+
+def _dtu_folder(root, away: bool):
+    K = np.array([[20.0, 0, W / 2], [0, 20.0, H / 2], [0, 0, 1]])
+    cameras = []
+    for k in range(N):
+        R, t = look_at(np.array([3.0 * np.cos(k), 3.0 * np.sin(k), 1.0]), np.zeros(3))
+        if away:
+            R, t = TURN @ R, TURN @ t
+        cameras.append(Camera(K=K, R=R, t=t, width=W, height=H, name=f"{k:06d}.png"))
+    (root / "image").mkdir(parents=True)
+    (root / "mask").mkdir()
+    for k in range(N):
+        write_rgb(root / "image" / f"{k:06d}.png", np.full((H, W, 3), 0.5))
+        write_mask(root / "mask" / f"{k:03d}.png", np.ones((H, W), bool))
+    write_cameras_npz(root / "cameras.npz", cameras, np.diag([2.0, 2.0, 2.0, 1.0]))
+    return root
+
+
+def test_cameras_facing_away_are_found_by_scene_check_and_refused_before_training(tmp_path, capsys):
+    facing = load_scene(_dtu_folder(tmp_path / "scan1", away=False), load_images=False)
+    assert facing.views_facing_scene() == list(range(N))
+    away_root = _dtu_folder(tmp_path / "scan2", away=True)
+    away = load_scene(away_root, load_images=False)
+    assert away.views_facing_scene() == []
+    assert np.allclose([c.center for c in away.cameras], [c.center for c in facing.cameras])
+    report = check_scene(away_root)
+    assert not report["ok"] and report["cameras_facing_scene"] == 0
+    assert "none of its 4 training cameras looks at the scene" in report["errors"][0]
+    with pytest.raises(DataError, match="fix: check the camera poses"):
+        away.check_cameras_face_scene()
+    # the fix the empty visual hull suggests (random_init_region=sphere) no longer trains to a TSDF failure
+    out = tmp_path / "runs"
+    assert main(["run", "--method", "3dgs", "--scene", str(away_root), "--preset", "quick", "--out", str(out),
+                 "--set", "method.random_init_region=sphere"]) == 2
+    error = [line for line in capsys.readouterr().err.splitlines() if line.startswith("gsbench: error:")]
+    assert len(error) == 1 and "looks at the scene" in error[0] and not out.exists()
+
+
+def test_one_camera_facing_the_scene_is_enough(tmp_path):
+    scene = load_scene(_dtu_folder(tmp_path / "scan3", away=True), load_images=False)
+    scene = dataclasses.replace(scene, cameras=[load_scene(_dtu_folder(tmp_path / "scan4", away=False),
+                                                           load_images=False).cameras[0], *scene.cameras[1:]])
+    assert scene.views_facing_scene() == [0]
+    scene.check_cameras_face_scene()
+
+
+@pytest.mark.parametrize("command", ["run", "report", "eval", "sweep"])
+def test_an_output_folder_that_cannot_be_written_is_one_line_before_any_work(command, tmp_path, capsys,
+                                                                             monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    out = blocker / "out"
+    args = {"run": ["run", "--method", "3dgs", "--scene", "synthetic/spot", "--preset", "quick", "--out", str(out)],
+            "report": ["report", str(tmp_path), "--out", str(out)],
+            "eval": ["eval", "--mesh", str(blocker), "--scene", "synthetic/spot", "--out", str(out / "r.json")],
+            "sweep": ["sweep", "configs/sweeps/ibgs_k.yaml", "--out", str(out)]}[command]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "a-file is a file, not a folder" in err and "--out" in err
+
+
+def test_a_read_only_folder_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr(atomic.os, "access", lambda path, mode: False)  # as on a read-only file system
+    with pytest.raises(Exception, match="is not writable .*fix: choose another folder with --out"):
+        atomic.check_writable(tmp_path / "report", "--out")
