@@ -71,7 +71,9 @@ def load_geometry(mesh, need_faces: bool = False) -> Geometry:
         raise EvaluationError(f"{geo.label} is empty (0 vertices); nothing to evaluate (fix: check mesh extraction)")
     if need_faces and not geo.is_mesh:
         raise EvaluationError(
-            f"{geo.label} has no faces; mesh mode needs triangles (fix: pass mode='pcd' for point clouds)"
+            f"{geo.label} has no faces, and this evaluator scores surfaces (fix: give a mesh with faces; a point "
+            "cloud is scored by dtu_chamfer alone: gsbench eval --points --evaluator dtu_chamfer, or its option "
+            "mode='pcd' from Python)"
         )
     bad = ~np.isfinite(geo.vertices).all(axis=1)
     if bad.any():

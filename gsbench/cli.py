@@ -11,8 +11,8 @@ import json
 import sys
 from pathlib import Path
 
-from gsbench.atomic import check_writable
-from gsbench.errors import DataError, GsbenchError, Interrupted
+from gsbench.atomic import atomic_path, check_writable
+from gsbench.errors import ConfigError, DataError, GsbenchError, Interrupted
 from gsbench.resources import set_threads
 
 
@@ -155,7 +155,11 @@ def cmd_eval(args) -> int:
     plan = plan_evaluation(header, dataset_of(args.scene), args.evaluator or (), held_out=0)
     scene = load_scene(args.scene, **size)
     culling = run_options(args.dtu_culling, plan.mesh)
-    options = {name: {"frame": args.frame, **culling.get(name, {})} for name in plan.mesh}
+    if args.points and set(plan.mesh) != {"dtu_chamfer"}:
+        raise ConfigError(f"--points: only dtu_chamfer scores a point cloud, this evaluation has "
+                          f"{', '.join(plan.mesh) or 'no mesh evaluator'}; fix: add --evaluator dtu_chamfer")
+    options = {name: {"frame": args.frame, **culling.get(name, {}), **({"mode": "pcd"} if args.points else {})}
+               for name in plan.mesh}
     results = evaluate_mesh_file(Path(args.mesh), scene, plan.mesh, options) if plan.mesh else \
         {"mesh": args.mesh, "scene": scene.name, "results": {}}
     results["skipped"] = {n: r for n, r in plan.skipped.items() if n != "image"}
@@ -189,6 +193,18 @@ def cmd_gaussians(args) -> int:
     print(f"{args.run_dir}: the Gaussian centres against the scene's exact surfaces (within {within:.4g} dataset "
           "units of the object; of the environment; farther than that from every surface)")
     print(format_placement(regions))
+    return 0
+
+
+def cmd_render(args) -> int:
+    from gsbench.report.surfaces import surface_picture
+
+    out = Path(args.out) if args.out else Path(args.run_dir) / "surface.png"
+    check_writable(out.parent, "--out")
+    picture = surface_picture(Path(args.run_dir))
+    with atomic_path(out, keep_suffix=True) as tmp:
+        tmp.write_bytes(picture.png)
+    print(f"{out}: {picture.width}x{picture.height} PNG, {len(picture.png) // 1024} KiB (the report's picture of this run)")
     return 0
 
 
@@ -303,6 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--dtu-culling", choices=("2dgs", "gof", "none"), default="2dgs",
                           help="mask culling before the DTU protocol (dtu_chamfer, normal_similarity): 2DGS's "
                                "disk(24) at 1600 px (default), GOF's disk(6) at the masks' resolution, or none")
+    evaluate.add_argument("--points", action="store_true",
+                          help="the file is a point cloud: score its points as they are (dtu_chamfer's mode pcd; "
+                               "only dtu_chamfer takes one)")
     evaluate.add_argument("--out", default=None, help="write the results JSON here")
     evaluate.set_defaults(func=cmd_eval)
 
@@ -332,6 +351,12 @@ def build_parser() -> argparse.ArgumentParser:
                            help="distance to a surface that counts as on it, dataset units (default: 1.5%% of the "
                                 "object's bounding-box diagonal)")
     gaussians.set_defaults(func=cmd_gaussians)
+
+    render = sub.add_parser("render", help="a finished run's mesh shaded from two fixed views beside the ground truth "
+                            "(or the photos with their masks) and coloured by its distance to it: the report's picture")
+    render.add_argument("run_dir", metavar="RUN_DIR", help="the run's folder (<out>/<dataset>/<scene>/<method>/<run_id>)")
+    render.add_argument("--out", default=None, help="PNG file to write (default: RUN_DIR/surface.png)")
+    render.set_defaults(func=cmd_render)
 
     report = sub.add_parser("report", help="leaderboard tables, speed-vs-error plots and sweep ablations from run records")
     report.add_argument("runs_dir", metavar="RUNS_DIR", help="runs folder (searched recursively for record.json)")

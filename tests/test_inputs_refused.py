@@ -66,6 +66,15 @@ def test_one_camera_facing_the_scene_is_enough(tmp_path):
     scene.check_cameras_face_scene()
 
 
+def test_cameras_inside_the_scene_sphere_always_face_it(tmp_path):
+    """A layout normalised around its cameras (TnT's, forward-facing captures) puts every camera inside the
+    sphere: whichever way they look, they see part of the scene, and nothing is refused."""
+    away = load_scene(_dtu_folder(tmp_path / "scan5", away=True), load_images=False)
+    inside = dataclasses.replace(away, normalisation=dataclasses.replace(away.normalisation, radius=10.0))
+    assert inside.views_facing_scene() == list(range(N))
+    inside.check_cameras_face_scene()
+
+
 @pytest.mark.parametrize("command", ["run", "report", "eval", "sweep"])
 def test_an_output_folder_that_cannot_be_written_is_one_line_before_any_work(command, tmp_path, capsys,
                                                                              monkeypatch):
@@ -85,3 +94,18 @@ def test_a_read_only_folder_is_refused(tmp_path, monkeypatch):
     monkeypatch.setattr(atomic.os, "access", lambda path, mode: False)  # as on a read-only file system
     with pytest.raises(Exception, match="is not writable .*fix: choose another folder with --out"):
         atomic.check_writable(tmp_path / "report", "--out")
+
+
+def test_eval_of_a_mesh_without_faces_names_the_cli_fix_and_that_fix_works(tiny_spot, tmp_path, capsys):
+    """The message for a point cloud names an option the command line has (``--points``), and it works."""
+    import trimesh
+
+    cloud = tmp_path / "points.ply"
+    trimesh.PointCloud(trimesh.creation.icosphere(subdivisions=3).vertices * 0.5).export(cloud)
+    assert main(["eval", "--mesh", str(cloud), "--scene", str(tiny_spot), "--evaluator", "dtu_chamfer"]) == 2
+    assert "gsbench eval --points --evaluator dtu_chamfer" in capsys.readouterr().err
+    assert main(["eval", "--mesh", str(cloud), "--scene", str(tiny_spot), "--points"]) == 2  # others need faces
+    assert "fix: add --evaluator dtu_chamfer" in capsys.readouterr().err
+    assert main(["eval", "--mesh", str(cloud), "--scene", str(tiny_spot), "--points", "--evaluator",
+                 "dtu_chamfer"]) == 0
+    assert "dtu_chamfer@1" in capsys.readouterr().out

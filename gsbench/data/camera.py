@@ -187,11 +187,15 @@ class Scene:
         return self.holdout_every > 0 and view % self.holdout_every == 0
 
     def views_facing_scene(self) -> list[int]:
-        """Indices of the cameras that look at the scene: the centre of the scene sphere (the origin of the
-        normalised frame) is in front of the camera (z > 0) and its image, widened by the sphere's projected
-        radius f·r/z, overlaps the picture. A camera that fails it sees nothing of the scene."""
+        """Indices of the cameras that look at the scene: the camera is inside the scene sphere (radius r about
+        the origin of the normalised frame: every camera of a layout normalised around the cameras, as TnT's
+        is), or the sphere's centre is in front of it (z > 0) and its image, widened by the sphere's projected
+        radius f·r/z, overlaps the picture. A camera that fails both sees nothing of the scene."""
         facing = []
         for i, cam in enumerate(self.cameras):
+            if np.linalg.norm(cam.center) < self.radius:
+                facing.append(i)
+                continue
             pixel, z = cam.project(np.zeros((1, 3)))
             if z[0] <= 0:
                 continue

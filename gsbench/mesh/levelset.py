@@ -63,6 +63,9 @@ from gsbench.mesh.cleanup import to_trimesh
 from gsbench.raster import RasterGaussians, RasterSettings, rasterize
 from gsbench.raster.payload import quat_to_rotmat
 
+# Open3D's screened Poisson on more than one thread crashes (SIGSEGV) at random when the cores are busy, and
+# its mesh then depends on the thread count (Open3D issues 6828, 7229; PoissonRecon 298): one thread, always.
+POISSON_THREADS = 1
 MIN_OPACITY = 0.5  # docs/methods/sugar.md §4.1: Gaussians with opacity <= 0.5 are removed
 KNN = 16  # neighbours of the density field
 RAY_SAMPLES = 21  # n_points_in_range
@@ -209,7 +212,7 @@ def _silenced_stderr():
 
 
 def poisson_surface(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, depth: int,
-                    density_quantile: float, max_triangles: int, threads: int):
+                    density_quantile: float, max_triangles: int):
     """Outlier removal, screened Poisson, density-quantile trim, decimation, clean-up (module docstring, 4)."""
     o3d = import_open3d()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -218,7 +221,7 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, colors: np.ndarray,
     cloud, _ = cloud.remove_statistical_outlier(nb_neighbors=OUTLIER_NEIGHBOURS, std_ratio=OUTLIER_STD_RATIO)
     with _silenced_stderr():
         mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            cloud, depth=depth, width=0, scale=POISSON_SCALE, linear_fit=False, n_threads=threads)
+            cloud, depth=depth, width=0, scale=POISSON_SCALE, linear_fit=False, n_threads=POISSON_THREADS)
     densities = np.asarray(densities)
     if density_quantile > 0 and len(densities):
         mesh.remove_vertices_by_mask(densities < np.quantile(densities, density_quantile))
@@ -279,8 +282,7 @@ def levelset_mesh(gaussians: RasterGaussians, cameras: Sequence[Camera], setting
             continue
         depth = cfg.poisson_depth or auto_poisson_depth(points[part], footprints[part])
         mesh += poisson_surface(points[part], normals[part], colors[part], depth=depth,
-                                density_quantile=cfg.poisson_density_quantile, max_triangles=cfg.poisson_triangles,
-                                threads=torch.get_num_threads())
+                                density_quantile=cfg.poisson_density_quantile, max_triangles=cfg.poisson_triangles)
     if len(mesh.triangles) == 0:
         raise MeshError(f"poisson extraction produced an empty mesh from {len(points)} level-set points {context}; "
                         "check that the level is crossed (train longer, or lower mesh.level)")

@@ -4,5 +4,6 @@
 sweep manifests, label configurations), `metrics` (direction/unit of a metric, the ranking metric of a
 dataset, the papers' reported numbers), `aggregate` (rows × scenes, mean ± std over seeds), `pareto`
 (non-dominated cost/error points), `tables` (cells, Markdown), `views` (the tables of boards),
-`run_tables` (the tables of single runs), `leaderboard_csv`, `plots` (matplotlib PNGs) and `html` (the self-contained page).
+`run_tables` (the tables of single runs), `leaderboard_csv`, `plots` (matplotlib PNGs), `surfaces` (pictures of
+the meshes) and `html` (the self-contained page).
 """

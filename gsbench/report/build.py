@@ -22,6 +22,7 @@ from __future__ import annotations
 from datetime import datetime, timezone
 from pathlib import Path
 
+from gsbench.errors import one_line
 from gsbench.report import plots as figures
 from gsbench.report.aggregate import Board, ablations, leaderboard
 from gsbench.report.claims import evaluate_claims
@@ -39,6 +40,7 @@ from gsbench.report.run_tables import (
     unfinished_table,
 )
 from gsbench.report.stats import comparisons
+from gsbench.report.surfaces import ERROR_SCALE_MM, surface_picture
 from gsbench.report.tables import Plot, Section, document_markdown
 from gsbench.report.views import (
     PAIRED_NOTE,
@@ -49,8 +51,14 @@ from gsbench.report.views import (
     ranks_table,
     speed_table,
 )
+from gsbench.run_folder import RunFolder
 
 TITLE = "gsbench report"
+SURFACES_NOTE = ("Each row's mesh (the ok run of the lowest seed whose folder still holds it) from two fixed "
+                 "training views, beside the ground truth from the same views (the exact mesh of a synthetic scene, "
+                 "else the ground-truth points; the photo with its mask outline for a capture without ground truth) "
+                 f"and, on the DTU protocol, coloured by each vertex's distance to the ground truth, 0 to "
+                 f"{ERROR_SCALE_MM:g} mm on every picture (`gsbench render RUN_DIR` draws one run's).")
 PROTOCOLS_NOTE = ("Each dataset is ranked by its official protocol (DTU: the DTUeval script's Chamfer; TnT: the "
                   "official toolbox's F1 on the mesh vertices). Beside it: the same distances on area samples of "
                   "the mesh (independent of how the surface is triangulated) and, for TnT, F1 on vertices plus face "
@@ -106,6 +114,41 @@ class _Plots:
         plot = Plot(file, alt, png)
         self.made.append(plot)
         return [plot]
+
+    def add_png(self, name: str, alt: str, png: bytes) -> list[Plot]:
+        """A figure drawn elsewhere (the surfaces)."""
+        return self.add(name, alt, lambda _board: png, None)
+
+
+def _surfaces(runs_dir: Path, boards: list[Board], made: _Plots, warnings: list[str]) -> Section | None:
+    """Per dataset and scene, each row's surface (`gsbench.report.surfaces`): the ok run of the lowest seed whose
+    folder below ``runs_dir`` still holds its mesh. None when no run folder has one (a report of records
+    only); a picture that cannot be drawn (the scene not on this machine) is a warning."""
+    if not made.enabled:
+        return None
+    blocks = []
+    for board in boards:
+        for scene in board.scenes:
+            for row in board.rows:
+                runs = sorted((r for r in row.runs if r.ok and r.scene == scene),
+                              key=lambda r: (r.seed if r.seed is not None else 1 << 30, r.run_id))
+                folder = next((runs_dir / Path(r.path).parent for r in runs
+                               if RunFolder(runs_dir / Path(r.path).parent).mesh.is_file()), None)
+                if folder is None:
+                    continue
+                seed = next(r.seed for r in runs if runs_dir / Path(r.path).parent == folder)
+                try:
+                    picture = surface_picture(folder, title=f"{row.name} on {scene}, seed {seed}")
+                except Exception as exc:  # noqa: BLE001  (one missing scene must not stop the report)
+                    warnings.append(f"{folder.relative_to(runs_dir).as_posix()}: no surface picture "
+                                    f"({type(exc).__name__}: {one_line(exc, 200)})")
+                    continue
+                blocks += made.add_png(f"surface_{board.dataset}_{scene}_{row.name}",
+                                       f"{row.name} on {scene} (seed {seed}), {picture.width}x{picture.height} px",
+                                       picture.png)
+    if not blocks:
+        return None
+    return Section("surfaces", "Surfaces", [SURFACES_NOTE], blocks)
 
 
 def _summary(runs) -> str:
@@ -219,7 +262,9 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     specs = metric_specs()
     claims = Section("papers-orderings", "The papers' orderings, tested", [*CLAIMS_NOTES, PAIRED_NOTE],
                      claims_tables(evaluate_claims(runs, manifests, specs), specs))
-    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked), significance, claims,
+    surfaces = _surfaces(runs_dir, boards, made, warnings)
+    sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked),
+                *([surfaces] if surfaces else []), significance, claims,
                 speed, *([without_gt] if without_gt else []), sweeps,
                 Section("failed", "Failed and unfinished runs", [],
                         [failed_table(runs), *([unfinished_table(unfinished)] if unfinished else [])]),

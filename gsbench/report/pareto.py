@@ -7,6 +7,7 @@ Equal points are all on the front. `cost_points` applies this to the rows of a b
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from gsbench.report.aggregate import Board
@@ -34,13 +35,26 @@ COSTS = {  # Row.speed key -> (short name, axis label)
 @dataclass(frozen=True)
 class Point:
     """One row of a board against one cost: its mean cost, its mean metric over scenes, whether it
-    covers every scene (only such rows compete for the front), and whether it is on the front."""
+    covers every scene (only such rows compete for the front), and whether it is on the front; the 95%
+    half-widths of both (`value_interval`, the cost's t-interval over its runs), None where a scene or the
+    cost has a single run."""
 
     row: str
     cost: float
     value: float
     complete: bool
     front: bool
+    cost_ci: float | None = None
+    value_ci: float | None = None
+
+
+def value_interval(board: Board, row) -> float | None:
+    """Half-width of the 95% interval of a row's mean over its S scenes, from the scenes' t-intervals as
+    independent: sqrt(Σ h_s²) / S; None unless every scene of the row has one."""
+    stats = [row.cells[s].stat for s in board.scenes if row.cells.get(s) is not None and row.cells[s].stat]
+    if not stats or any(s.ci is None for s in stats):
+        return None
+    return math.sqrt(sum(s.ci ** 2 for s in stats)) / len(stats)
 
 
 def cost_points(board: Board, cost: str) -> list[Point]:
@@ -50,7 +64,8 @@ def cost_points(board: Board, cost: str) -> list[Point]:
         value, complete = board.mean(row)
         spent = row.speed.get(cost)
         if value is not None and spent is not None:
-            raw.append((row.name, spent.mean, value, complete))
+            raw.append((row.name, spent.mean, value, complete, spent.ci, value_interval(board, row)))
     competing = [i for i, p in enumerate(raw) if p[3]]
     front = {competing[j] for j in pareto_front([raw[i][1:3] for i in competing], board.spec.higher_is_better)}
-    return [Point(name, spent, value, complete, i in front) for i, (name, spent, value, complete) in enumerate(raw)]
+    return [Point(name, spent, value, complete, i in front, cost_ci, value_ci)
+            for i, (name, spent, value, complete, cost_ci, value_ci) in enumerate(raw)]

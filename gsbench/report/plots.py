@@ -2,8 +2,8 @@
 without pyplot, so no global backend state or display is touched.
 
 - `speed_figure`: per dataset, four panels (training time, total time, peak RSS in training, Gaussians) against
-  the mean metric; rows with every scene are filled and compete for the Pareto front (joined by a
-  line), incomplete rows are hollow.
+  the mean metric, with their 95% intervals (grey bars, `gsbench.report.pareto.Point`); rows with every
+  scene are filled and compete for the Pareto front (joined by a line), incomplete rows are hollow.
 - `grid_figure`: a one-key numeric sweep (e.g. IBGS K) against the metric, one line per scene, error
   bars = sample std over seeds.
 - `variants_figure`: a sweep of named rows, the metric per row (one marker per scene, std bars).
@@ -64,6 +64,10 @@ def speed_figure(board: Board) -> bytes | None:
         ax.set_ylabel(_metric_axis(board))
         ax.grid(alpha=0.3)
         for point in points:
+            if point.cost_ci is not None or point.value_ci is not None:  # the 95% intervals (`Point`)
+                ax.errorbar([point.cost * scale], [point.value], fmt="none", ecolor="0.55", elinewidth=0.9,
+                            capsize=2, zorder=2, yerr=None if point.value_ci is None else [point.value_ci],
+                            xerr=None if point.cost_ci is None else [point.cost_ci * scale])
             ax.scatter([point.cost * scale], [point.value], s=40, zorder=3,
                        facecolors="C0" if point.complete else "none", edgecolors="C3" if point.front else "C0")
             ax.annotate(_short(point.row), (point.cost * scale, point.value), fontsize=7,
