@@ -38,7 +38,7 @@ from gsbench.run_folder import RunFolder
 from gsbench.runs.runner import load_run_scene, resolve_run
 
 PICTURE_WIDTH = 320  # pixels across one panel
-VIEW_FRACTIONS = (0.0, 0.5)  # the training views shown: the first and the one half-way through the list
+SECOND_VIEW_ANGLE = 90.0  # degrees between the two views' directions from the scene centre, as near as there is
 ERROR_SCALE_MM = 2.0  # the colour scale of the distance to the ground truth, 0 to this, in mm
 MESH_GREY, GT_GREY = np.array([0.72, 0.74, 0.78]), np.array([0.80, 0.76, 0.68])
 COLORMAP = "viridis"
@@ -62,9 +62,13 @@ def picture_camera(camera: Camera, width: int = PICTURE_WIDTH) -> Camera:
 
 
 def picture_views(scene: Scene) -> list[int]:
-    """The training views at `VIEW_FRACTIONS` of the list (the same for every method of a scene)."""
+    """Two training views, the same for every method of a scene: the first, and the one whose direction from
+    the scene's centre is closest to a right angle from the first's (the other side of a ring or a cap)."""
     views = scene.train_views or list(range(len(scene.cameras)))
-    return list(dict.fromkeys(views[min(int(f * len(views)), len(views) - 1)] for f in VIEW_FRACTIONS))
+    directions = np.array([scene.cameras[i].center for i in views], dtype=np.float64)
+    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
+    angles = np.degrees(np.arccos(np.clip(directions @ directions[0], -1.0, 1.0)))
+    return list(dict.fromkeys([views[0], views[int(np.argmin(np.abs(angles - SECOND_VIEW_ANGLE)))]]))
 
 
 def _rays(camera: Camera) -> np.ndarray:
