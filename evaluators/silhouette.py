@@ -47,7 +47,7 @@ from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import EvaluationError, import_open3d
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo
 from gsbench.evaluators.geometry import check_frame, load_geometry, read_geometry, to_normalised_frame
-from gsbench.geometry.depth import pixel_centres
+from gsbench.geometry.depth import world_rays
 
 HULL_DILATE_PX = 1  # masks grown by one pixel before carving (module docstring)
 HULL_MIN_VIEWS = 1
@@ -69,15 +69,6 @@ def camera_at(cam: Camera, width: int, height: int) -> Camera:
     return replace(cam, K=K, width=width, height=height)
 
 
-def pixel_rays(cam: Camera) -> np.ndarray:
-    """(H·W, 6) rays (origin, direction) through every pixel centre ``(i + 0.5, j + 0.5)``, row-major
-    (row j, then column i), in the camera's world frame; directions not normalised."""
-    centres = pixel_centres(cam).reshape(-1, 2).numpy()
-    pix = np.column_stack([centres, np.ones(len(centres))])
-    dirs = (pix @ np.linalg.inv(np.asarray(cam.K, np.float64)).T) @ np.asarray(cam.R, np.float64)  # Rᵀ K⁻¹ p
-    return np.concatenate([np.broadcast_to(cam.center, dirs.shape), dirs], axis=1)
-
-
 def silhouettes(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]) -> list[np.ndarray]:
     """Bool (H, W) per camera: which pixel-centre rays hit the mesh (module docstring)."""
     o3d = import_open3d()
@@ -87,7 +78,7 @@ def silhouettes(vertices: np.ndarray, faces: np.ndarray, cameras: list[Camera]) 
                         o3d.core.Tensor(faces.astype(np.uint32)))
     out = []
     for cam in cameras:
-        rays = pixel_rays(cam)
+        rays = world_rays(cam)
         rays[:, :3] -= origin
         t_hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
         out.append(np.isfinite(t_hit).reshape(cam.height, cam.width))

@@ -194,6 +194,14 @@ class Method:
         active_terms(cfg.losses, 0, method.term_params(), method.loss_terms())
 
     @classmethod
+    def gaussian_budget(cls, cfg: RunConfig) -> int:
+        """The Gaussian count a memory estimate assumes: ``train.max_gaussians``, else (no cap) the random
+        initialisation's ``method.random_init_points``."""
+        if cfg.train.max_gaussians > 0:
+            return cfg.train.max_gaussians
+        return cls.Config(**{k: v for k, v in cfg.method.items() if k != "name"}).random_init_points
+
+    @classmethod
     def memory_estimate(cls, cfg: RunConfig) -> dict[str, int]:
         """Bytes the run will need at its largest, by item, from the configuration alone (`memory_check`):
 
@@ -207,8 +215,7 @@ class Method:
           `gsbench.mesh.tets.MAX_POINTS`), measured at 2.8 kB per point (`gsbench.mesh.tets`).
         The scene's images are not counted (their number is not known before the scene is read); methods add
         their own items (IBGS's kNN tables)."""
-        p = cls.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
-        n = cfg.train.max_gaussians if cfg.train.max_gaussians > 0 else p.random_init_points
+        n = cls.gaussian_budget(cfg)
         params = 11 + 3 * (cfg.raster.sh_degree + 1) ** 2
         pixels = cfg.data.max_size[0] * cfg.data.max_size[1] if len(cfg.data.max_size) == 2 else 0
         items = {"Gaussians": n * (4 * params * 4 + 2 * 24 * 8 + 8 * 4), "render buffers": pixels * 16 * 8 * 2}

@@ -80,10 +80,7 @@ class IBGSMixin:
         """The base method's items and the kNN tables for N Gaussians and K = ``method.knn_k``: the query's
         distances and indices (16 NK bytes) and the neighbourhood covariance's gathered neighbours, forward and
         backward, in float64 (56 NK bytes)."""
-        items = super().memory_estimate(cfg)
-        k = int(cfg.method.get("knn_k", IBGSFields.knn_k))
-        n = cfg.train.max_gaussians if cfg.train.max_gaussians > 0 else int(cfg.method.get("random_init_points", 0))
-        return {**items, "kNN tables": 72 * n * k}
+        return {**super().memory_estimate(cfg), "kNN tables": 72 * cls.gaussian_budget(cfg) * int(cfg.method["knn_k"])}
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
         super().setup(scene, cfg)

@@ -7,6 +7,7 @@ depth d puts the pixel's point at d · ray.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -26,6 +27,15 @@ def pixel_rays(camera: Camera, dtype=torch.float32) -> torch.Tensor:
     x = (centres[..., 0] - camera.cx) / camera.fx
     y = (centres[..., 1] - camera.cy) / camera.fy
     return torch.stack([x, y, torch.ones_like(x)], -1).to(dtype)
+
+
+def world_rays(camera: Camera) -> np.ndarray:
+    """(H·W, 6) rays (origin, direction) through every pixel centre in the camera's world frame, row-major
+    (row j, then column i); direction Rᵀ K⁻¹ (i + 0.5, j + 0.5, 1), not normalised."""
+    centres = pixel_centres(camera).reshape(-1, 2).numpy()
+    pix = np.column_stack([centres, np.ones(len(centres))])
+    dirs = (pix @ np.linalg.inv(np.asarray(camera.K, np.float64)).T) @ np.asarray(camera.R, np.float64)
+    return np.concatenate([np.broadcast_to(camera.center, dirs.shape), dirs], axis=1)
 
 
 def depth_to_normal(depth: torch.Tensor, camera: Camera) -> torch.Tensor:

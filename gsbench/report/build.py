@@ -132,11 +132,10 @@ def _surfaces(runs_dir: Path, boards: list[Board], made: _Plots, warnings: list[
             for row in board.rows:
                 runs = sorted((r for r in row.runs if r.ok and r.scene == scene),
                               key=lambda r: (r.seed if r.seed is not None else 1 << 30, r.run_id))
-                folder = next((runs_dir / Path(r.path).parent for r in runs
-                               if RunFolder(runs_dir / Path(r.path).parent).mesh.is_file()), None)
+                meshed = [(runs_dir / Path(r.path).parent, r.seed) for r in runs]
+                folder, seed = next(((f, s) for f, s in meshed if RunFolder(f).mesh.is_file()), (None, None))
                 if folder is None:
                     continue
-                seed = next(r.seed for r in runs if runs_dir / Path(r.path).parent == folder)
                 try:
                     picture = surface_picture(folder, title=f"{row.name} on {scene}, seed {seed}")
                 except Exception as exc:  # noqa: BLE001  (one missing scene must not stop the report)

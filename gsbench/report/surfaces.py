@@ -33,7 +33,7 @@ from gsbench.data.camera import Camera, Scene
 from gsbench.data.synthetic.generator import GT_MESH_NAME
 from gsbench.errors import GsbenchError, import_open3d, missing_dependency
 from gsbench.evaluators.gt_io import read_matrix4, read_points
-from gsbench.geometry.depth import pixel_centres
+from gsbench.geometry.depth import world_rays
 from gsbench.run_folder import RunFolder
 from gsbench.runs.runner import load_run_scene, resolve_run
 
@@ -72,11 +72,10 @@ def picture_views(scene: Scene) -> list[int]:
 
 
 def _rays(camera: Camera) -> np.ndarray:
-    """(H·W, 6) world rays (origin, unit direction) through the pixel centres, row-major."""
-    pix = np.column_stack([pixel_centres(camera).reshape(-1, 2).numpy(), np.ones(camera.width * camera.height)])
-    dirs = (pix @ np.linalg.inv(np.asarray(camera.K, np.float64)).T) @ np.asarray(camera.R, np.float64)
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    return np.concatenate([np.broadcast_to(camera.center, dirs.shape), dirs], axis=1)
+    """`gsbench.geometry.depth.world_rays` with unit directions (the shading's viewing ray d)."""
+    rays = world_rays(camera)
+    rays[:, 3:] /= np.linalg.norm(rays[:, 3:], axis=1, keepdims=True)
+    return rays
 
 
 def shade(vertices: np.ndarray, faces: np.ndarray, camera: Camera, face_colors: np.ndarray | None = None,

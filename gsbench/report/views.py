@@ -26,6 +26,7 @@ from gsbench.report.stats import (
     significance_ranks,
 )
 from gsbench.report.tables import MISSING, Table, TCell, count, join_text, metric_cell, mib, number, plain, status_text
+from gsbench.runs.records import code_version
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
               "the same thread count on an equally loaded machine of the same kind (see Environment).")
@@ -57,12 +58,11 @@ def cpu_note(runs: list[Run]) -> str:
             f"between runs on one CPU model (the page's list of runs and Environment say which).")
 
 
-def code_version(run: Run) -> str:
-    """The commit a run's record names (12 hex digits, ``+dirty`` for uncommitted changes; ``unknown``)."""
-    commit = run.environment.get("git_commit")
-    if not commit:
-        return "unknown"
-    return str(commit)[:12] + ("+dirty" if run.environment.get("git_dirty") else "")
+def short_code_version(run: Run) -> str:
+    """A run's code version (`gsbench.runs.records.code_version`) with the commit cut to 12 hex digits;
+    ``unknown`` when its record names none."""
+    version = code_version(run.environment)
+    return "unknown" if version is None else version[:12] + version[40:]
 
 
 def code_version_note(board: Board) -> str:
@@ -72,7 +72,7 @@ def code_version_note(board: Board) -> str:
     for row in board.rows:
         for run in row.runs:
             if run.ok:
-                rows_of.setdefault(code_version(run), set()).add(row.name)
+                rows_of.setdefault(short_code_version(run), set()).add(row.name)
     if len(rows_of) < 2:
         return ""
     listed = "; ".join(f"{version}: {join_text(sorted(rows, key=natural_key))}"

@@ -116,6 +116,13 @@ def git_state() -> dict:
         return {"git_commit": None, "git_dirty": None}
 
 
+def code_version(environment: dict) -> str | None:
+    """The code a record's ``environment`` (or `git_state`) names: its commit, ``+dirty`` when the tree had
+    uncommitted changes; None when unknown."""
+    commit = environment.get("git_commit")
+    return None if not commit else str(commit) + ("+dirty" if environment.get("git_dirty") else "")
+
+
 def _cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

@@ -49,7 +49,7 @@ from gsbench.config.run_config import RunConfig, parse_override
 from gsbench.config.suites import SUITE_PREFIX, load_suite
 from gsbench.errors import ConfigError
 from gsbench.run_folder import RunFolder
-from gsbench.runs.records import RunRecord, git_state, write_json_atomic
+from gsbench.runs.records import RunRecord, code_version, git_state, write_json_atomic
 from gsbench.runs.runner import ERROR_TAIL_LINES, resolve_run, run, run_dir
 
 SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "suite", "seeds", "executor")
@@ -174,11 +174,11 @@ def expand(sweep: dict, overrides=()) -> list[SweepRun]:
         label = _label(variant, {**point, **paired})
         for scene in scenes or [settings.get("scene")]:
             for seed in seeds or [settings.get("seed", 0)]:
-                runs.append(SweepRun(label, _resolve(settings, scene, seed, label, resolve_run, check_run_config)))
+                runs.append(SweepRun(label, _resolve(settings, scene, seed, label)))
     return runs
 
 
-def _resolve(settings: dict, scene, seed, label: str, resolve_run, check_run_config) -> RunConfig:
+def _resolve(settings: dict, scene, seed, label: str) -> RunConfig:
     method = settings.get("method")
     if not method or not scene:
         raise ConfigError(f"sweep run '{label}': needs a method and a scene (in base, variants, grid or scenes)")
@@ -239,16 +239,13 @@ def is_finished(cfg: RunConfig) -> bool:
 
 
 def record_code(cfg: RunConfig) -> str | None:
-    """The commit (``+dirty`` with uncommitted changes) the run's record was made by; None when unknown."""
-    environment = RunRecord.read(RunFolder(run_dir(cfg)).record).environment or {}
-    commit = environment.get("git_commit")
-    return None if not commit else str(commit) + ("+dirty" if environment.get("git_dirty") else "")
+    """The code version (`gsbench.runs.records.code_version`) the run's record was made by."""
+    return code_version(RunRecord.read(RunFolder(run_dir(cfg)).record).environment or {})
 
 
 def current_code() -> str | None:
-    """The commit of the code running now, as `record_code` writes it; None outside a git checkout."""
-    state = git_state()
-    return None if not state["git_commit"] else state["git_commit"] + ("+dirty" if state["git_dirty"] else "")
+    """The version of the code running now, as `record_code` reads it; None outside a git checkout."""
+    return code_version(git_state())
 
 
 def settle_other_code(runs: list[SweepRun], finished: set, policy: str, echo) -> set:
@@ -259,10 +256,11 @@ def settle_other_code(runs: list[SweepRun], finished: set, policy: str, echo) ->
     if policy not in OTHER_CODE:
         raise ConfigError(f"--other-code must be one of {', '.join(OTHER_CODE)}, got {policy!r}")
     now = current_code()
-    other = {r.run_id: r for r in runs if r.run_id in finished and (now is None or record_code(r.config) != now)}
+    codes = {r.run_id: record_code(r.config) for r in runs if r.run_id in finished}
+    other = {r.run_id: r for r in runs if r.run_id in codes and (now is None or codes[r.run_id] != now)}
     if not other:
         return finished
-    versions = sorted({str(record_code(r.config)) for r in other.values()})
+    versions = sorted({str(codes[run_id]) for run_id in other})
     what = (f"{len(other)} of the sweep's {len(finished)} finished runs were made by other code ({', '.join(versions)}; "
             f"now {now or 'unknown'})")
     if policy == "refuse":
