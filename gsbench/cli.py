@@ -34,9 +34,9 @@ def cmd_list(args) -> int:
 
     print("methods:    " + (", ".join(METHODS.names()) or "(none registered yet)"))
     print("evaluators: " + ", ".join(EVALUATORS.names()))
-    print("scenes:")
+    print("scenes (format, the object's mean share of each image, description):")
     for scene in BUILTIN_SCENES.values():
-        print(f"  {scene.name:<24} {scene.format:<4} {scene.description}")
+        print(f"  {scene.name:<24} {scene.format:<4} {scene.share:>5.1%}  {scene.description}")
     print("suites (gsbench sweep FILE --suite NAME):")
     for name in suite_names():
         suite = load_suite(name)
@@ -46,9 +46,18 @@ def cmd_list(args) -> int:
 
 
 def cmd_scene_make(args) -> int:
-    from gsbench.data.loader import check_scene, make_scene
+    from gsbench.data.loader import check_scene, make_mesh_scene, make_scene
 
-    path = make_scene(args.name, fmt=args.format, out=args.out, res=args.res, seed=args.seed, supersample=args.supersample)
+    common = {"out": args.out, "res": args.res, "seed": args.seed, "supersample": args.supersample}
+    if args.mesh:
+        if args.name:
+            raise ConfigError(f"scene make: give a built-in name or --mesh, not both (got {args.name!r} and --mesh {args.mesh})")
+        path = make_mesh_scene(args.mesh, fmt=args.format or "dtu-colmap", framing=args.framing or "dtu", up=args.up,
+                               yaw=args.yaw, albedo=args.albedo, largest_part=args.largest_part, **common)
+    elif args.name:
+        path = make_scene(args.name, fmt=args.format, framing=args.framing, **common)
+    else:
+        raise ConfigError("scene make: give a built-in name (gsbench list) or --mesh FILE")
     print(f"scene written to {path}")
     print(json.dumps(check_scene(path), indent=2, default=str))
     return 0
@@ -233,9 +242,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("list", help="methods, evaluators and built-in scenes").set_defaults(func=cmd_list)
 
     scene = sub.add_parser("scene", help="make or check scene folders").add_subparsers(dest="scene_command", required=True)
-    make = scene.add_parser("make", help="generate a built-in synthetic scene")
-    make.add_argument("name", help="e.g. synthetic/spot (see `gsbench list`)")
-    make.add_argument("--format", choices=("dtu", "dtu-colmap", "tnt"), default=None, help="layout (default: the scene's own)")
+    make = scene.add_parser("make", help="generate a built-in synthetic scene, or a scene of any mesh file")
+    make.add_argument("name", nargs="?", help="e.g. synthetic/spot (see `gsbench list`); or give --mesh")
+    make.add_argument("--mesh", metavar="FILE", help="a mesh file (obj, ply, glb, gltf, off, stl): the object on the table "
+                                                     "in a room (DTU layouts) or on the ground (tnt), exact ground truth")
+    make.add_argument("--framing", default=None,
+                      help="dtu (the object fills 34%% of each image, as on DTU), small (12.6%%, the first synthetic "
+                           "scenes) or a share in (0, 1); default: dtu for --mesh, the scene's own for built-ins")
+    make.add_argument("--up", default="y", choices=("x", "y", "z", "-x", "-y", "-z"), help="--mesh: the file's up axis")
+    make.add_argument("--yaw", type=float, default=0.0, help="--mesh: turn the object about up by this many degrees "
+                                                             "(the DTU cameras look from +y)")
+    make.add_argument("--albedo", default="auto", help="--mesh: auto (the file's texture or colours, else procedural), "
+                                                       "file, or a named albedo: procedural, uniform, painted, wood, "
+                                                       "glaze, fine, stone")
+    make.add_argument("--largest-part", action="store_true", help="--mesh: keep only the largest connected part")
+    make.add_argument("--format", choices=("dtu", "dtu-colmap", "tnt"), default=None,
+                      help="layout (default: the scene's own; dtu-colmap for --mesh)")
     make.add_argument("--out", default=None, help="folder (default: the cache, $GSBENCH_DATA)")
     make.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), default=None, help="image size")
     make.add_argument("--seed", type=int, default=0)

@@ -3,11 +3,13 @@
 - `load_scene(path_or_name)`: a folder (layout detected by `detect_format`) or a built-in name
   ``synthetic/<name>`` (generated into the cache on first use).
 - `make_scene(name, ...)`: generate a built-in scene (``gsbench scene make``); skipped when the folder
-  already holds the same scene (same ``gsbench_scene.json``).
+  already holds the same scene (same ``gsbench_scene.json``); `make_mesh_scene(file, ...)` the same for
+  a scene made of any mesh file (``gsbench scene make --mesh FILE``).
 - `check_scene(path, gt_root)`: what a folder holds and what is wrong with it (``gsbench scene check``).
 
 Cache: ``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``; built-in scenes go to
-``<cache>/synthetic/<name>`` (plus ``-<format>``, ``-<W>x<H>``, ``-s<seed>`` for non-default choices).
+``<cache>/synthetic/<name>`` (plus ``-<format>``, ``-framing<share>``, ``-<W>x<H>``, ``-s<seed>`` for
+non-default choices), mesh-file scenes to ``<cache>/mesh/<file stem>`` (plus ``-<W>x<H>``, ``-s<seed>``).
 Generation is atomic: the scene is written into a temporary sibling folder which is then renamed.
 It imports the loaders and the generator (about 1 s: trimesh, scipy); `gsbench.data.synthetic.builtin` is the
 table of built-in scenes without them.
@@ -24,11 +26,11 @@ from gsbench.data.camera import Scene
 from gsbench.data.dtu import dtu_ground_truth, dtu_gt_paths, load_dtu, load_dtu_colmap, scan_number
 from gsbench.data.meta import read_meta
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
-from gsbench.data.synthetic.generator import DEFAULT_SUPERSAMPLE, plan_meta, plan_scene, write_scene
+from gsbench.data.synthetic.generator import DEFAULT_SUPERSAMPLE, SPECS, plan_mesh_scene, plan_meta, plan_scene, write_scene
 from gsbench.data.tnt import gt_files, load_tnt, scene_gt_name
 from gsbench.errors import DataError, GsbenchError
 
-__all__ = ["BUILTIN_SCENES", "check_scene", "detect_format", "load_scene", "make_scene"]
+__all__ = ["BUILTIN_SCENES", "check_scene", "detect_format", "load_scene", "make_mesh_scene", "make_scene"]
 
 LAYOUTS = ("dtu: cameras.npz + image/ + mask/; tnt: sparse/0 + images/ (+ {scene}.ply, .json, _trans.txt, "
            "_COLMAP_SfM.log); dtu-colmap: sparse/0 + images/ + mask/")
@@ -109,32 +111,50 @@ def has_ground_truth(path_or_name, gt_root=None) -> bool:
 def _default_folder(plan, custom_size: bool) -> Path:
     cam = plan.cameras[0]
     parts = [plan.short_name]
-    if plan.fmt != plan.spec.fmt:
+    if plan.builtin and plan.fmt != plan.spec.fmt:
         parts.append(plan.fmt)
+    if plan.builtin and plan.spec.framing != SPECS[plan.name].framing:
+        parts.append(f"framing{plan.spec.framing:g}")
     if custom_size:
         parts.append(f"{cam.width}x{cam.height}")
     if plan.seed != 0:
         parts.append(f"s{plan.seed}")
     if plan.supersample != DEFAULT_SUPERSAMPLE:
         parts.append(f"ss{plan.supersample}")
-    return cache_dir() / "synthetic" / "-".join(parts)
+    return cache_dir() / plan.name.split("/", 1)[0] / "-".join(parts)
 
 
-def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int = 0, supersample: int | None = None) -> Path:
+def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int = 0, supersample: int | None = None,
+               framing=None) -> Path:
     """Generate built-in scene ``name`` (``synthetic/spot`` or ``spot``) and return its folder.
 
     ``fmt``: ``dtu``, ``dtu-colmap`` or ``tnt`` (default: the scene's own). ``res``: None (0.25 of the
     full size), a float factor of the full size, or ``(W, H)``. ``out``: the folder (default: the cache).
     ``supersample``: rays per pixel side of the images (None: the default 2, area-sampled; 1: one ray
-    through each pixel centre, as the rasterizer samples). Nothing is written when ``out`` already holds this exact scene.
+    through each pixel centre, as the rasterizer samples). ``framing``: ``dtu``, ``small`` or an object
+    share (`gsbench.data.synthetic.framing`; None: the scene's own). Nothing is written when ``out``
+    already holds this exact scene.
     """
-    plan = plan_scene(name, fmt, res, seed)
+    return write_plan(plan_scene(name, fmt, res, seed, framing=framing), out, res is not None, supersample)
+
+
+def make_mesh_scene(mesh, *, out=None, fmt: str = "dtu-colmap", res=None, seed: int = 0, supersample: int | None = None,
+                    framing="dtu", up: str = "y", yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False) -> Path:
+    """Generate a scene of the mesh file ``mesh`` (`gsbench.data.synthetic.generator.plan_mesh_scene`) and
+    return its folder (default: ``<cache>/mesh/<file stem>``...); the other arguments as `make_scene`'s."""
+    plan = plan_mesh_scene(mesh, fmt=fmt, res=res, seed=seed, framing=framing, up=up, yaw=yaw, albedo=albedo,
+                           largest_part=largest_part)
+    return write_plan(plan, out, res is not None, supersample)
+
+
+def write_plan(plan, out, custom_size: bool, supersample: int | None) -> Path:
+    """Write a planned scene into ``out`` (default: the cache) atomically, unless it already holds it."""
     if supersample is not None:
         if supersample < 1:
             raise DataError(f"supersample must be >= 1 (rays per pixel side), got {supersample}; fix: e.g. --supersample 1")
         plan.supersample = int(supersample)
     meta = plan_meta(plan)
-    out = Path(out) if out else _default_folder(plan, custom_size=res is not None)
+    out = Path(out) if out else _default_folder(plan, custom_size)
     if out.exists():
         found = read_meta(out)
         if found == meta:

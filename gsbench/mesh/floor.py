@@ -6,7 +6,8 @@ training resolution: that mesh is the floor a method's numbers are read against.
 1. resolve the run config of ``3dgs`` on the scene with the preset and overrides (only the dataset
    and preset layers matter: ``data.downscale`` and ``data.max_size``, ``data.use_masks`` and the ``mesh`` TSDF settings;
    3DGS's method layer sets no mesh parameter);
-2. re-plan the scene from its ``gsbench_scene.json`` (built-in name, format, resolution, seed) and
+2. re-plan the scene from its ``gsbench_scene.json`` (built-in name or mesh file, format, resolution,
+   seed, framing) and
    ray-cast every training camera at the training resolution (`gsbench.data.synthetic.render.Renderer`, the
    object with its surroundings, as the images show it; the
    stored ``gt_depth/`` maps are at the generated resolution, and a downscaled depth map is not the
@@ -25,9 +26,8 @@ from tqdm import tqdm
 
 from gsbench.data.camera import Scene
 from gsbench.data.meta import read_meta
-from gsbench.data.synthetic.generator import plan_scene
+from gsbench.data.synthetic.generator import plan_from_meta
 from gsbench.data.synthetic.render import Renderer
-from gsbench.errors import DataError
 from gsbench.evaluators.api import evaluate_mesh_file
 from gsbench.evaluators.resolve import run_options
 from gsbench.mesh.cleanup import canonical_order
@@ -38,11 +38,7 @@ from gsbench.runs.runner import load_run_scene, plan_run_evaluation, resolve_run
 def exact_depth_maps(scene: Scene, views=None) -> list[np.ndarray]:
     """Camera-z depth of the cameras ``views`` of ``scene`` (default: all; normalised frame, the scene's loaded
     resolution)."""
-    meta = read_meta(scene.root)
-    if "builtin" not in meta:
-        raise DataError(f"{scene.root}: not a built-in synthetic scene (no 'builtin' in gsbench_scene.json); "
-                        "fix: the meshing floor needs the exact surface, give a synthetic/<name> scene")
-    plan = plan_scene(meta["builtin"], fmt=meta["format"], res=tuple(meta["resolution"]), seed=meta["seed"])
+    plan = plan_from_meta(read_meta(scene.root), scene.root)
     factor = scene.cameras[0].width / plan.cameras[0].width
     renderer = Renderer(plan.rendered, specular=plan.spec.specular)  # the object and its surroundings
     cameras = [plan.cameras[i].scaled(factor) for i in (range(len(plan.cameras)) if views is None else views)]

@@ -16,30 +16,36 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class BuiltinScene:
-    """A built-in scene: ``format`` is ``dtu`` or ``tnt`` (the layout it is written in)."""
+    """A built-in scene: ``format`` is ``dtu`` or ``tnt`` (the layout it is written in); ``share`` is the
+    mean fraction of each image its object covers (`gsbench.data.synthetic.framing.object_share` of
+    the scene's own cameras, measured; a test checks it)."""
 
     name: str
     format: str
+    share: float
     description: str
 
 
 BUILTIN_SCENES: dict[str, BuiltinScene] = {
     s.name: s
     for s in (
-        BuiltinScene("synthetic/spot", "dtu", "Spot the cow, DTU layout, millimetres, 49 cameras on a cap"),
-        BuiltinScene("synthetic/spot-tnt", "tnt", "Spot, Tanks-and-Temples layout, metres, cameras all around"),
-        BuiltinScene("synthetic/thin-plate", "dtu", "a thin sheet seen at grazing angles (hard case)"),
-        BuiltinScene("synthetic/textureless", "dtu", "a uniformly coloured object (hard case)"),
-        BuiltinScene("synthetic/spot-far", "dtu", "Spot small in the image (hard case)"),
-        BuiltinScene("synthetic/spot-km", "tnt", "Spot in kilometres (hard case: large coordinates)"),
-        BuiltinScene("synthetic/dtu-spot", "dtu", "DTU-like: Spot on a wooden table in a room, full images, dtu-colmap layout"),
-        BuiltinScene("synthetic/dtu-stool", "dtu", "DTU-like: a stool with thin legs and rungs on the table (thin parts)"),
-        BuiltinScene("synthetic/dtu-bowl", "dtu", "DTU-like: a deep glazed bowl with a loop handle on the table (concavity)"),
-        BuiltinScene("synthetic/dtu-blocks", "dtu", "DTU-like: painted stepped prisms with a star level on the table (sharp edges)"),
-        BuiltinScene("synthetic/dtu-fine", "dtu", "DTU-like: a vase with a 2 mm hatch pattern on the table (fine texture)"),
-        BuiltinScene("synthetic/dtu-plain", "dtu", "DTU-like: a smooth uniformly coloured pebble stack on the table (low texture)"),
-        BuiltinScene("synthetic/tnt-spot", "tnt", "TnT-like: Spot on cobbles among crates and barrels in a courtyard"),
-        BuiltinScene("synthetic/tnt-yard", "tnt", "TnT-like: building blocks in a yard, cameras around them, 20 m across"),
-        BuiltinScene("synthetic/tnt-sky", "tnt", "TnT-like: Spot on a meadow under a sky/mountain dome 100x its size"),
+        BuiltinScene("synthetic/spot", "dtu", 0.126, "Spot the cow, DTU layout, millimetres, 49 cameras on a cap"),
+        BuiltinScene("synthetic/spot-tnt", "tnt", 0.046, "Spot, Tanks-and-Temples layout, metres, cameras all around"),
+        BuiltinScene("synthetic/thin-plate", "dtu", 0.054, "a thin sheet seen at grazing angles (hard case)"),
+        BuiltinScene("synthetic/textureless", "dtu", 0.126, "a uniformly coloured object (hard case)"),
+        BuiltinScene("synthetic/spot-far", "dtu", 0.010, "Spot small in the image (hard case)"),
+        BuiltinScene("synthetic/spot-km", "tnt", 0.046, "Spot in kilometres (hard case: large coordinates)"),
+        BuiltinScene("synthetic/dtu-spot", "dtu", 0.126, "DTU-like: Spot on a wooden table in a room, full images, dtu-colmap layout"),
+        BuiltinScene("synthetic/dtu-stool", "dtu", 0.188, "DTU-like: a stool with thin legs and rungs on the table (thin parts)"),
+        BuiltinScene("synthetic/dtu-bowl", "dtu", 0.220, "DTU-like: a deep glazed bowl with a loop handle on the table (concavity)"),
+        BuiltinScene("synthetic/dtu-blocks", "dtu", 0.170, "DTU-like: painted stepped prisms with a star level on the table (sharp edges)"),
+        BuiltinScene("synthetic/dtu-fine", "dtu", 0.180, "DTU-like: a vase with a 2 mm hatch pattern on the table (fine texture)"),
+        BuiltinScene("synthetic/dtu-plain", "dtu", 0.257, "DTU-like: a smooth uniformly coloured pebble stack on the table (low texture)"),
+        BuiltinScene("synthetic/tnt-spot", "tnt", 0.046, "TnT-like: Spot on cobbles among crates and barrels in a courtyard"),
+        BuiltinScene("synthetic/tnt-yard", "tnt", 0.248, "TnT-like: building blocks in a yard, cameras around them, 20 m across"),
+        BuiltinScene("synthetic/tnt-sky", "tnt", 0.046, "TnT-like: Spot on a meadow under a sky/mountain dome 100x its size"),
+        BuiltinScene("synthetic/dtu-bunny", "dtu", 0.340, "DTU-like, scanned: the Stanford bunny (pymeshlab's copy) on the table, framed as DTU"),
+        BuiltinScene("synthetic/dtu-face", "dtu", 0.340, "DTU-like, scanned: a range scan of a face (pymeshlab's face000: an open sheet with holes) lying face up, framed as DTU"),
+        BuiltinScene("synthetic/dtu-spot-near", "dtu", 0.340, "DTU-like: dtu-spot framed as DTU (the object fills 34% of the image)"),
     )
 }

@@ -65,6 +65,8 @@ centre.
 
 from __future__ import annotations
 
+import dataclasses
+import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,6 +85,7 @@ from gsbench.data.meta import write_meta
 from gsbench.data.similarity import decompose, similarity, transform_camera, transform_points
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.environment import World, make_environment
+from gsbench.data.synthetic.framing import FRAMINGS, framed_distance, parse_framing
 from gsbench.data.synthetic.groundtruth import (
     observation_mask,
     sample_init_points,
@@ -93,10 +96,11 @@ from gsbench.data.synthetic.groundtruth import (
     visible_counts,
     write_point_cloud,
 )
+from gsbench.data.synthetic.mesh_file import file_digest, read_mesh_object
 from gsbench.data.synthetic.primitives import Surface
 from gsbench.data.synthetic.render import Renderer
 from gsbench.data.synthetic.rigs import make_rig
-from gsbench.data.synthetic.shapes import make_surface
+from gsbench.data.synthetic.shapes import NAMED_ALBEDOS, make_surface, named_albedo
 from gsbench.data.tnt import nerfpp_normalisation, write_crop_json, write_log
 from gsbench.errors import DataError, RegistryError
 
@@ -116,6 +120,7 @@ WORLD_INIT_POINTS = 25_000
 WORLD_INIT_NOISE = 0.002  # x the distance from the camera
 DTU_PLANE_ABOVE_TABLE = 1.0  # mm
 SCENE_MESH_NAME = "gt_scene_mesh.ply"
+PYMESHLAB_SAMPLES = "tests/sample_meshes"  # the scanned meshes pymeshlab's wheel ships
 DEFAULT_SUPERSAMPLE = 2  # rays per pixel side of the RGB images (area sampling); 1 = the pixel centre only
 
 
@@ -147,6 +152,10 @@ class SyntheticSpec:
 
     ``fmt`` is the layout it is written in by default (``dtu``, ``dtu-colmap`` or ``tnt``);
     ``environment`` (``environment.py``: room, ground, yard, sky) puts the object in surroundings.
+    ``mesh`` (a file, or ``pymeshlab:<path>`` inside the installed pymeshlab package) replaces
+    ``shape`` by a mesh file read by ``mesh_file.py`` with ``up``, ``yaw`` and ``largest_part``;
+    its ``albedo`` ``file`` means the file's own colours. ``framing`` (an object share of the image,
+    ``framing.py``) places the cameras at the distance that gives that share instead of ``distance``.
     ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
     rotation ``colmap_euler`` (xyz degrees), object centre at ``colmap_center``) apply only when the
     scene is written in its own layout ``fmt``.
@@ -165,6 +174,11 @@ class SyntheticSpec:
     colmap_euler: tuple[float, float, float] = (20.0, -35.0, 110.0)
     colmap_center: tuple[float, float, float] = (0.3, -1.2, 2.0)
     environment: str | None = None
+    mesh: str | None = None
+    up: str = "y"
+    yaw: float = 0.0
+    largest_part: bool = False
+    framing: float | None = None
 
 
 SPECS = {
@@ -186,7 +200,15 @@ SPECS = {
     "synthetic/tnt-yard": SyntheticSpec(shape="yard", albedo="facade", fmt="tnt", environment="yard", distance=1.8, size=20.0,
                                         offset=(35.0, -12.0, 3.0), colmap_scale=0.1),
     "synthetic/tnt-sky": SyntheticSpec(fmt="tnt", environment="sky"),
+    "synthetic/dtu-bunny": SyntheticSpec(mesh=f"pymeshlab:{PYMESHLAB_SAMPLES}/bunny.obj", albedo="glaze", fmt="dtu-colmap",
+                                         environment="room", yaw=-90.0, framing=FRAMINGS["dtu"]),
+    "synthetic/dtu-face": SyntheticSpec(mesh=f"pymeshlab:{PYMESHLAB_SAMPLES}/rangemaps/face000.ply", albedo="stone",
+                                        fmt="dtu-colmap", environment="room", up="-z", largest_part=True,
+                                        framing=FRAMINGS["dtu"]),
+    "synthetic/dtu-spot-near": SyntheticSpec(fmt="dtu-colmap", environment="room", framing=FRAMINGS["dtu"]),
 }
+MESH_SCAN = 2001  # DTU scan number of scenes made from a user's mesh file (built-ins: SCAN_BASE + index)
+MESH_ENVIRONMENT = {"dtu": "room", "tnt": "ground"}
 
 
 @dataclass
@@ -207,6 +229,10 @@ class ScenePlan:
     tau: float | None = None
     world: World | None = None
     supersample: int = DEFAULT_SUPERSAMPLE
+    description: str = ""
+    distance: float = 0.0
+    share: float | None = None
+    mesh_info: dict | None = None
 
     @property
     def rendered(self) -> Surface:
@@ -237,6 +263,10 @@ class ScenePlan:
     def short_name(self) -> str:
         return self.name.split("/", 1)[-1]
 
+    @property
+    def builtin(self) -> bool:
+        return self.name.startswith("synthetic/")
+
 
 def _image_size(full: tuple[int, int], res) -> tuple[int, int]:
     if res is None:
@@ -259,11 +289,75 @@ def canonical_name(name: str) -> str:
     return full
 
 
-def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0) -> ScenePlan:
-    """Plan a built-in scene: object, cameras, frames and normalisation (no rendering)."""
+def mesh_path(mesh: str) -> Path:
+    """A spec's ``mesh``: a file path, or ``pymeshlab:<path>`` inside the installed pymeshlab package
+    (found without importing it)."""
+    if not mesh.startswith("pymeshlab:"):
+        return Path(mesh)
+    spec = importlib.util.find_spec("pymeshlab")
+    if spec is None or not spec.submodule_search_locations:
+        raise DataError(f"{mesh}: the scanned mesh ships with pymeshlab, which is not installed; fix: pip install pymeshlab")
+    return Path(list(spec.submodule_search_locations)[0]) / mesh.split(":", 1)[1]
+
+
+def _object(spec: SyntheticSpec, seed: int) -> tuple[Surface, dict | None]:
+    """The spec's object surface and, for a mesh file, what was read and repaired (for the meta file)."""
+    if spec.mesh is None:
+        return make_surface(spec.shape, spec.albedo, seed), None
+    obj = read_mesh_object(mesh_path(spec.mesh), up=spec.up, yaw=spec.yaw, largest_part=spec.largest_part)
+    if spec.albedo == "file":
+        if obj.albedo is None:
+            raise DataError(f"{spec.mesh}: the file has no colours (no texture, vertex or face colours); fix: choose a "
+                            f"named albedo (--albedo, one of {', '.join(NAMED_ALBEDOS)})")
+        albedo = obj.albedo
+    else:
+        albedo = named_albedo(spec.albedo, obj.vertices, obj.triangles, seed)
+    info = dict(obj.source, albedo=spec.albedo, repairs=obj.repairs, largest_part=spec.largest_part)
+    if spec.mesh.startswith("pymeshlab:"):
+        info["path"] = spec.mesh  # the package's copy, wherever it is installed
+    return Surface(vertices=obj.vertices, triangles=obj.triangles, albedo=albedo), info
+
+
+def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0, framing=None) -> ScenePlan:
+    """Plan a built-in scene: object, cameras, frames and normalisation (no rendering). ``framing``
+    (``framing.parse_framing``) replaces the spec's camera placement."""
     name = canonical_name(name)
     spec = SPECS[name]
-    fmt = fmt or spec.fmt
+    if framing is not None:
+        spec = dataclasses.replace(spec, framing=parse_framing(framing))
+    return plan_spec(name, spec, fmt or spec.fmt, res, seed, SCAN_BASE + list(BUILTIN_SCENES).index(name),
+                     BUILTIN_SCENES[name].description)
+
+
+def plan_mesh_scene(mesh, *, fmt: str = "dtu-colmap", res=None, seed: int = 0, framing="dtu", up: str = "y",
+                    yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False, scan: int = MESH_SCAN) -> ScenePlan:
+    """Plan a scene of any mesh file (``gsbench scene make --mesh FILE``): the object on the table in the
+    room (DTU layouts) or on the ground among props (TnT), framed to the object share ``framing``
+    (``dtu``: as DTU's images; None: the layout's distance). ``albedo`` ``auto``: the file's colours, or
+    ``procedural`` when it has none."""
+    path = Path(mesh)
+    if fmt not in ("dtu", "dtu-colmap", "tnt"):
+        raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
+    if albedo == "auto":
+        colours = read_mesh_object(path, up=up, yaw=yaw, largest_part=largest_part).colours
+        albedo = "file" if colours != "none" else "procedural"
+    spec = SyntheticSpec(mesh=str(path.resolve()), albedo=albedo, fmt=fmt, environment=MESH_ENVIRONMENT[fmt.split("-")[0]],
+                         up=up, yaw=yaw, largest_part=largest_part, framing=parse_framing(framing))
+    return plan_spec(f"mesh/{path.stem}", spec, fmt, res, seed, scan, f"{path.name} as a {fmt.split('-')[0].upper()}-like scene")
+
+
+def _cameras_at(spec: SyntheticSpec, d: FormatDefaults, K: np.ndarray, width: int, height: int, radius: float, seed: int):
+    """The rig's cameras at ``distance`` bounding radii (the jitter is drawn from ``seed`` alike at every distance)."""
+
+    def cameras(distance: float) -> list[Camera]:
+        poses = make_rig(spec.rig or d.rig, d.views, distance * radius, 0.03 * radius, np.random.default_rng(seed))
+        return [Camera(K=K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png") for k, (R, t) in enumerate(poses)]
+
+    return cameras
+
+
+def plan_spec(name: str, spec: SyntheticSpec, fmt: str, res, seed: int, scan: int, description: str) -> ScenePlan:
+    """Plan the scene ``spec`` describes, written in layout ``fmt`` (see `plan_scene`)."""
     if fmt not in ("dtu", "dtu-colmap", "tnt"):
         raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
     base = fmt.split("-")[0]
@@ -274,20 +368,23 @@ def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0) -> Sc
     width, height = _image_size(d.full_size, res)
     f = d.focal * width
     K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-    surface = make_surface(spec.shape, spec.albedo, seed)
+    surface, mesh_info = _object(spec, seed)
     world = None
     if spec.environment:
         world = make_environment(spec.environment, surface, seed)
-    r = surface.radius
-    poses = make_rig(spec.rig or d.rig, d.views, (spec.distance or d.distance) * r, 0.03 * r, np.random.default_rng(seed))
-    cameras = [Camera(K=K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png") for k, (R, t) in enumerate(poses)]
+    cameras_at = _cameras_at(spec, d, K, width, height, surface.radius, seed)
+    distance, share = spec.distance or d.distance, None
+    if spec.framing is not None:
+        distance, share = framed_distance(surface, cameras_at, spec.framing)
     obj_to_gt = similarity(size, Rotation.from_euler("z", d.yaw, degrees=True).as_matrix(), offset)
-    plan = ScenePlan(name=name, fmt=fmt, seed=seed, spec=spec, surface=surface, cameras=cameras, obj_to_gt=obj_to_gt,
-                     gt_to_dataset=np.eye(4), normalisation=Normalisation(), units=(spec.units if own else None) or d.units,
-                     world=world)
+    plan = ScenePlan(name=name, fmt=fmt, seed=seed, spec=spec, surface=surface, cameras=cameras_at(distance),
+                     obj_to_gt=obj_to_gt, gt_to_dataset=np.eye(4), normalisation=Normalisation(),
+                     units=(spec.units if own else None) or d.units, world=world, description=description,
+                     distance=distance, share=share, mesh_info=mesh_info)
+    r = surface.radius
     if base == "dtu":
         plan.normalisation = Normalisation(scale=1.1 * r * size, center=np.asarray(offset, dtype=np.float64), radius=1.0)
-        plan.scan = SCAN_BASE + list(BUILTIN_SCENES).index(name)
+        plan.scan = scan
     else:
         cs = spec.colmap_scale if own else SyntheticSpec.colmap_scale
         rot = Rotation.from_euler("xyz", spec.colmap_euler, degrees=True).as_matrix()
@@ -299,18 +396,46 @@ def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0) -> Sc
 
 
 def plan_meta(plan: ScenePlan) -> dict:
-    """The ``gsbench_scene.json`` content of a plan (compared to skip re-generation)."""
+    """The ``gsbench_scene.json`` content of a plan (compared to skip re-generation). Scenes placed by
+    framing record it (``framing``: the share asked for, the distance found and the share measured);
+    scenes of a mesh file record the file (``mesh``: path, SHA-256, sizes, colours, repairs)."""
     cam = plan.cameras[0]
-    meta = {"name": plan.short_name, "builtin": plan.name, "format": plan.fmt, "seed": plan.seed,
+    meta = {"name": plan.short_name, "format": plan.fmt, "seed": plan.seed,
             "resolution": [cam.width, cam.height], "units": plan.units, "generator_version": GENERATOR_VERSION,
-            "description": BUILTIN_SCENES[plan.name].description}
+            "description": plan.description}
+    if plan.builtin:
+        meta["builtin"] = plan.name
     if plan.scan is not None:
         meta["scan"] = plan.scan
     if plan.tau is not None:
         meta["tau"] = plan.tau
     if plan.supersample != DEFAULT_SUPERSAMPLE:
         meta["supersample"] = plan.supersample
+    if plan.spec.framing is not None:
+        meta["framing"] = {"object_share": plan.spec.framing, "distance_radii": round(plan.distance, 6),
+                           "measured_share": round(plan.share, 4)}
+    if plan.mesh_info is not None:
+        meta["mesh"] = plan.mesh_info
     return meta
+
+
+def plan_from_meta(meta: dict, root: Path) -> ScenePlan:
+    """The plan a generated scene folder was written from (its ``gsbench_scene.json``), to re-render its
+    exact surfaces; a mesh scene whose file changed since is refused."""
+    common = {"res": tuple(meta["resolution"]), "seed": meta["seed"]}
+    framing = meta.get("framing", {}).get("object_share")
+    if "builtin" in meta:
+        return plan_scene(meta["builtin"], fmt=meta["format"], framing=framing, **common)
+    mesh = meta.get("mesh")
+    if mesh is None:
+        raise DataError(f"{root}: not a generated scene (no 'builtin' or 'mesh' in gsbench_scene.json); fix: the exact "
+                        "surface exists only for scenes gsbench made, give a synthetic/<name> or `scene make --mesh` folder")
+    path = mesh_path(mesh["path"])
+    if not path.is_file() or file_digest(path) != mesh["sha256"]:
+        raise DataError(f"{root}: its mesh {path} is gone or changed since the scene was made; fix: restore the file or "
+                        "re-make the scene")
+    return plan_mesh_scene(path, fmt=meta["format"], framing=framing, up=mesh["up"], yaw=mesh["yaw"], albedo=mesh["albedo"],
+                           largest_part=mesh["largest_part"], scan=meta.get("scan", MESH_SCAN), **common)
 
 
 def write_scene(plan: ScenePlan, out: Path) -> None:

@@ -7,8 +7,10 @@ the procedural objects of ``objects.py`` (``stool``, ``bowl``, ``vase``, ``pebbl
 Albedos: ``texture`` (Spot's UV texture, bilinear), ``procedural`` (a solid 3D texture: a smoothed
 checker of random colours times low-frequency sinusoids, so it looks the same from every side and
 needs no UVs), ``uniform`` (one colour), and the solid textures of ``textures.py`` named ``wood``,
-``glaze``, ``fine``, ``facade`` (walls with windows, gravel roofs) and ``painted`` (one colour per
-face direction, from the triangle normals, times a fine grain).
+``glaze``, ``fine``, ``stone`` (mottled grey-beige plaster noise at 0.06 object units, for a statue),
+``facade`` (walls with windows, gravel roofs) and ``painted`` (one colour per face direction, from the
+triangle normals, times a fine grain). Objects read from mesh files (``mesh_file.py``) take their own
+colours or one of these named albedos (`named_albedo`).
 
 A `Surface` may hold several parts (an object standing in its environment, ``environment.py``):
 ``parts`` then gives each triangle's part index, part 0 being the object, and ``unlit`` (optional,
@@ -34,7 +36,9 @@ ASSETS = Path(__file__).resolve().parents[2] / "assets"
 PLATE_SIZE = (1.0, 0.7, 0.012)
 CHECKER_PERIOD = 0.125
 
-def _to_object_frame(vertices: np.ndarray) -> np.ndarray:
+
+def to_object_frame(vertices: np.ndarray) -> np.ndarray:
+    """Centre the bounding box at the origin and scale its largest side to 1."""
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     return (vertices - (lo + hi) / 2) / float(np.max(hi - lo))
 
@@ -48,18 +52,19 @@ def _read_spot():
     v = np.asarray(mesh.vertices, dtype=np.float64)
     v = np.stack([v[:, 0], -v[:, 2], v[:, 1]], axis=1)  # y-up -> z-up (rotation about x by +90 degrees)
     uvs = np.asarray(mesh.triangle_uvs, dtype=np.float64).reshape(-1, 3, 2)
-    return _to_object_frame(v), np.asarray(mesh.triangles, dtype=np.int64), uvs
+    return to_object_frame(v), np.asarray(mesh.triangles, dtype=np.int64), uvs
 
 
-def _texture_albedo(uvs: np.ndarray) -> Albedo:
-    tex = np.asarray(Image.open(ASSETS / "spot" / "spot_texture.png").convert("RGB"), dtype=np.float64) / 255.0
-    h, w = tex.shape[:2]
+def texture_albedo(uvs: np.ndarray, image: np.ndarray) -> Albedo:
+    """A UV texture: per-corner UVs (T,3,2) interpolated with the hit's barycentric coordinates, the
+    image (H,W,3, [0, 1]) sampled bilinearly (v up as in OBJ, texel centres at +0.5, edges clamped)."""
+    h, w = image.shape[:2]
 
     def albedo(points, tri, bary):
         corners = uvs[tri]
         uv = (1 - bary.sum(axis=1))[:, None] * corners[:, 0] + bary[:, :1] * corners[:, 1] + bary[:, 1:] * corners[:, 2]
-        rows, cols = (1.0 - uv[:, 1]) * h - 0.5, uv[:, 0] * w - 0.5  # OBJ v points up; texel centres at +0.5
-        return np.stack([map_coordinates(tex[..., c], [rows, cols], order=1, mode="nearest") for c in range(3)], axis=1)
+        rows, cols = (1.0 - uv[:, 1]) * h - 0.5, uv[:, 0] * w - 0.5
+        return np.stack([map_coordinates(image[..., c], [rows, cols], order=1, mode="nearest") for c in range(3)], axis=1)
 
     return albedo
 
@@ -89,7 +94,7 @@ def _uniform_albedo(color=(0.72, 0.62, 0.5)) -> Albedo:
 @lru_cache(maxsize=8)
 def _built_cached(shape: str):
     vertices, triangles = BUILDERS[shape]()
-    return _to_object_frame(vertices), triangles
+    return to_object_frame(vertices), triangles
 
 
 def _built(shape: str):
@@ -101,7 +106,7 @@ def _built(shape: str):
 def _plate():
     o3d = import_open3d()
     box = o3d.geometry.TriangleMesh.create_box(*PLATE_SIZE)
-    return _to_object_frame(np.asarray(box.vertices, dtype=np.float64)), np.asarray(box.triangles, dtype=np.int64)
+    return to_object_frame(np.asarray(box.vertices, dtype=np.float64)), np.asarray(box.triangles, dtype=np.int64)
 
 
 def _painted_albedo(vertices: np.ndarray, triangles: np.ndarray, seed: int) -> Albedo:
@@ -121,7 +126,27 @@ def _painted_albedo(vertices: np.ndarray, triangles: np.ndarray, seed: int) -> A
     return albedo
 
 
-TEXTURE_ALBEDOS = ("wood", "glaze", "fine")
+TEXTURE_ALBEDOS = ("wood", "glaze", "fine", "stone")
+NAMED_ALBEDOS = ("procedural", "uniform", "painted", "facade") + TEXTURE_ALBEDOS
+
+
+def named_albedo(albedo: str, vertices: np.ndarray, triangles: np.ndarray, seed: int) -> Albedo:
+    """The albedo called ``albedo`` (module docstring) for a mesh in the object frame."""
+    if albedo == "procedural":
+        return _procedural_albedo(seed)
+    if albedo == "uniform":
+        return _uniform_albedo()
+    if albedo == "painted":
+        return _painted_albedo(vertices, triangles, seed)
+    if albedo == "facade":
+        return facade(seed, triangle_normals(vertices, triangles), window=(0.02, 0.03), floor_height=0.06)
+    if albedo == "wood":
+        return wood(seed, light=(0.66, 0.38, 0.24), dark=(0.3, 0.14, 0.07), plank=0.3, ring=0.02)
+    if albedo == "stone":
+        return textures.plaster(seed, color=(0.72, 0.66, 0.58), cell=0.06, contrast=0.8)
+    if albedo in TEXTURE_ALBEDOS:
+        return getattr(textures, albedo)(seed)
+    raise DataError(f"unknown albedo {albedo!r}; expected texture or one of {', '.join(NAMED_ALBEDOS)}")
 
 
 def make_surface(shape: str, albedo: str, seed: int) -> Surface:
@@ -138,19 +163,8 @@ def make_surface(shape: str, albedo: str, seed: int) -> Surface:
     if albedo == "texture":
         if uvs is None:
             raise DataError(f"shape {shape!r} has no UV texture; use albedo procedural or uniform")
-        fn = _texture_albedo(uvs)
-    elif albedo == "procedural":
-        fn = _procedural_albedo(seed)
-    elif albedo == "uniform":
-        fn = _uniform_albedo()
-    elif albedo == "painted":
-        fn = _painted_albedo(vertices, triangles, seed)
-    elif albedo == "facade":
-        fn = facade(seed, triangle_normals(vertices, triangles), window=(0.02, 0.03), floor_height=0.06)
-    elif albedo == "wood":
-        fn = wood(seed, light=(0.66, 0.38, 0.24), dark=(0.3, 0.14, 0.07), plank=0.3, ring=0.02)
-    elif albedo in TEXTURE_ALBEDOS:
-        fn = getattr(textures, albedo)(seed)
+        image = np.asarray(Image.open(ASSETS / "spot" / "spot_texture.png").convert("RGB"), dtype=np.float64) / 255.0
+        fn = texture_albedo(uvs, image)
     else:
-        raise DataError(f"unknown albedo {albedo!r}; expected texture, procedural, uniform, painted or one of {TEXTURE_ALBEDOS}")
+        fn = named_albedo(albedo, vertices, triangles, seed)
     return Surface(vertices=vertices, triangles=triangles, albedo=fn)
