@@ -15,7 +15,9 @@ from gsbench.data.similarity import transform_points
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.generator import DTU_PLANE_ABOVE_TABLE, SCAN_BASE, plan_scene
 
-DTU_SCENES = ["dtu-spot", "dtu-stool", "dtu-bowl", "dtu-blocks", "dtu-fine", "dtu-plain"]
+DTU_SCENES = ["dtu-spot", "dtu-stool", "dtu-bowl", "dtu-blocks", "dtu-fine", "dtu-plain", "dtu-bunny", "dtu-face",
+              "dtu-spot-near"]
+OPEN_SCANS = ["dtu-face"]  # a range scan: an open sheet, no inside
 TNT_SCENES = ["tnt-spot", "tnt-yard", "tnt-sky"]
 DTU_RES, TNT_RES = (64, 48), (96, 54)
 
@@ -73,7 +75,7 @@ def test_scene_loads_with_its_gt(scenes, name):
     norm = np.linalg.norm(scene.points, axis=1)
     assert 20_000 <= len(scene.points) <= 30_000 and np.all(np.isfinite(scene.points))
     if dtu:
-        assert np.mean(norm < 1.0) > 0.03 and np.mean(norm > 1.5) > 0.3
+        assert np.mean(norm < 1.0) > 0.03 and np.mean(norm > 1.5) > 0.2  # framed as DTU: 0.27 on dtu-face
 
 
 @pytest.mark.parametrize("name", DTU_SCENES)
@@ -124,7 +126,12 @@ def test_object_meshes_are_closed_and_stand_on_the_ground(scenes, name):
     import trimesh
 
     plan = _plan(name)
+    assert plan.surface.vertices[:, 2].min() == plan.world.ground_z
     mesh = trimesh.Trimesh(plan.surface.vertices, plan.surface.triangles, process=True)
+    if name in OPEN_SCANS:
+        assert not mesh.is_watertight and plan.mesh_info["watertight"] is False
+        assert len(mesh.split(only_watertight=False)) == 1  # its largest part only
+        return
     assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
     if name != "tnt-yard":  # the yard's object is several separate blocks
         assert len(mesh.split(only_watertight=False)) == 1

@@ -2,7 +2,10 @@
 
 Keys: ``name`` (also the TnT GT file prefix), ``format`` (dtu | dtu-colmap | tnt), ``seed``,
 ``resolution`` [W, H], ``units`` (of the GT frame), ``scan`` (DTU) or ``tau`` (TnT, GT units),
-``generator_version``, ``description``. Real datasets have no meta file; the loaders then fall back to
+``generator_version``, ``description``; ``builtin`` (the built-in name) or ``mesh`` (a scene of a mesh
+file: its path, SHA-256, sizes, colours, albedo, axes and the repairs made); ``framing`` when the
+cameras were placed for an object share (the share asked for, the distance in bounding radii, the share
+measured). Real datasets have no meta file; the loaders then fall back to
 the folder name (``scan24`` -> scan 24; TnT name -> the official tau table).
 """
 

@@ -190,7 +190,7 @@ def read_mesh_object(path, up: str = "y", yaw: float = 0.0, largest_part: bool =
     elif corners is not None:
         albedo = corner_colour_albedo(corners)
     source = {"path": str(path.resolve()), "sha256": file_digest(path), "faces_read": int(len(mesh.faces)),
-              "vertices_read": int(len(mesh.vertices)), "faces": int(len(triangles)), "extent": [float(v) for v in hi - lo],
+              "vertices_read": int(len(mesh.vertices)), "faces": int(len(triangles)), "extent": [float(v) for v in np.ptp(vertices[referenced], axis=0)],
               "colours": colours, "up": up, "yaw": float(yaw), "watertight": watertight}
     return MeshObject(vertices=to_object_frame(oriented), triangles=triangles, albedo=albedo, colours=colours,
                       repairs=repairs, source=source)
