@@ -53,7 +53,7 @@ def cmd_scene_make(args) -> int:
         if args.name:
             raise ConfigError(f"scene make: give a built-in name or --mesh, not both (got {args.name!r} and --mesh {args.mesh})")
         path = make_mesh_scene(args.mesh, fmt=args.format or "dtu-colmap", framing=args.framing or "dtu", up=args.up,
-                               yaw=args.yaw, albedo=args.albedo, largest_part=args.largest_part, **common)
+                               yaw=args.yaw, albedo=args.albedo, largest_part=args.largest_part, smooth=args.smooth, **common)
     elif args.name:
         path = make_scene(args.name, fmt=args.format, framing=args.framing, **common)
     else:
@@ -256,6 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                        "file, or a named albedo: procedural, uniform, painted, wood, "
                                                        "glaze, fine, stone")
     make.add_argument("--largest-part", action="store_true", help="--mesh: keep only the largest connected part")
+    make.add_argument("--smooth", type=int, default=0, metavar="N",
+                      help="--mesh: N iterations of Taubin smoothing (takes a scan's fine relief off, keeps its shape)")
     make.add_argument("--format", choices=("dtu", "dtu-colmap", "tnt"), default=None,
                       help="layout (default: the scene's own; dtu-colmap for --mesh)")
     make.add_argument("--out", default=None, help="folder (default: the cache, $GSBENCH_DATA)")

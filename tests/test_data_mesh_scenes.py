@@ -193,3 +193,15 @@ def test_framing_gives_the_share_asked_for():
 def test_listed_share_is_measured(name):
     plan = plan_scene(name, res=(160, 120) if BUILTIN_SCENES[name].format == "dtu" else (192, 108))
     assert abs(object_share(Renderer(plan.surface), plan.cameras) - BUILTIN_SCENES[name].share) < 0.0015
+
+
+def test_smoothing_takes_the_relief_off_and_keeps_the_shape():
+    bunny = "pymeshlab:tests/sample_meshes/bunny.obj"
+    from gsbench.data.synthetic.generator import mesh_path
+
+    scanned = read_mesh_object(mesh_path(bunny))
+    smooth = read_mesh_object(mesh_path(bunny), smooth=50)
+    moved = np.linalg.norm(smooth.vertices - scanned.vertices, axis=1)
+    assert 1e-4 < np.sqrt(np.mean(moved**2)) < 3e-3 and smooth.source["taubin_iterations"] == 50
+    volume = [trimesh.Trimesh(o.vertices, o.triangles).volume for o in (scanned, smooth)]
+    assert abs(volume[1] / volume[0] - 1) < 0.01  # Taubin's low-pass does not shrink it

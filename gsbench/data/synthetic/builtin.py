@@ -47,5 +47,7 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("synthetic/dtu-bunny", "dtu", 0.340, "DTU-like, scanned: the Stanford bunny (pymeshlab's copy) on the table, framed as DTU"),
         BuiltinScene("synthetic/dtu-face", "dtu", 0.340, "DTU-like, scanned: a range scan of a face (pymeshlab's face000: an open sheet with holes) lying face up, framed as DTU"),
         BuiltinScene("synthetic/dtu-spot-near", "dtu", 0.340, "DTU-like: dtu-spot framed as DTU (the object fills 34% of the image)"),
+        BuiltinScene("synthetic/dtu-bunny-far", "dtu", 0.126, "experiment twin: dtu-bunny framed like dtu-spot (12.6% of the image)"),
+        BuiltinScene("synthetic/dtu-bunny-smooth", "dtu", 0.340, "experiment twin: dtu-bunny with its fine relief smoothed off (Taubin, 200 iterations)"),
     )
 }

@@ -153,7 +153,7 @@ class SyntheticSpec:
     ``fmt`` is the layout it is written in by default (``dtu``, ``dtu-colmap`` or ``tnt``);
     ``environment`` (``environment.py``: room, ground, yard, sky) puts the object in surroundings.
     ``mesh`` (a file, or ``pymeshlab:<path>`` inside the installed pymeshlab package) replaces
-    ``shape`` by a mesh file read by ``mesh_file.py`` with ``up``, ``yaw`` and ``largest_part``;
+    ``shape`` by a mesh file read by ``mesh_file.py`` with ``up``, ``yaw``, ``largest_part`` and ``smooth``;
     its ``albedo`` ``file`` means the file's own colours. ``framing`` (an object share of the image,
     ``framing.py``) places the cameras at the distance that gives that share instead of ``distance``.
     ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
@@ -178,6 +178,7 @@ class SyntheticSpec:
     up: str = "y"
     yaw: float = 0.0
     largest_part: bool = False
+    smooth: int = 0
     framing: float | None = None
 
 
@@ -206,6 +207,11 @@ SPECS = {
                                         fmt="dtu-colmap", environment="room", up="-z", largest_part=True,
                                         framing=FRAMINGS["dtu"]),
     "synthetic/dtu-spot-near": SyntheticSpec(fmt="dtu-colmap", environment="room", framing=FRAMINGS["dtu"]),
+    "synthetic/dtu-bunny-far": SyntheticSpec(mesh=f"pymeshlab:{PYMESHLAB_SAMPLES}/bunny.obj", albedo="glaze", fmt="dtu-colmap",
+                                             environment="room", yaw=-90.0, framing=FRAMINGS["small"]),
+    "synthetic/dtu-bunny-smooth": SyntheticSpec(mesh=f"pymeshlab:{PYMESHLAB_SAMPLES}/bunny.obj", albedo="glaze",
+                                                fmt="dtu-colmap", environment="room", yaw=-90.0, smooth=200,
+                                                framing=FRAMINGS["dtu"]),
 }
 MESH_SCAN = 2001  # DTU scan number of scenes made from a user's mesh file (built-ins: SCAN_BASE + index)
 MESH_ENVIRONMENT = {"dtu": "room", "tnt": "ground"}
@@ -304,7 +310,7 @@ def _object(spec: SyntheticSpec, seed: int) -> tuple[Surface, dict | None]:
     """The spec's object surface and, for a mesh file, what was read and repaired (for the meta file)."""
     if spec.mesh is None:
         return make_surface(spec.shape, spec.albedo, seed), None
-    obj = read_mesh_object(mesh_path(spec.mesh), up=spec.up, yaw=spec.yaw, largest_part=spec.largest_part)
+    obj = read_mesh_object(mesh_path(spec.mesh), up=spec.up, yaw=spec.yaw, largest_part=spec.largest_part, smooth=spec.smooth)
     if spec.albedo == "file":
         if obj.albedo is None:
             raise DataError(f"{spec.mesh}: the file has no colours (no texture, vertex or face colours); fix: choose a "
@@ -330,7 +336,8 @@ def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0, frami
 
 
 def plan_mesh_scene(mesh, *, fmt: str = "dtu-colmap", res=None, seed: int = 0, framing="dtu", up: str = "y",
-                    yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False, scan: int = MESH_SCAN) -> ScenePlan:
+                    yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False, smooth: int = 0,
+                    scan: int = MESH_SCAN) -> ScenePlan:
     """Plan a scene of any mesh file (``gsbench scene make --mesh FILE``): the object on the table in the
     room (DTU layouts) or on the ground among props (TnT), framed to the object share ``framing``
     (``dtu``: as DTU's images; None: the layout's distance). ``albedo`` ``auto``: the file's colours, or
@@ -339,10 +346,10 @@ def plan_mesh_scene(mesh, *, fmt: str = "dtu-colmap", res=None, seed: int = 0, f
     if fmt not in ("dtu", "dtu-colmap", "tnt"):
         raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
     if albedo == "auto":
-        colours = read_mesh_object(path, up=up, yaw=yaw, largest_part=largest_part).colours
+        colours = read_mesh_object(path, up=up, yaw=yaw, largest_part=largest_part, smooth=smooth).colours
         albedo = "file" if colours != "none" else "procedural"
     spec = SyntheticSpec(mesh=str(path.resolve()), albedo=albedo, fmt=fmt, environment=MESH_ENVIRONMENT[fmt.split("-")[0]],
-                         up=up, yaw=yaw, largest_part=largest_part, framing=parse_framing(framing))
+                         up=up, yaw=yaw, largest_part=largest_part, smooth=smooth, framing=parse_framing(framing))
     return plan_spec(f"mesh/{path.stem}", spec, fmt, res, seed, scan, f"{path.name} as a {fmt.split('-')[0].upper()}-like scene")
 
 
@@ -435,7 +442,8 @@ def plan_from_meta(meta: dict, root: Path) -> ScenePlan:
         raise DataError(f"{root}: its mesh {path} is gone or changed since the scene was made; fix: restore the file or "
                         "re-make the scene")
     return plan_mesh_scene(path, fmt=meta["format"], framing=framing, up=mesh["up"], yaw=mesh["yaw"], albedo=mesh["albedo"],
-                           largest_part=mesh["largest_part"], scan=meta.get("scan", MESH_SCAN), **common)
+                           largest_part=mesh["largest_part"], smooth=mesh.get("taubin_iterations", 0),
+                           scan=meta.get("scan", MESH_SCAN), **common)
 
 
 def write_scene(plan: ScenePlan, out: Path) -> None:

@@ -43,6 +43,7 @@ from gsbench.errors import DataError
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
 PRECISION_LIMIT = 1e-6  # object size / distance from the file's origin below this: float precision is gone
+TAUBIN_LAMBDA, TAUBIN_MU = 0.5, 0.53  # trimesh's nu is |mu|
 AREA_FLOOR = 1e-14  # x the squared object size: faces smaller than this have no area
 
 
@@ -133,8 +134,10 @@ def corner_colour_albedo(corners: np.ndarray) -> Albedo:
     return albedo
 
 
-def read_mesh_object(path, up: str = "y", yaw: float = 0.0, largest_part: bool = False) -> MeshObject:
-    """Read, check and repair ``path`` and put it in the object frame (module docstring)."""
+def read_mesh_object(path, up: str = "y", yaw: float = 0.0, largest_part: bool = False, smooth: int = 0) -> MeshObject:
+    """Read, check and repair ``path`` and put it in the object frame (module docstring); ``smooth`` > 0
+    runs that many iterations of Taubin smoothing (λ = 0.5, μ = -0.53: low-pass without shrinking,
+    Taubin 1995) to take the fine relief off a scan while keeping its shape."""
     path = Path(path)
     rotation = up_rotation(up)
     mesh = _load(path)
@@ -183,7 +186,11 @@ def read_mesh_object(path, up: str = "y", yaw: float = 0.0, largest_part: bool =
     oriented = vertices[referenced] @ rotation.T
     c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
     oriented = oriented @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
-    watertight = bool(trimesh.Trimesh(oriented, triangles, process=False).is_watertight)
+    oriented_mesh = trimesh.Trimesh(oriented, triangles, process=False)
+    if smooth > 0:
+        trimesh.smoothing.filter_taubin(oriented_mesh, lamb=TAUBIN_LAMBDA, nu=TAUBIN_MU, iterations=int(smooth))
+        oriented = np.asarray(oriented_mesh.vertices)
+    watertight = bool(oriented_mesh.is_watertight)
     albedo = None
     if colours == "texture":
         albedo = texture_albedo(corners, image)
@@ -192,5 +199,7 @@ def read_mesh_object(path, up: str = "y", yaw: float = 0.0, largest_part: bool =
     source = {"path": str(path.resolve()), "sha256": file_digest(path), "faces_read": int(len(mesh.faces)),
               "vertices_read": int(len(mesh.vertices)), "faces": int(len(triangles)), "extent": [float(v) for v in np.ptp(vertices[referenced], axis=0)],
               "colours": colours, "up": up, "yaw": float(yaw), "watertight": watertight}
+    if smooth > 0:
+        source["taubin_iterations"] = int(smooth)
     return MeshObject(vertices=to_object_frame(oriented), triangles=triangles, albedo=albedo, colours=colours,
                       repairs=repairs, source=source)
