@@ -10,9 +10,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("GSBENCH_IMAGE_CACHE", "0")  # tests that use the decoded-image cache turn it on in a tmp folder
 
 import pytest  # noqa: E402
+import torch  # noqa: E402
 
 import gsbench  # noqa: E402, F401  (loads libusb-1.0 for open3d where the system has none, before any test imports it)
-import torch  # noqa: E402
 
 
 @pytest.fixture(scope="session")

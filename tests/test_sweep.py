@@ -139,8 +139,7 @@ def fake_runs(monkeypatch, fail_seed=None):
     seeds run."""
     import gsbench.runs.runner as runner
     import gsbench.runs.sweep as sweep_module
-    from gsbench.runs.records import git_state
-    from gsbench.runs.records import RunRecord
+    from gsbench.runs.records import RunRecord, git_state
 
     calls = []
 

@@ -26,7 +26,14 @@ from gsbench.data.camera import Scene
 from gsbench.data.dtu import dtu_ground_truth, dtu_gt_paths, load_dtu, load_dtu_colmap, scan_number
 from gsbench.data.meta import read_meta
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
-from gsbench.data.synthetic.generator import DEFAULT_SUPERSAMPLE, SPECS, plan_mesh_scene, plan_meta, plan_scene, write_scene
+from gsbench.data.synthetic.generator import (
+    DEFAULT_SUPERSAMPLE,
+    SPECS,
+    plan_mesh_scene,
+    plan_meta,
+    plan_scene,
+    write_scene,
+)
 from gsbench.data.tnt import gt_files, load_tnt, scene_gt_name
 from gsbench.errors import DataError, GsbenchError
 

@@ -34,7 +34,6 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from PIL import Image
 
 from gsbench.data.synthetic.primitives import Albedo
 from gsbench.data.synthetic.shapes import texture_albedo, to_object_frame
