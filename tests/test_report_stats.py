@@ -16,7 +16,7 @@ from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.errors import ConfigError
 from gsbench.report.aggregate import leaderboard
 from gsbench.report.build import write_report
-from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, verdict
+from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, load_findings, verdict
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.metrics import PAPERS_METRIC, metric_specs, reported
 from gsbench.report.stats import (
@@ -140,6 +140,27 @@ def test_a_known_difference_is_significant(tmp_path):
     assert 'id="paired-dtu"' in (tmp_path / "out" / "index.html").read_text()
 
 
+def test_a_contradicted_claim_shows_its_measured_cause_or_unexplained(tmp_path):
+    runs = tmp_path / "runs"
+    for scene, base in zip(SCENES, (0.6, 0.9, 1.2)):
+        for seed in SEEDS:
+            write_record(runs, "sugar", scene, seed, {"chamfer": base + 0.01 * seed})
+            write_record(runs, "2dgs", scene, seed, {"chamfer": base + 0.2 + 0.01 * seed})
+    found = label_variants(load_runs(runs)[0])
+    unexplained = {(o.claim.dataset, o.claim.text): o for o in evaluate_claims(found, [], metric_specs(), findings={})}
+    assert unexplained["dtu", "2dgs better than sugar"].verdict == "disagrees"
+    assert unexplained["dtu", "2dgs better than sugar"].cause == "unexplained"
+    assert unexplained["dtu", "sugar better than 3dgs"].cause == ""  # not measured: no cause to give
+    cause = {("dtu", "2dgs better than sugar"): "framing (docs/measurements.md)"}
+    explained = {(o.claim.dataset, o.claim.text): o for o in evaluate_claims(found, [], metric_specs(), findings=cause)}
+    assert explained["dtu", "2dgs better than sugar"].cause == "framing (docs/measurements.md)"
+    assert load_findings() is not None  # the shipped file names only claims that exist
+    bad = tmp_path / "findings.yaml"
+    bad.write_text("causes:\n  dtu:\n    2dgs beats sugar: framing\n")
+    with pytest.raises(ConfigError, match="2dgs beats sugar"):
+        load_findings(bad)
+
+
 def test_equal_distributions_are_not_separable_and_share_a_rank(tmp_path):
     runs = tmp_path / "runs"
     rng = np.random.default_rng(7)
@@ -159,7 +180,7 @@ def test_equal_distributions_are_not_separable_and_share_a_rank(tmp_path):
     write_report(runs, tmp_path / "out", plots=False)
     claims = (tmp_path / "out" / "leaderboard.md").read_text().split("## The papers' orderings")[1]
     line = next(x for x in claims.splitlines() if x.startswith("| ibgs at least as good as radegs |"))
-    assert line.endswith(f"| {pairs_to_decide(tests[('ibgs', 'radegs')])} (have 9) |")
+    assert line.endswith(f"| {pairs_to_decide(tests[('ibgs', 'radegs')])} (have 9) | – |")
 
 
 def test_equal_distributions_reject_at_about_the_nominal_rate():
@@ -245,8 +266,8 @@ def test_claims_between_methods_quote_the_methods_reported_means():
 
 
 def test_suites_list_the_protocols_scenes():
-    assert suite_names() == ["dtu-like", "tnt-like"]
-    for name, fmt in (("dtu-like", "dtu"), ("tnt-like", "tnt")):
+    assert suite_names() == ["dtu-framed", "dtu-like", "tnt-like"]
+    for name, fmt in (("dtu-framed", "dtu"), ("dtu-like", "dtu"), ("tnt-like", "tnt")):
         suite = load_suite(name)
         assert suite.seeds == (0, 1, 2)
         assert all(BUILTIN_SCENES[s].format == fmt for s in suite.scenes)
@@ -273,9 +294,9 @@ def test_suites_expand_in_sweeps(tmp_path):
 
 
 def test_unknown_suite_is_an_error_listing_the_suites(tmp_path):
-    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-like, tnt-like"):
+    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-framed, dtu-like, tnt-like"):
         load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-lik\n"))
-    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-like, tnt-like"):
+    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-framed, dtu-like, tnt-like"):
         with_suite({"base": {"method": "3dgs"}}, "nope")
     with pytest.raises(ConfigError, match="'suite'.*or 'scenes', not both"):
         load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-like\nscenes: [synthetic/spot]\n"))
@@ -287,4 +308,4 @@ def test_a_suite_as_one_scene_points_to_the_sweep(capsys):
     assert main(["config", "--method", "3dgs", "--scene", "suite:dtu-like"]) == 2
     assert "gsbench sweep FILE --suite dtu-like" in capsys.readouterr().err
     assert main(["run", "--method", "3dgs", "--scene", "suite:nope"]) == 2
-    assert "available suites: dtu-like, tnt-like" in capsys.readouterr().err
+    assert "available suites: dtu-framed, dtu-like, tnt-like" in capsys.readouterr().err

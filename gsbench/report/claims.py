@@ -23,12 +23,18 @@ sides share. Verdicts (`verdict`):
 
 "Not separable" with few pairs is no evidence of equality: the p-value and the number of pairs are
 shown beside every verdict.
+
+A claim the runs contradict gets a **cause** (`Outcome.cause`): the measured one from
+``configs/findings.yaml`` (`load_findings`: claim text and dataset -> what an experiment showed, with
+where it is written up), or ``unexplained``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+from gsbench.config.files import config_root, load_yaml
+from gsbench.errors import ConfigError
 from gsbench.report.aggregate import Board, Row, ablations, leaderboard
 from gsbench.report.stats import PairedTest, compare_rows
 
@@ -125,6 +131,7 @@ class Outcome:
     test: PairedTest | None
     verdict: str
     why: str = ""  # for "not measured": what is missing
+    cause: str = ""  # for "disagrees": the measured cause, or "unexplained"
 
 
 def verdict(relation: str, test: PairedTest | None) -> str:
@@ -168,9 +175,29 @@ def _measure(claim: Claim, board: Board | None, better: Row | None, worse: Row |
     return Outcome(claim, better.name, worse.name, test, verdict(claim.relation, test), why)
 
 
-def evaluate_claims(runs, manifests, specs, claims=CLAIMS) -> list[Outcome]:
+FINDINGS_FILE = "findings.yaml"
+UNEXPLAINED = "unexplained"
+
+
+def load_findings(path=None) -> dict[tuple[str, str], str]:
+    """(dataset, claim text) -> the measured cause of the runs contradicting it, from ``configs/findings.yaml``
+    (``causes: {dataset: {claim text: cause}}``); unknown claim texts are an error naming them."""
+    path = path or config_root() / FINDINGS_FILE
+    causes = load_yaml(path).get("causes") or {}
+    known = {(c.dataset, c.text) for c in CLAIMS}
+    found = {(dataset, text): str(cause) for dataset, entries in causes.items() for text, cause in (entries or {}).items()}
+    unknown = sorted(f"{d}: {t}" for d, t in found if (d, t) not in known)
+    if unknown:
+        raise ConfigError(f"{path}: causes for claims that do not exist: {'; '.join(unknown)}; fix: use a claim's text "
+                          "as the report shows it (e.g. '2dgs better than sugar') under its dataset")
+    return found
+
+
+def evaluate_claims(runs, manifests, specs, claims=CLAIMS, findings=None) -> list[Outcome]:
     """Every claim against the runs (`gsbench.report.collect.Run`, labelled) and sweep manifests;
-    ``specs``: metric name -> `MetricSpec` (`gsbench.report.metrics.metric_specs`)."""
+    ``specs``: metric name -> `MetricSpec` (`gsbench.report.metrics.metric_specs`); ``findings``: the causes of
+    contradicted claims (`load_findings`, read when None)."""
+    findings = load_findings() if findings is None else findings
     boards: dict[tuple, Board] = {}
     sweep_boards: dict[tuple, list[Board]] = {}
     by_id = {r.run_id: r for r in runs}
@@ -195,6 +222,9 @@ def evaluate_claims(runs, manifests, specs, claims=CLAIMS) -> list[Outcome]:
                 boards[key] = leaderboard(runs, claim.dataset, spec, {})
             board = boards[key]
             better, worse = method_row(board, claim.better), method_row(board, claim.worse)
-        outcomes.append(_measure(claim, board if better is not None and worse is not None else None, better, worse))
+        outcome = _measure(claim, board if better is not None and worse is not None else None, better, worse)
+        if outcome.verdict == "disagrees":
+            outcome = replace(outcome, cause=findings.get((claim.dataset, claim.text), UNEXPLAINED))
+        outcomes.append(outcome)
     return outcomes
 

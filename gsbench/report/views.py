@@ -234,13 +234,14 @@ PAIRS_NOTE = (
 def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
     """One table per group of claims (`gsbench.report.claims`), one line per claim: the ordering, the
     paper's numbers and source, the rows compared, the mean paired difference, the pairs won, the p-value,
-    the verdict and, where the test did not separate the rows, the pairs it would take
-    (`gsbench.report.stats.pairs_to_decide`)."""
+    the verdict, where the test did not separate the rows, the pairs it would take
+    (`gsbench.report.stats.pairs_to_decide`), and where the runs contradict the claim its measured cause or
+    "unexplained" (`gsbench.report.claims.load_findings`)."""
     groups: dict[str, list] = {}
     for outcome in outcomes:
         groups.setdefault(outcome.claim.group, []).append(outcome)
     header = ["claim", "paper", "source", "rows compared", "Δ (claimed better − other)", "better on", "p (test)",
-              "verdict", f"pairs to decide ({POWER:.0%} power at this Δ)"]
+              "verdict", f"pairs to decide ({POWER:.0%} power at this Δ)", "cause, where it disagrees"]
     tables = []
     for group, members in groups.items():
         rows = []
@@ -257,6 +258,7 @@ def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
                 TCell(f"{p_text(t.p)} ({t.test})" if measured else MISSING, t.p if measured else None),
                 TCell(o.verdict, None, style),
                 _pairs_to_decide_cell(t) if measured and not t.significant else plain(MISSING),
+                plain(o.cause or MISSING),
             ])
         first = members[0].claim
         spec = specs.get(first.metric)
