@@ -1,0 +1,283 @@
+"""NeuSG (Chen, Li, Wang, Lee 2023, arXiv 2312.00846): 3D Gaussians and a NeuS signed distance field trained
+together, each guiding the other; docs/methods/neusg.md.
+
+- **Gaussian side** (NeuSG eq. 15): 3DGS (``ewa`` kernel, 3DGS densification) with L = L_rgb
+  (0.8 L1 + 0.2 D-SSIM) + λ₃ L_s + λ₄ L_align: ``flatten`` L_s = mean min(s₁, s₂, s₃) (λ₃ = 100) pulls each
+  Gaussian flat, ``sdf_align`` L_align = mean |1 − |n_wᵀ ∇f̂(μ_i)|| (λ₄ = 1) turns its shortest axis
+  n_w = R e_argmin(s) towards the SDF's normal (∇f̂ = ∇f/|∇f|, held fixed: the term moves the Gaussians).
+- **SDF side** (NeuSG eq. 14): the implicit scene of `gsbench.methods.neusg_field` (SDF, colour, background,
+  NeuS s) with L = ``neus_rgb`` (L1 of the NeuS colour of ``rays`` random pixels of the step's view) +
+  λ₁ ``eikonal`` (mean (|∇f| − 1)² at the NeuS samples, λ₁ = 0.1) + λ₂ ``sdf_points``
+  (mean |f(μ_i)| over Gaussian centres, held fixed: the term moves the SDF's zero level set, λ₂ = 1).
+- Each step computes both objectives (their gradients do not mix: the cross terms hold the other side
+  fixed), so L = eq. 14 + eq. 15 is one backward; the NeuS batch is computed once per step by the first
+  term that asks for it (`NeuSG.rays`).
+- Mesh (``mesh.extractor: sdf``, NeuSG's output): marching cubes (scikit-image) of f at 0 on a grid of
+  the scene sphere's cube with the TSDF's voxel (``mesh.voxel_size`` x radius; the record states the
+  grid), the ``mesh.num_clusters`` largest components kept; ``tsdf`` of the Gaussians' expected depth
+  stays available for comparison.
+- The field's Adam groups (``field.*``) sit beside the Gaussians' in one optimizer (the densification
+  strategy touches only the Gaussians' groups); lr: linear warm-up over ``field_warmup`` steps, then
+  cosine decay to ``field_lr_final_ratio`` x ``field_lr`` (Neuralangelo's warm-up; docs/methods/neusg.md §3).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from skimage.measure import marching_cubes
+
+from gsbench.config.run_config import RunConfig
+from gsbench.data.camera import Scene
+from gsbench.errors import ConfigError, import_open3d
+from gsbench.geometry.depth import world_rays
+from gsbench.losses.terms import Batch, TermSpec
+from gsbench.mesh import MeshError
+from gsbench.mesh.cleanup import canonical_order, keep_largest_clusters, to_trimesh
+from gsbench.methods.base import ADAM_EPS, GSConfig, Method, MethodInfo, _export_atomic
+from gsbench.methods.neusg_field import ImplicitScene, RayBatch
+from gsbench.raster.reference_projection import quat_to_rotmat
+from gsbench.training.optim import make_adam
+from gsbench.training.trainer import scale_step
+
+MESH_CHUNK = 1 << 18  # field evaluations per batch when meshing
+COARSE = 4  # fine cells per coarse cell side of the meshing grid (`sdf_volume`)
+
+
+@dataclass
+class NeuSGConfig(GSConfig):
+    """3DGS defaults plus the implicit side (docs/methods/neusg.md §3, §5: which values are NeuSG's,
+    NeuS's or Neuralangelo's, and which are this benchmark's budget)."""
+
+    rays: int = 128
+    coarse_samples: int = 32
+    fine_samples: int = 16
+    background_samples: int = 8
+    grid_levels: int = 5
+    grid_min_res: int = 16
+    grid_max_res: int = 128
+    grid_features: int = 2
+    background_max_res: int = 64
+    field_lr: float = 0.01
+    field_lr_final_ratio: float = 0.05
+    field_warmup: int = 5000
+    point_batch: int = 4096
+    point_min_opacity: float = 0.5
+
+
+class NeuSG(Method):
+    """Gaussians and a NeuS SDF trained together (module docstring)."""
+
+    name = "neusg"
+    Config = NeuSGConfig
+    INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "depth"))
+    MESH_EXTRACTORS = ("sdf", "tsdf")
+
+    def __init__(self):
+        super().__init__()
+        self.field: ImplicitScene | None = None
+        self._rays: tuple[tuple, RayBatch] | None = None
+
+    def check_params(self) -> None:
+        super().check_params()
+        p = self.params
+        for name in ("rays", "coarse_samples", "background_samples", "grid_levels", "grid_min_res", "grid_features",
+                     "point_batch"):
+            if getattr(p, name) < 1:
+                raise ConfigError(f"method.{name} must be >= 1, got {getattr(p, name)}")
+        if p.fine_samples < 0 or p.grid_max_res < p.grid_min_res:
+            raise ConfigError(f"method.fine_samples must be >= 0 and method.grid_max_res >= grid_min_res, got "
+                              f"{p.fine_samples}, {p.grid_max_res} < {p.grid_min_res}")
+        if self.cfg.train.optimizer == "visible_adam":
+            raise ConfigError("neusg: train.optimizer visible_adam updates only the rows a view sees; the SDF's grids "
+                              "have no such rows; fix: train.optimizer adam")
+
+    @classmethod
+    def memory_estimate(cls, cfg: RunConfig) -> dict[str, int]:
+        """The base estimate plus the field's grids (float32, 4 copies: values, gradient, Adam moments) and one
+        step's NeuS samples (5 evaluations each, ~200 float32 of activations and gradients)."""
+        items = super().memory_estimate(cfg)
+        p = cls.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
+        growth = (p.grid_max_res / p.grid_min_res) ** (1 / max(p.grid_levels - 1, 1))
+        vertices = sum((round(p.grid_min_res * growth**level) + 1) ** 3 for level in range(p.grid_levels))
+        items["SDF grids"] = 4 * 4 * p.grid_features * vertices
+        items["NeuS samples"] = p.rays * (p.coarse_samples + p.fine_samples) * 5 * 200 * 4
+        return items
+
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        self.configure(cfg)
+        p = self.params
+        self.field = ImplicitScene(scene.radius, cfg.seed, levels=p.grid_levels, min_res=p.grid_min_res,
+                                   max_res=p.grid_max_res, features=p.grid_features,
+                                   background_max_res=p.background_max_res)
+        super().setup(scene, cfg)
+
+    def make_optimizer(self, gaussians) -> torch.optim.Optimizer:
+        lrs = self.learning_rates()
+        groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()
+                  if param.requires_grad]
+        groups += [{"params": [param], "name": f"field.{name}", "lr": self.params.field_lr}
+                   for name, param in self.field.named_parameters()]
+        return make_adam(groups, self.cfg.train.optimizer, ADAM_EPS)
+
+    def update_schedules(self, step: int, scale: float) -> None:
+        """The 3DGS schedules and the field's lr: linear warm-up, then cosine to ``field_lr_final_ratio``."""
+        super().update_schedules(step, scale)
+        p = self.params
+        warmup, total = scale_step(p.field_warmup, scale), max(self.cfg.train.iterations, 1)
+        if step < warmup:
+            factor = step / warmup
+        else:
+            progress = min((step - warmup) / max(total - warmup, 1), 1.0)
+            factor = p.field_lr_final_ratio + (1 - p.field_lr_final_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+        for group in self.optimizer.param_groups:
+            if group["name"].startswith("field."):
+                group["lr"] = p.field_lr * factor
+
+    # ---- the terms ------------------------------------------------------------------------------
+    def loss_terms(self) -> dict[str, TermSpec]:
+        return {name: TermSpec(name, fn, frozenset(), (fn.__doc__ or "").strip()) for name, fn in
+                (("neus_rgb", neus_rgb_term), ("eikonal", eikonal_term), ("sdf_points", sdf_points_term),
+                 ("sdf_align", sdf_align_term))}
+
+    def loss_state(self) -> dict:
+        return {"gaussians": self.gaussians, "neusg": self}
+
+    def rays(self, batch: Batch) -> tuple[RayBatch, torch.Tensor]:
+        """(the NeuS render of ``rays`` random pixels of the batch's view, their GT colours), once per step:
+        pixels drawn from torch's global generator (checkpointed, so a resume is bit-exact)."""
+        key = (batch.step, batch.view)
+        if self._rays is None or self._rays[0] != key:
+            camera, p = batch.camera, self.params
+            pixels = torch.randint(0, camera.width * camera.height, (p.rays,))
+            rays = torch.from_numpy(world_rays(camera)[pixels.numpy()]).float()
+            directions = F.normalize(rays[:, 3:], dim=-1)
+            out = self.field.render_rays(rays[:, :3], directions, p.coarse_samples, p.fine_samples,
+                                         p.background_samples, None)
+            self._rays = (key, (out, batch.image.reshape(-1, 3)[pixels]))
+        return self._rays[1]
+
+    def centre_sample(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(indices, means) of up to ``point_batch`` Gaussians with opacity ≥ ``point_min_opacity`` inside the
+        field's sphere, drawn from torch's global generator; empty when none qualifies."""
+        g, p = self.gaussians, self.params
+        means = g.means.detach()
+        ok = (g.opacities.detach() >= p.point_min_opacity) & (means.norm(dim=-1) < self.field.radius)
+        index = ok.nonzero().squeeze(1)
+        if len(index) > p.point_batch:
+            index = index[torch.randperm(len(index))[:p.point_batch]]
+        return index, means[index]
+
+    # ---- mesh ---------------------------------------------------------------------------------
+    @torch.no_grad()
+    def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
+        """``sdf``: marching cubes of f = 0 (module docstring); ``tsdf``: the base class's."""
+        self.check_extractor(cfg)
+        if cfg.mesh.extractor != "sdf":
+            return super().extract_mesh(scene, cfg, out_path)
+        voxel = cfg.mesh.voxel_size * (1.0 if cfg.mesh.absolute else self.field.radius)
+        mesh, grid = sdf_mesh(lambda x: self.field.sdf(x)[0], self.field.radius, voxel)
+        mesh = canonical_order(to_trimesh(keep_largest_clusters(mesh, cfg.mesh.num_clusters)))
+        _export_atomic(mesh, Path(out_path))
+        return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "sdf_grid": grid}
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "field": {k: v.detach().clone() for k, v in self.field.state_dict().items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.field.load_state_dict(state["field"])
+        super().load_state_dict(state)
+
+
+def evaluate(sdf_fn, points: np.ndarray) -> np.ndarray:
+    """``sdf_fn`` (torch (N,3) -> (N,)) at ``points`` (N,3), in batches of `MESH_CHUNK`."""
+    chunks = [sdf_fn(torch.from_numpy(chunk).float()).numpy() for chunk in np.array_split(points, max(1, len(points) // MESH_CHUNK))]
+    return np.concatenate(chunks) if chunks else np.zeros(0, np.float32)
+
+
+def sdf_volume(sdf_fn, radius: float, voxel: float) -> tuple[np.ndarray, float]:
+    """f on the grid of the cube [−R, R]³ with ``COARSE``·k + 1 vertices a side, spacing about ``voxel``
+    (values, spacing). Evaluated exactly in the coarse cells (``COARSE`` fine cells a side) whose corners
+    change sign or come within a coarse cell's diagonal of 0; elsewhere the trilinear interpolation of the
+    coarse values, which has the same sign and no zero crossing there (|∇f| ≈ 1: the Eikonal term)."""
+    cells = max(1, int(math.ceil(2 * radius / voxel / COARSE)))
+    n = COARSE * cells + 1
+    spacing = 2 * radius / (n - 1)
+    coarse_axis = -radius + spacing * COARSE * np.arange(cells + 1)
+    grid = np.stack(np.meshgrid(coarse_axis, coarse_axis, coarse_axis, indexing="ij"), -1).reshape(-1, 3)
+    coarse = evaluate(sdf_fn, grid).reshape(cells + 1, cells + 1, cells + 1)
+    values = torch.nn.functional.interpolate(torch.from_numpy(coarse)[None, None], size=(n, n, n), mode="trilinear",
+                                             align_corners=True)[0, 0].numpy()
+    corners = np.stack([coarse[i:i + cells, j:j + cells, k:k + cells] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    near = (np.abs(corners).min(0) < COARSE * spacing * math.sqrt(3)) | (corners.min(0) < 0) & (corners.max(0) > 0)
+    active = np.argwhere(near)
+    if len(active):
+        offsets = np.stack(np.meshgrid(*(np.arange(COARSE + 1),) * 3, indexing="ij"), -1).reshape(-1, 3)
+        vertices = np.unique((active[:, None] * COARSE + offsets[None]).reshape(-1, 3), axis=0)
+        values[tuple(vertices.T)] = evaluate(sdf_fn, -radius + spacing * vertices.astype(np.float64))
+    return values, spacing
+
+
+def sdf_mesh(sdf_fn, radius: float, voxel: float):
+    """Marching cubes of ``sdf_fn``'s zero level set on the cube [−R, R]³ (`sdf_volume`): (open3d mesh, grid
+    vertices a side); an SDF with no zero crossing there, or not finite, is a `MeshError`."""
+    o3d = import_open3d()
+    values, spacing = sdf_volume(sdf_fn, radius, voxel)
+    n = values.shape[0]
+    if not np.all(np.isfinite(values)):
+        raise MeshError(f"the SDF is not finite at {int((~np.isfinite(values)).sum())} of {values.size} grid points")
+    if values.min() >= 0 or values.max() <= 0:
+        raise MeshError(f"the SDF has no zero level set in the scene's cube (values {values.min():.4g} to "
+                        f"{values.max():.4g} on a {n}³ grid): nothing to mesh; the SDF did not converge to a surface "
+                        "(check neus_rgb and sdf_points) or the object lies outside the scene sphere")
+    vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(spacing,) * 3)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices - radius),
+                                     o3d.utility.Vector3iVector(faces.astype(np.int32)))
+    return mesh, n
+
+
+def neus_rgb_term(render, batch: Batch, state: dict) -> torch.Tensor:
+    """L_rgb of the SDF (NeuSG eq. 14, NeuS): mean |C_NeuS − C_gt| over the step's sampled pixels and channels."""
+    out, target = state["neusg"].rays(batch)
+    return (out.colour - target).abs().mean()
+
+
+def eikonal_term(render, batch: Batch, state: dict) -> torch.Tensor:
+    """L_eik = mean (|∇f(x)| − 1)² over the NeuS samples inside the sphere (NeuSG eq. 14); 0 without samples."""
+    grad = state["neusg"].rays(batch)[0].gradients
+    if grad.shape[0] == 0:
+        return grad.sum()
+    return ((grad.norm(dim=-1) - 1) ** 2).mean()
+
+
+def sdf_points_term(render, batch: Batch, state: dict) -> torch.Tensor:
+    """L_pt = mean |f(μ_i)| over a sample of Gaussian centres (NeuSG eq. 14; centres held fixed); 0 if none."""
+    method = state["neusg"]
+    _, means = method.centre_sample()
+    if len(means) == 0:
+        return method.field.variance * 0
+    return method.field.sdf(means)[0].abs().mean()
+
+
+def sdf_align_term(render, batch: Batch, state: dict) -> torch.Tensor:
+    """L_align = mean |1 − |n_wᵀ ∇f̂(μ_i)|| over a sample of Gaussians, n_w the rotation column of the smallest
+    scale, ∇f̂ the SDF's unit normal held fixed (NeuSG eq. 15); 0 if none."""
+    method = state["neusg"]
+    g = method.gaussians
+    index, means = method.centre_sample()
+    if len(index) == 0:
+        return g.params["quats"].sum() * 0
+    with torch.no_grad():
+        normal = F.normalize(method.field.sdf.with_gradient(means)[1], dim=-1)
+    rot = quat_to_rotmat(F.normalize(g.params["quats"][index], dim=-1))
+    shortest = g.params["log_scales"][index].detach().argmin(dim=-1)
+    axis = torch.gather(rot, 2, shortest[:, None, None].expand(-1, 3, 1)).squeeze(-1)
+    return (1 - (axis * normal).sum(-1).abs()).abs().mean()
+
+
