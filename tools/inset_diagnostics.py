@@ -30,7 +30,6 @@ from scipy.spatial import cKDTree
 from gsbench.data.loader import load_scene
 from gsbench.evaluators import pointsets
 from gsbench.evaluators.surface_offset import gt_mesh_file, pixel_footprint, signed_distances
-from gsbench.raster.payload import quat_to_rotmat
 from gsbench.training.trainer import FINAL_CHECKPOINT, load_checkpoint
 
 GATE_PX = 5.0

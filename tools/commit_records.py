@@ -1,0 +1,66 @@
+"""Copy finished runs' records into a committed records folder, machine paths made relative.
+
+    python tools/commit_records.py RUNS_DIR RECORDS_DIR [--sweep FILE ...]
+
+Every ``record.json`` under ``RUNS_DIR`` (only the runs of the given sweep files, expanded as
+``gsbench sweep FILE --dry-run`` lists them, when ``--sweep`` is given)
+is written to the same relative place under ``RECORDS_DIR`` with one change (docs/results/README.md): the
+runs folder becomes ``.`` (so the run's files are relative to the records folder) and the data cache
+(``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``; every other
+field is as the run wrote it. Unfinished runs (no record) are skipped; records already there are replaced.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from gsbench.atomic import atomic_path
+from gsbench.data.cache import cache_dir
+from gsbench.runs.sweep import expand, load_sweep
+
+
+def relative(value, runs: str, cache: str):
+    """``value`` with the runs folder and the data cache in every string made relative (module docstring)."""
+    if isinstance(value, dict):
+        return {k: relative(v, runs, cache) for k, v in value.items()}
+    if isinstance(value, list):
+        return [relative(v, runs, cache) for v in value]
+    if isinstance(value, str):
+        if value == runs:
+            return "."
+        return value.replace(runs + "/", "").replace(cache, "$GSBENCH_DATA")
+    return value
+
+
+def sweep_runs(files: list[Path]) -> set[str] | None:
+    """Run ids of every run of the sweep ``files`` (None: every run)."""
+    if not files:
+        return None
+    return {run.run_id for file in files for run in expand(load_sweep(file))}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", type=Path)
+    parser.add_argument("records", type=Path)
+    parser.add_argument("--sweep", action="append", default=[], type=Path, help="a sweep file (repeatable)")
+    args = parser.parse_args()
+    runs, cache = str(args.runs.resolve()), str(cache_dir().resolve())
+    wanted = sweep_runs(args.sweep)
+    copied = 0
+    for path in sorted(args.runs.resolve().rglob("record.json")):
+        record = json.loads(path.read_text())
+        if wanted is not None and record.get("run_id") not in wanted:
+            continue
+        target = args.records / path.relative_to(runs)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(target) as tmp:
+            tmp.write_text(json.dumps(relative(record, runs, cache), indent=2, sort_keys=True) + "\n")
+        copied += 1
+    print(f"{copied} records written under {args.records}")
+
+
+if __name__ == "__main__":
+    main()
