@@ -18,9 +18,9 @@ needs no double backward through the grid sampler.
 **Colour** (`ColourNetwork`, NeuS's "IDR" mode): c = sigmoid(MLP([x/R, n, d, feature])), n = ∇f/|∇f|,
 d the view direction, two hidden layers of 64.
 
-**Background** (`BackgroundField`, in place of NeuSG's NeRF++ outer network, docs/methods/neusg.md
-§5.2): beyond the sphere of radius R, points are contracted as in Mip-NeRF 360, x ↦ (2 − R/|x|) x/|x|
-(|x| ≥ R; the contracted ball has radius 2R), encoded by a coarser hash grid, and an MLP gives a
+**Background** (`BackgroundField`, in place of NeuSG's NeRF++ outer network,
+docs/methods/neusg.md §5.2): beyond the sphere of radius R, points are contracted as in Mip-NeRF 360,
+x ↦ (2 − R/|x|) x/|x| (|x| ≥ R; the contracted ball has radius 2R), encoded by a coarser grid, and an MLP gives a
 density σ = softplus(·) and a colour from the feature and d; ``samples`` points per ray are spread
 uniformly in inverse distance (disparity) from the sphere's exit to infinity (NeRF++'s inverted-sphere
 sampling), and composited with α = 1 − exp(−σ δ).
