@@ -155,7 +155,7 @@ class NeuSG(Method):
         if self._rays is None or self._rays[0] != key:
             camera, p = batch.camera, self.params
             pixels = torch.randint(0, camera.width * camera.height, (p.rays,))
-            rays = torch.from_numpy(world_rays(camera)[pixels.numpy()]).float()
+            rays = torch.from_numpy(world_rays(camera, pixels.numpy())).float()
             directions = F.normalize(rays[:, 3:], dim=-1)
             out = self.field.render_rays(rays[:, :3], directions, p.coarse_samples, p.fine_samples,
                                          p.background_samples, None)

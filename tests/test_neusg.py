@@ -14,6 +14,7 @@ import trimesh
 
 from gsbench.cli import main
 from gsbench.data.loader import load_scene
+from gsbench.geometry.depth import world_rays
 from gsbench.mesh import MeshError
 from gsbench.methods.neusg import sdf_mesh
 from gsbench.methods.neusg_field import (
@@ -155,3 +156,10 @@ def test_resume_is_bit_identical_for_the_field_too(tiny_spot, tmp_path, monkeypa
         assert torch.equal(param, resumed.method.field.state_dict()[name]), name
     for name, param in straight.method.gaussians.params.items():
         assert torch.equal(param, resumed.method.gaussians.params[name]), name
+
+
+def test_world_rays_of_chosen_pixels_are_those_of_the_whole_image(tiny_spot):
+    """NeuSG casts rays through its sampled pixels only; they are the whole image's rays at those indices."""
+    camera = load_scene(tiny_spot, load_images=False).cameras[3]
+    pixels = np.array([0, 7, camera.width - 1, camera.width, camera.width * camera.height - 1])
+    assert np.array_equal(world_rays(camera, pixels), world_rays(camera)[pixels])

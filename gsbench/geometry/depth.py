@@ -29,10 +29,14 @@ def pixel_rays(camera: Camera, dtype=torch.float32) -> torch.Tensor:
     return torch.stack([x, y, torch.ones_like(x)], -1).to(dtype)
 
 
-def world_rays(camera: Camera) -> np.ndarray:
+def world_rays(camera: Camera, pixels: np.ndarray | None = None) -> np.ndarray:
     """(H·W, 6) rays (origin, direction) through every pixel centre in the camera's world frame, row-major
-    (row j, then column i); direction Rᵀ K⁻¹ (i + 0.5, j + 0.5, 1), not normalised."""
-    centres = pixel_centres(camera).reshape(-1, 2).numpy()
+    (row j, then column i), or only through the row-major pixel indices ``pixels`` (N,); direction
+    Rᵀ K⁻¹ (i + 0.5, j + 0.5, 1), not normalised."""
+    if pixels is None:
+        centres = pixel_centres(camera).reshape(-1, 2).numpy()
+    else:
+        centres = np.column_stack([pixels % camera.width + 0.5, pixels // camera.width + 0.5]).astype(np.float64)
     pix = np.column_stack([centres, np.ones(len(centres))])
     dirs = (pix @ np.linalg.inv(np.asarray(camera.K, np.float64)).T) @ np.asarray(camera.R, np.float64)
     return np.concatenate([np.broadcast_to(camera.center, dirs.shape), dirs], axis=1)

@@ -311,6 +311,8 @@ def _object(spec: SyntheticSpec, seed: int) -> tuple[Surface, dict | None]:
     if spec.mesh is None:
         return make_surface(spec.shape, spec.albedo, seed), None
     obj = read_mesh_object(mesh_path(spec.mesh), up=spec.up, yaw=spec.yaw, largest_part=spec.largest_part, smooth=spec.smooth)
+    if spec.albedo == "auto":
+        spec = dataclasses.replace(spec, albedo="file" if obj.albedo is not None else "procedural")
     if spec.albedo == "file":
         if obj.albedo is None:
             raise DataError(f"{spec.mesh}: the file has no colours (no texture, vertex or face colours); fix: choose a "
@@ -341,13 +343,10 @@ def plan_mesh_scene(mesh, *, fmt: str = "dtu-colmap", res=None, seed: int = 0, f
     """Plan a scene of any mesh file (``gsbench scene make --mesh FILE``): the object on the table in the
     room (DTU layouts) or on the ground among props (TnT), framed to the object share ``framing``
     (``dtu``: as DTU's images; None: the layout's distance). ``albedo`` ``auto``: the file's colours, or
-    ``procedural`` when it has none."""
+    ``procedural`` when it has none (resolved when the file is read, and recorded as the one used)."""
     path = Path(mesh)
     if fmt not in ("dtu", "dtu-colmap", "tnt"):
         raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
-    if albedo == "auto":
-        colours = read_mesh_object(path, up=up, yaw=yaw, largest_part=largest_part, smooth=smooth).colours
-        albedo = "file" if colours != "none" else "procedural"
     spec = SyntheticSpec(mesh=str(path.resolve()), albedo=albedo, fmt=fmt, environment=MESH_ENVIRONMENT[fmt.split("-")[0]],
                          up=up, yaw=yaw, largest_part=largest_part, smooth=smooth, framing=parse_framing(framing))
     return plan_spec(f"mesh/{path.stem}", spec, fmt, res, seed, scan, f"{path.name} as a {fmt.split('-')[0].upper()}-like scene")
