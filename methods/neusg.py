@@ -13,8 +13,8 @@ together, each guiding the other; docs/methods/neusg.md.
   fixed), so L = eq. 14 + eq. 15 is one backward; the NeuS batch is computed once per step by the first
   term that asks for it (`NeuSG.rays`).
 - Mesh (``mesh.extractor: sdf``, NeuSG's output): marching cubes (scikit-image) of f at 0 on a grid of
-  the scene sphere's cube with the TSDF's voxel (``mesh.voxel_size`` x radius; the record states the
-  grid), the ``mesh.num_clusters`` largest components kept; ``tsdf`` of the Gaussians' expected depth
+  the cube around the SDF's sphere (``method.sdf_region``, `sdf_region`) with the TSDF's voxel
+  (``mesh.voxel_size`` x the scene radius; the record states the grid and the region), the ``mesh.num_clusters`` largest components kept; ``tsdf`` of the Gaussians' expected depth
   stays available for comparison.
 - The field's Adam groups (``field.*``) sit beside the Gaussians' in one optimizer (the densification
   strategy touches only the Gaussians' groups); lr: linear warm-up over ``field_warmup`` steps, then
@@ -34,6 +34,7 @@ from skimage.measure import marching_cubes
 
 from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
+from gsbench.data.tnt import gt_bounding_sphere
 from gsbench.errors import ConfigError, import_open3d
 from gsbench.geometry.depth import world_rays
 from gsbench.losses.terms import Batch, TermSpec
@@ -45,6 +46,7 @@ from gsbench.raster.reference_projection import quat_to_rotmat
 from gsbench.training.optim import make_adam
 from gsbench.training.trainer import scale_step
 
+SDF_REGIONS = ("scene", "gt_bounds")  # method.sdf_region (`sdf_region`)
 MESH_CHUNK = 1 << 18  # field evaluations per batch when meshing
 COARSE = 4  # fine cells per coarse cell side of the meshing grid (`sdf_volume`)
 
@@ -68,6 +70,7 @@ class NeuSGConfig(GSConfig):
     field_warmup: int = 5000
     point_batch: int = 4096
     point_min_opacity: float = 0.5
+    sdf_region: str = "scene"
 
 
 class NeuSG(Method):
@@ -93,6 +96,8 @@ class NeuSG(Method):
         if p.fine_samples < 0 or p.grid_max_res < p.grid_min_res:
             raise ConfigError(f"method.fine_samples must be >= 0 and method.grid_max_res >= grid_min_res, got "
                               f"{p.fine_samples}, {p.grid_max_res} < {p.grid_min_res}")
+        if p.sdf_region not in SDF_REGIONS:
+            raise ConfigError(f"method.sdf_region must be one of {SDF_REGIONS}, got {p.sdf_region!r}")
         if self.cfg.train.optimizer == "visible_adam":
             raise ConfigError("neusg: train.optimizer visible_adam updates only the rows a view sees; the SDF's grids "
                               "have no such rows; fix: train.optimizer adam")
@@ -112,7 +117,8 @@ class NeuSG(Method):
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
         self.configure(cfg)
         p = self.params
-        self.field = ImplicitScene(scene.radius, cfg.seed, levels=p.grid_levels, min_res=p.grid_min_res,
+        centre, radius = sdf_region(scene, p.sdf_region)
+        self.field = ImplicitScene(radius, cfg.seed, centre=centre, levels=p.grid_levels, min_res=p.grid_min_res,
                                    max_res=p.grid_max_res, features=p.grid_features,
                                    background_max_res=p.background_max_res)
         super().setup(scene, cfg)
@@ -167,7 +173,7 @@ class NeuSG(Method):
         field's sphere, drawn from torch's global generator; empty when none qualifies."""
         g, p = self.gaussians, self.params
         means = g.means.detach()
-        ok = (g.opacities.detach() >= p.point_min_opacity) & (means.norm(dim=-1) < self.field.radius)
+        ok = (g.opacities.detach() >= p.point_min_opacity) & (self.field.local(means).norm(dim=-1) < self.field.radius)
         index = ok.nonzero().squeeze(1)
         if len(index) > p.point_batch:
             index = index[torch.randperm(len(index))[:p.point_batch]]
@@ -180,11 +186,14 @@ class NeuSG(Method):
         self.check_extractor(cfg)
         if cfg.mesh.extractor != "sdf":
             return super().extract_mesh(scene, cfg, out_path)
-        voxel = cfg.mesh.voxel_size * (1.0 if cfg.mesh.absolute else self.field.radius)
+        voxel = cfg.mesh.voxel_size * (1.0 if cfg.mesh.absolute else scene.radius)  # the TSDF's voxel
         mesh, grid = sdf_mesh(lambda x: self.field.sdf(x)[0], self.field.radius, voxel)
+        mesh.translate(self.field.centre.double().numpy())
         mesh = canonical_order(to_trimesh(keep_largest_clusters(mesh, cfg.mesh.num_clusters)))
         _export_atomic(mesh, Path(out_path))
-        return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "sdf_grid": grid}
+        region = {"centre": [round(float(c), 6) for c in self.field.centre], "radius": round(self.field.radius, 6)}
+        return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "sdf_grid": grid,
+                "sdf_region": region}
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -193,6 +202,17 @@ class NeuSG(Method):
     def load_state_dict(self, state: dict) -> None:
         self.field.load_state_dict(state["field"])
         super().load_state_dict(state)
+
+
+def sdf_region(scene: Scene, region: str) -> tuple[np.ndarray, float]:
+    """(centre, radius) of the SDF's sphere in the training frame (docs/methods/neusg.md §5.6): ``scene``, the
+    normalisation's sphere (DTU's, as IDR and Neuralangelo bound DTU); ``gt_bounds``, the region the TnT
+    ground truth spans, as Neuralangelo bounds a TnT scene (`gsbench.data.tnt.gt_bounding_sphere`)."""
+    if region == "scene":
+        return np.zeros(3), float(scene.radius)
+    if region == "gt_bounds":
+        return gt_bounding_sphere(scene)
+    raise ConfigError(f"method.sdf_region must be one of {SDF_REGIONS}, got {region!r}")
 
 
 def evaluate(sdf_fn, points: np.ndarray) -> np.ndarray:
@@ -233,9 +253,9 @@ def sdf_mesh(sdf_fn, radius: float, voxel: float):
     if not np.all(np.isfinite(values)):
         raise MeshError(f"the SDF is not finite at {int((~np.isfinite(values)).sum())} of {values.size} grid points")
     if values.min() >= 0 or values.max() <= 0:
-        raise MeshError(f"the SDF has no zero level set in the scene's cube (values {values.min():.4g} to "
+        raise MeshError(f"the SDF has no zero level set in its region's cube (values {values.min():.4g} to "
                         f"{values.max():.4g} on a {n}³ grid): nothing to mesh; the SDF did not converge to a surface "
-                        "(check neus_rgb and sdf_points) or the object lies outside the scene sphere")
+                        "(check neus_rgb and sdf_points) or the object lies outside the SDF's sphere (method.sdf_region)")
     vertices, faces, _, _ = marching_cubes(values, level=0.0, spacing=(spacing,) * 3)
     mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices - radius),
                                      o3d.utility.Vector3iVector(faces.astype(np.int32)))
@@ -262,7 +282,7 @@ def sdf_points_term(render, batch: Batch, state: dict) -> torch.Tensor:
     _, means = method.centre_sample()
     if len(means) == 0:
         return method.field.variance * 0
-    return method.field.sdf(means)[0].abs().mean()
+    return method.field.sdf(method.field.local(means))[0].abs().mean()
 
 
 def sdf_align_term(render, batch: Batch, state: dict) -> torch.Tensor:
@@ -274,7 +294,7 @@ def sdf_align_term(render, batch: Batch, state: dict) -> torch.Tensor:
     if len(index) == 0:
         return g.params["quats"].sum() * 0
     with torch.no_grad():
-        normal = F.normalize(method.field.sdf.with_gradient(means)[1], dim=-1)
+        normal = F.normalize(method.field.sdf.with_gradient(method.field.local(means))[1], dim=-1)
     rot = quat_to_rotmat(F.normalize(g.params["quats"][index], dim=-1))
     shortest = g.params["log_scales"][index].detach().argmin(dim=-1)
     axis = torch.gather(rot, 2, shortest[:, None, None].expand(-1, 3, 1)).squeeze(-1)

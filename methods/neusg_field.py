@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -199,12 +200,16 @@ class RayBatch:
 
 
 class ImplicitScene(torch.nn.Module):
-    """The SDF, its colour network, the background and the NeuS variance: everything NeuSG adds."""
+    """The SDF, its colour network, the background and the NeuS variance: everything NeuSG adds.
 
-    def __init__(self, radius: float, seed: int, *, levels: int = 5, min_res: int = 16, max_res: int = 256,
-                 features: int = 2, background_levels: int = 3, background_max_res: int = 64):
+    The field lives in the frame of its region, the sphere of ``radius`` about ``centre`` (training frame):
+    `local` maps a training-frame point into it, and `render_rays` takes training-frame rays."""
+
+    def __init__(self, radius: float, seed: int, *, centre=(0.0, 0.0, 0.0), levels: int = 5, min_res: int = 16,
+                 max_res: int = 256, features: int = 2, background_levels: int = 3, background_max_res: int = 64):
         super().__init__()
         self.radius = float(radius)
+        self.register_buffer("centre", torch.as_tensor(np.asarray(centre, dtype=np.float32)))
         with torch.random.fork_rng():  # the networks' initial weights from ``seed``, the global stream untouched
             torch.manual_seed(seed)
             self.sdf = SDFField(radius, MultiGrid(levels, min_res, max_res, features, seed))
@@ -212,6 +217,10 @@ class ImplicitScene(torch.nn.Module):
             self.background = BackgroundField(radius, MultiGrid(background_levels, min_res, background_max_res,
                                                                 features, seed + 1))
         self.variance = torch.nn.Parameter(torch.tensor(0.3))
+
+    def local(self, x: torch.Tensor) -> torch.Tensor:
+        """Training-frame points (N,3) in the field's frame: x − centre."""
+        return x - self.centre.to(x.dtype)
 
     @property
     def s(self) -> torch.Tensor:
@@ -234,7 +243,8 @@ class ImplicitScene(torch.nn.Module):
 
     def render_rays(self, origins: torch.Tensor, directions: torch.Tensor, n_coarse: int, n_fine: int,
                     n_background: int, generator: torch.Generator | None) -> RayBatch:
-        """NeuS rendering of rays o + t d, |d| = 1, scene frame (module docstring)."""
+        """NeuS rendering of rays o + t d, |d| = 1, training frame (module docstring)."""
+        origins = self.local(origins)
         near, far, hit = sphere_chord(origins, directions, self.radius)
         rays = origins.shape[0]
         colour = torch.zeros(rays, 3, dtype=origins.dtype)

@@ -13,7 +13,10 @@ import torch
 import trimesh
 
 from gsbench.cli import main
+from gsbench.data.camera import GroundTruth, Normalisation, Scene
 from gsbench.data.loader import load_scene
+from gsbench.data.tnt import gt_bounding_sphere
+from gsbench.errors import DataError
 from gsbench.geometry.depth import world_rays
 from gsbench.mesh import MeshError
 from gsbench.methods.neusg import sdf_mesh
@@ -128,6 +131,7 @@ def test_quick_run_to_ok(tiny_spot, tmp_path, restore_threads):
     record = json.loads(next(tmp_path.rglob("record.json")).read_text())
     assert record["status"] == "ok" and math.isfinite(record["metrics"]["chamfer"])
     assert set(record["losses"]["schedule"]) >= {"neus_rgb", "eikonal", "sdf_points", "sdf_align", "flatten"}
+    assert record["mesh"]["sdf_grid"] > 1 and record["mesh"]["sdf_region"] == {"centre": [0.0, 0.0, 0.0], "radius": 1.0}
 
 
 def test_resume_is_bit_identical_for_the_field_too(tiny_spot, tmp_path, monkeypatch, restore_threads):
@@ -163,3 +167,43 @@ def test_world_rays_of_chosen_pixels_are_those_of_the_whole_image(tiny_spot):
     camera = load_scene(tiny_spot, load_images=False).cameras[3]
     pixels = np.array([0, 7, camera.width - 1, camera.width, camera.width * camera.height - 1])
     assert np.array_equal(world_rays(camera, pixels), world_rays(camera)[pixels])
+
+
+def test_a_field_moved_to_its_region_renders_as_the_same_field_with_the_rays_moved():
+    """The region's centre is a pure translation: a field about c renders rays o + c exactly as the field
+    about 0 renders o (same seed, same samples)."""
+    centre = (0.3, -0.2, 0.5)
+    at_origin = ImplicitScene(0.5, 0, levels=2, min_res=8, max_res=16, background_levels=2, background_max_res=16)
+    moved = ImplicitScene(0.5, 0, centre=centre, levels=2, min_res=8, max_res=16, background_levels=2,
+                          background_max_res=16)
+    origins = torch.tensor([[0.0, -2.0, 0.1], [0.2, 0.1, -2.0]])
+    directions = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.1, 1.0]]), dim=-1)
+    a = at_origin.render_rays(origins, directions, 8, 4, 4, torch.Generator().manual_seed(1))
+    b = moved.render_rays(origins + torch.tensor(centre), directions, 8, 4, 4, torch.Generator().manual_seed(1))
+    assert torch.allclose(a.colour, b.colour, atol=1e-5) and torch.allclose(a.depth, b.depth, atol=1e-5)
+    assert float(a.opacity.detach().min()) > 0
+
+
+def test_the_tnt_region_is_the_ground_truths_bounding_sphere_in_the_training_frame(tmp_path):
+    """gt_bounding_sphere maps the GT points by the inverse alignment and the normalisation: a box of GT
+    points under a known similarity comes back as its box's centre and 1.01 x half its diagonal; a scene
+    without TnT ground truth is an error that names method.sdf_region."""
+    rng = np.random.default_rng(0)
+    box = rng.uniform([-1.0, -2.0, -0.5], [1.0, 2.0, 0.5], (5000, 3))
+    box[:800:100] = np.array([[x, y, z] for x in (-1, 1) for y in (-2, 2) for z in (-0.5, 0.5)])  # corners, read
+    angle = 0.7
+    rot = np.array([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]])
+    trans = np.eye(4)
+    trans[:3, :3], trans[:3, 3] = 2.0 * rot, [5.0, -1.0, 3.0]  # COLMAP -> GT
+    colmap_points = box + np.array([0.5, 0.5, 0.5])
+    gt_points = colmap_points @ trans[:3, :3].T + trans[:3, 3]
+    trimesh.PointCloud(gt_points).export(tmp_path / "toy.ply")
+    np.savetxt(tmp_path / "toy_trans.txt", trans)
+    norm = Normalisation(scale=4.0, center=np.array([0.5, 0.5, 1.5]))
+    scene = Scene(name="toy", fmt="tnt", root=tmp_path, cameras=[], images=[], normalisation=norm,
+                  gt=GroundTruth(kind="tnt", root=tmp_path, name="toy"))
+    centre, radius = gt_bounding_sphere(scene)
+    assert np.allclose(centre, (np.array([0.5, 0.5, 0.5]) - norm.center) / 4.0, atol=1e-6)
+    assert math.isclose(radius, 1.01 * math.sqrt(1 + 4 + 0.25) / 4.0, rel_tol=1e-6)
+    with pytest.raises(DataError, match="method.sdf_region=scene"):
+        gt_bounding_sphere(Scene(name="toy", fmt="tnt", root=tmp_path, cameras=[], images=[], gt_missing="toy.ply not found"))

@@ -255,6 +255,6 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     record.eval_protocol = {n: r["protocol"] for n, r in report["results"].items()}
     record.it_per_s, record.num_gaussians = train["it_per_s"], train["num_gaussians"]
     record.densify_budget = train.get("budget", {})  # stages written before the budget was tracked: none
-    record.mesh = {"path": str(mesh_path), "sha256": sha256_file(mesh_path), "checkpoint": str(final),
-                   "vertices": extract["vertices"], "faces": extract["faces"]}
+    described = {k: v for k, v in extract.items() if k not in ("seconds", "peak_rss_bytes")}  # what the extractor told
+    record.mesh = {"path": str(mesh_path), "sha256": sha256_file(mesh_path), "checkpoint": str(final), **described}
     return report
