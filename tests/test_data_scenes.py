@@ -16,6 +16,7 @@ from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.generator import DTU_PLANE_ABOVE_TABLE, SCAN_BASE, plan_scene
 
 DTU_SCENES = ["dtu-spot", "dtu-stool", "dtu-bowl", "dtu-blocks", "dtu-fine", "dtu-plain", "dtu-bunny", "dtu-face",
+              "dtu-glass-orb", "dtu-glass-wine", "dtu-glass-bottle", "dtu-glass-orb-opaque",
               "dtu-spot-near"]
 OPEN_SCANS = ["dtu-face"]  # a range scan: an open sheet, no inside
 TNT_SCENES = ["tnt-spot", "tnt-yard", "tnt-sky"]

@@ -49,5 +49,11 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("synthetic/dtu-spot-near", "dtu", 0.340, "DTU-like: dtu-spot framed as DTU (the object fills 34% of the image)"),
         BuiltinScene("synthetic/dtu-bunny-far", "dtu", 0.126, "experiment twin: dtu-bunny framed like dtu-spot (12.6% of the image)"),
         BuiltinScene("synthetic/dtu-bunny-smooth", "dtu", 0.340, "experiment twin: dtu-bunny with its fine relief smoothed off (Taubin, 200 iterations)"),
+        BuiltinScene("synthetic/dtu-glass-orb", "dtu", 0.340, "glass: a solid clear ball (index 1.5) on the table, framed as DTU (refraction, reflection)"),
+        BuiltinScene("synthetic/dtu-glass-orb-opaque", "dtu", 0.340, "opaque twin of dtu-glass-orb: the same ball, glazed"),
+        BuiltinScene("synthetic/dtu-glass-wine", "dtu", 0.340, "glass: a wine glass (index 1.5; 2% walls, solid stem) on the table, framed as DTU"),
+        BuiltinScene("synthetic/dtu-glass-wine-opaque", "dtu", 0.340, "opaque twin of dtu-glass-wine: the same wine glass, glazed"),
+        BuiltinScene("synthetic/dtu-glass-bottle", "dtu", 0.340, "glass: a thin-walled open bottle (index 1.5) on the table, framed as DTU"),
+        BuiltinScene("synthetic/dtu-glass-bottle-opaque", "dtu", 0.340, "opaque twin of dtu-glass-bottle: the same bottle, glazed"),
     )
 }

@@ -98,7 +98,7 @@ from gsbench.data.synthetic.groundtruth import (
 )
 from gsbench.data.synthetic.mesh_file import file_digest, read_mesh_object
 from gsbench.data.synthetic.primitives import Surface
-from gsbench.data.synthetic.render import Renderer
+from gsbench.data.synthetic.render import MAX_BOUNCES, MIN_WEIGHT, Renderer
 from gsbench.data.synthetic.rigs import make_rig
 from gsbench.data.synthetic.shapes import NAMED_ALBEDOS, make_surface, named_albedo
 from gsbench.data.tnt import nerfpp_normalisation, write_crop_json, write_log
@@ -156,6 +156,8 @@ class SyntheticSpec:
     ``shape`` by a mesh file read by ``mesh_file.py`` with ``up``, ``yaw``, ``largest_part`` and ``smooth``;
     its ``albedo`` ``file`` means the file's own colours. ``framing`` (an object share of the image,
     ``framing.py``) places the cameras at the distance that gives that share instead of ``distance``.
+    ``glass_ior`` makes the object clear glass of that index of refraction (``render.py``: refraction,
+    Fresnel reflection, total internal reflection, bounded bounces); None: opaque.
     ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
     rotation ``colmap_euler`` (xyz degrees), object centre at ``colmap_center``) apply only when the
     scene is written in its own layout ``fmt``.
@@ -180,7 +182,10 @@ class SyntheticSpec:
     largest_part: bool = False
     smooth: int = 0
     framing: float | None = None
+    glass_ior: float | None = None
 
+
+GLASS_IOR = 1.5  # crown glass (n_d 1.52 for BK7, rounded as renderers commonly do)
 
 SPECS = {
     "synthetic/spot": SyntheticSpec(),
@@ -212,6 +217,10 @@ SPECS = {
     "synthetic/dtu-bunny-smooth": SyntheticSpec(mesh=f"pymeshlab:{PYMESHLAB_SAMPLES}/bunny.obj", albedo="glaze",
                                                 fmt="dtu-colmap", environment="room", yaw=-90.0, smooth=200,
                                                 framing=FRAMINGS["dtu"]),
+    **{f"synthetic/dtu-{name}{twin}": SyntheticSpec(shape=shape, albedo="glaze", fmt="dtu-colmap", environment="room",
+                                                    framing=FRAMINGS["dtu"], glass_ior=ior)
+       for name, shape in (("glass-orb", "orb"), ("glass-wine", "wineglass"), ("glass-bottle", "bottle"))
+       for twin, ior in (("", GLASS_IOR), ("-opaque", None))},
 }
 MESH_SCAN = 2001  # DTU scan number of scenes made from a user's mesh file (built-ins: SCAN_BASE + index)
 MESH_ENVIRONMENT = {"dtu": "room", "tnt": "ground"}
@@ -422,6 +431,8 @@ def plan_meta(plan: ScenePlan) -> dict:
                            "measured_share": round(plan.share, 4)}
     if plan.mesh_info is not None:
         meta["mesh"] = plan.mesh_info
+    if plan.spec.glass_ior is not None:
+        meta["glass"] = {"ior": plan.spec.glass_ior, "max_bounces": MAX_BOUNCES, "min_weight": MIN_WEIGHT}
     return meta
 
 
@@ -452,7 +463,8 @@ def write_scene(plan: ScenePlan, out: Path) -> None:
     dirs = [image_dir, out / "gt_depth", out / "gt_normal"] + ([out / "mask"] if plan.fmt != "tnt" else [])
     for folder in dirs:
         folder.mkdir(parents=True, exist_ok=True)
-    renderer = Renderer(plan.rendered, specular=plan.spec.specular, supersample=plan.supersample)
+    renderer = Renderer(plan.rendered, specular=plan.spec.specular, supersample=plan.supersample,
+                        glass_ior=plan.spec.glass_ior)
     depths = []
     for k, cam in enumerate(tqdm(plan.cameras, desc=f"rendering {plan.name}", unit="view", disable=None)):
         view = renderer.render(cam)

@@ -13,6 +13,9 @@ Each builder returns ``(vertices, triangles)`` in its own units with the object 
 - ``yard``: disjoint building blocks (boxes, a thin wall, a stepped tower; several closed components).
 - ``blocks``: an exact polyhedron with sharp edges: a stepped stack of prisms (square plinth, a
   five-point star, a small square tower), see `stepped_prisms`.
+- Glassware (the glass scenes; `revolved_shell`): ``orb``, a solid ball (thick glass) resting on z = 0;
+  ``wineglass``, a cup with walls 0.02 of its height on a solid stem and a foot disc (thin walls and a
+  thick stem); ``bottle``, a thin-walled (0.022) bottle with a shoulder, a neck and an open mouth.
 
 Signed-distance shapes (stool, bowl, pebbles) are meshed by `sdf_mesh`: the SDF sampled on a grid
 of ``voxel`` spacing whose nodes sit half a voxel off z = 0 (so a flat cut at z = 0 is reproduced
@@ -179,6 +182,51 @@ def vase(n_theta: int = 256, n_z: int = 240):
     return vertices, np.concatenate(faces).astype(np.int64)
 
 
+def revolved_shell(profile: np.ndarray, half_wall: float):
+    """SDF of the shell of half-thickness ``half_wall`` around a profile curve (M,2) of (radius, z) points
+    revolved about the z axis: distance from (√(x² + y²), z) to the polyline, minus ``half_wall``."""
+    a, b = profile[:-1], profile[1:]
+
+    def sdf(p):
+        q = np.column_stack([np.hypot(p[:, 0], p[:, 1]), p[:, 2]])
+        best = np.full(len(q), np.inf)
+        for start, end in zip(a, b):
+            e = end - start
+            s = np.clip(((q - start) @ e) / max(float(e @ e), 1e-30), 0.0, 1.0)
+            best = np.minimum(best, np.linalg.norm(q - start - s[:, None] * e, axis=1))
+        return best - half_wall
+
+    return sdf
+
+
+def orb(subdivisions: int = 5):
+    """A ball of radius 0.5 touching z = 0 (icosphere, 20 480 triangles)."""
+    ball = trimesh.creation.icosphere(subdivisions=subdivisions, radius=0.5)
+    return np.asarray(ball.vertices) + np.array([0.0, 0.0, 0.5]), np.asarray(ball.faces, dtype=np.int64)
+
+
+def wineglass():
+    wall = 0.02
+    z = np.linspace(0.0, 1.0, 41)
+    cup = np.column_stack([0.3 * np.sin(np.pi / 2 * np.clip(z / 0.45, 0, 1)) - 0.04 * np.clip((z - 0.45) / 0.55, 0, 1) ** 2,
+                           0.42 + 0.55 * z])
+    cup_sdf = revolved_shell(cup, wall / 2)
+    foot_sdf = revolved_shell(np.array([[0.0, 0.012], [0.26, 0.012]]), 0.012)
+
+    def sdf(p):
+        stem = np.maximum(np.hypot(p[:, 0], p[:, 1]) - 0.028, np.abs(p[:, 2] - 0.22) - 0.21)
+        return np.maximum(np.minimum(np.minimum(cup_sdf(p), foot_sdf(p)), stem), -p[:, 2])
+
+    return sdf_mesh(sdf, (-0.34, -0.34, -0.02), (0.34, 0.34, 1.0))
+
+
+def bottle():
+    z = np.linspace(0.0, 1.0, 61)
+    radius = np.where(z < 0.55, 0.24, np.where(z < 0.78, 0.07 + 0.17 * (1 + np.cos(np.pi * (z - 0.55) / 0.23)) / 2, 0.07))
+    profile = np.vstack([[0.0, 0.011], np.column_stack([radius, 0.011 + 0.96 * z])])
+    return sdf_mesh(revolved_shell(profile, 0.011), (-0.28, -0.28, -0.02), (0.28, 0.28, 1.01))
+
+
 def _radial(polygon: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Points where rays from the origin at ``angles`` leave a polygon star-shaped about the origin."""
     a = polygon
@@ -268,4 +316,5 @@ def yard():
                   box((-0.45, -0.35, 0.0), (-0.3, -0.05, 0.3)), box((-0.2, -0.31, 0.0), (0.05, -0.28, 0.14)), tower])
 
 
-BUILDERS = {"stool": stool, "bowl": bowl, "vase": vase, "pebbles": pebbles, "blocks": blocks, "yard": yard}
+BUILDERS = {"stool": stool, "bowl": bowl, "vase": vase, "pebbles": pebbles, "blocks": blocks, "yard": yard, "orb": orb,
+            "wineglass": wineglass, "bottle": bottle}
