@@ -399,6 +399,7 @@ class Method:
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"params": {k: v.detach().clone() for k, v in self.gaussians.params.items()},
+                "learned": sorted(k for k, v in self.gaussians.params.items() if v.requires_grad),
                 "max_sh_degree": self.gaussians.max_sh_degree, "optimizer": self.optimizer.state_dict(),
                 "sh_degree": self.sh_degree}
 
@@ -409,6 +410,8 @@ class Method:
                               f"expected {sorted(self.gaussians.params)}; was it written by another method?")
         self.gaussians = Gaussians(**{k: v.clone() for k, v in state["params"].items()},
                                    max_sh_degree=state["max_sh_degree"])
+        for name in state.get("learned", ()):  # a method's own learned per-Gaussian rows (RT2DGS's transparency)
+            self.gaussians.params[name].requires_grad_(True)
         self.optimizer = self.make_optimizer(self.gaussians)
         self.optimizer.load_state_dict(state["optimizer"])
         self.sh_degree = int(state["sh_degree"])

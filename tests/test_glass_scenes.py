@@ -1,4 +1,4 @@
-"""Glass in the scene generator (gsbench/data/synthetic/optics.py, render.py): Snell's law and the Fresnel
+"""Glass in the scene generator (gsbench/geometry/optics.py, gsbench/data/synthetic/render.py): Snell's law and the Fresnel
 terms against their closed forms at a flat interface, total internal reflection, index 1 (no interface),
 conservation of the ray tree's weights, the hard rays (grazing, trapped), and the glass built-ins."""
 
@@ -8,64 +8,70 @@ import math
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from gsbench.data.camera import Camera
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.generator import GLASS_IOR, SPECS, plan_meta, plan_scene
-from gsbench.data.synthetic.optics import fresnel, reflect, refract
 from gsbench.data.synthetic.primitives import Surface, box, merge
 from gsbench.data.synthetic.render import MAX_BOUNCES, Renderer
+from gsbench.geometry.optics import fresnel, reflect, refract
 
 N_GLASS = 1.5
 
 
 def _direction(theta):
     """Unit direction travelling down (−z) at angle ``theta`` from the normal +z, in the xz plane."""
-    return np.array([[math.sin(theta), 0.0, -math.cos(theta)]])
+    return torch.tensor([[math.sin(theta), 0.0, -math.cos(theta)]], dtype=torch.float64)
+
+
+UP = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
 
 
 def test_snell_refraction_and_mirror_reflection_at_a_flat_interface():
     """Air to glass at 0° to 80°: n₁ sin θ_i = n₂ sin θ_t, the refracted ray stays in the plane of incidence
     and is unit; the reflected ray mirrors z."""
-    n = np.array([[0.0, 0.0, 1.0]])
+    n = UP
     for degrees in (0.0, 20.0, 45.0, 80.0):
         theta = math.radians(degrees)
         d = _direction(theta)
         t, tir = refract(d, n, 1.0 / N_GLASS)
-        assert not tir[0] and math.isclose(np.linalg.norm(t), 1.0, rel_tol=1e-12)
-        sin_t = math.hypot(t[0, 0], t[0, 1])
+        assert not tir[0] and math.isclose(float(t.norm()), 1.0, rel_tol=1e-12)
+        sin_t = math.hypot(float(t[0, 0]), float(t[0, 1]))
         assert math.isclose(N_GLASS * sin_t, math.sin(theta), abs_tol=1e-12) and t[0, 2] < 0 and t[0, 1] == 0
-        assert np.allclose(reflect(d, n), d * np.array([1.0, 1.0, -1.0]), atol=1e-15)
+        assert torch.allclose(reflect(d, n), d * torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64), atol=1e-15)
 
 
 def test_fresnel_matches_its_closed_forms():
     """Normal incidence ((n₁ − n₂)/(n₁ + n₂))² = 0.04 both ways; at Brewster's angle arctan(n₂/n₁) the p
     part vanishes, R = R_s/2 with R_s = sin²(θ_i − θ_t)/sin²(θ_i + θ_t); 1 at grazing incidence; glass to air: below the critical angle arcsin(1/1.5) = 41.81° R < 1 and the
     ray refracts, above it R = 1 and it is totally reflected."""
-    assert math.isclose(float(fresnel(1.0, 1.0, N_GLASS)), 0.04, rel_tol=1e-12)
-    assert math.isclose(float(fresnel(1.0, N_GLASS, 1.0)), 0.04, rel_tol=1e-12)
+    one = torch.tensor(1.0, dtype=torch.float64)
+    assert math.isclose(float(fresnel(one, 1.0, N_GLASS)), 0.04, rel_tol=1e-12)
+    assert math.isclose(float(fresnel(one, N_GLASS, 1.0)), 0.04, rel_tol=1e-12)
     brewster = math.atan(N_GLASS)
     theta_t = math.asin(math.sin(brewster) / N_GLASS)
     r_s = math.sin(brewster - theta_t) ** 2 / math.sin(brewster + theta_t) ** 2
-    assert math.isclose(float(fresnel(math.cos(brewster), 1.0, N_GLASS)), r_s / 2, rel_tol=1e-12)
-    assert float(fresnel(0.0, 1.0, N_GLASS)) == 1.0
+    cosine = lambda angle: torch.tensor(math.cos(angle), dtype=torch.float64)  # noqa: E731
+    assert math.isclose(float(fresnel(cosine(brewster), 1.0, N_GLASS)), r_s / 2, rel_tol=1e-12)
+    assert float(fresnel(cosine(math.pi / 2) * 0, 1.0, N_GLASS)) == 1.0
     critical = math.asin(1.0 / N_GLASS)
-    n = np.array([[0.0, 0.0, 1.0]])
+    n = UP
     below, above = critical - 1e-3, critical + 1e-3
-    assert float(fresnel(math.cos(below), N_GLASS, 1.0)) < 1.0 and float(fresnel(math.cos(above), N_GLASS, 1.0)) == 1.0
+    assert float(fresnel(cosine(below), N_GLASS, 1.0)) < 1.0 and float(fresnel(cosine(above), N_GLASS, 1.0)) == 1.0
     assert not refract(_direction(below), n, N_GLASS)[1][0]
     t, tir = refract(_direction(above), n, N_GLASS)
-    assert tir[0] and np.all(t == 0)
+    assert tir[0] and torch.all(t == 0)
 
 
 def test_index_one_is_no_interface():
     """eta = 1: R = 0 at every angle (grazing too) and the ray goes straight on."""
-    cosines = np.linspace(0.0, 1.0, 11)
-    assert np.all(fresnel(cosines, 1.0, 1.0) == 0.0)
+    cosines = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    assert torch.all(fresnel(cosines, 1.0, 1.0) == 0.0)
     d = _direction(1.2)
-    t, tir = refract(d, np.array([[0.0, 0.0, 1.0]]), 1.0)
-    assert not tir[0] and np.allclose(t, d, atol=1e-15)
+    t, tir = refract(d, UP, 1.0)
+    assert not tir[0] and torch.allclose(t, d, atol=1e-15)
 
 
 def _ball_in_a_room(albedo=None, unlit=False):

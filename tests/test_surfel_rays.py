@@ -11,7 +11,7 @@ import torch
 
 from gsbench.data.camera import Camera
 from gsbench.raster import reference
-from gsbench.raster.surfel_rays import pair_hits, trace
+from gsbench.raster.surfel_rays import candidate_pairs, pair_hits, surfel_axes, trace, trace_pairs
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
 SH_C0 = 0.28209479177387814
@@ -106,5 +106,28 @@ def test_hard_rays_are_defined():
     twin = trace(origins[2:], directions[2:], means.repeat(2, 1), quats.repeat(2, 1), scales.repeat(2, 1),
                  opacities.repeat(2), torch.ones(2, 1, dtype=torch.float64))
     assert math.isclose(float(twin.alpha[0]), 1 - 0.2**2)
-    t, alpha, normal, ok = pair_hits(origins, directions, means, quats, scales, opacities)
-    assert torch.isfinite(t).all() and not ok[0, 0] and not ok[1, 0]
+    t, alpha, normal, ok = pair_hits(origins, directions, means.expand(3, 3), surfel_axes(quats).expand(3, 3, 3), scales.expand(3, 2),
+                                     opacities.expand(3))
+    assert torch.isfinite(t).all() and not ok[0] and not ok[1] and ok[2]
+
+
+def test_candidate_pairs_from_the_bvh_give_the_dense_result():
+    """300 random surfels, 400 random rays: the pairs open3d's BVH lists blend to the dense reference's
+    features, alpha, depth and normal (float64), and every pair the dense pass blends is among them."""
+    gen = torch.Generator().manual_seed(7)
+    n, r = 300, 400
+    means = torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1
+    quats = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    scales = 0.02 + 0.08 * torch.rand(n, 2, generator=gen, dtype=torch.float64)
+    opacities = 0.2 + 0.7 * torch.rand(n, generator=gen, dtype=torch.float64)
+    features = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    origins = torch.rand(r, 3, generator=gen, dtype=torch.float64) * 2 - 1 + torch.tensor([0.0, 0.0, -3.0], dtype=torch.float64)
+    directions = torch.nn.functional.normalize(torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+                                               + 0.3 * torch.randn(r, 3, generator=gen, dtype=torch.float64), dim=-1)
+    dense = trace(origins, directions, means, quats, scales, opacities, features)
+    ray, surfel = candidate_pairs(origins, directions, means, quats, scales)
+    sparse = trace_pairs(origins, directions, means, quats, scales, opacities, features, ray, surfel)
+    blended = set(zip(dense.ray[dense.weights > 0].tolist(), dense.surfel[dense.weights > 0].tolist()))
+    assert len(blended) > 500 and blended <= set(zip(ray.tolist(), surfel.tolist()))
+    for name in ("features", "alpha", "depth", "normal"):
+        assert torch.allclose(getattr(sparse, name), getattr(dense, name), atol=1e-12), name

@@ -13,7 +13,7 @@ direction ``K⁻¹ (u, v, 1)``, whose z is 1, so the hit parameter is the camera
   ``specular * max(0, n·h)^shininess`` (view dependent). Triangles marked ``unlit`` (a sky) show
   their albedo unshaded.
 - Glass (``glass_ior`` set): the object (part 0) is a clear dielectric of that index in air
-  (``optics.py``), bending rays about its smooth normal (the outward vertex normals interpolated over
+  (`gsbench.geometry.optics`), bending rays about its smooth normal (the outward vertex normals interpolated over
   the triangle, as the smooth surface the mesh samples would; a flat-faceted ball traps light by total
   internal reflection between facets, which a smooth one cannot). A ray that hits it splits into the mirror-reflected ray, weighted by the Fresnel
   reflectance R, and the refracted ray, weighted by 1 − R (none under total internal reflection); each
@@ -29,11 +29,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from gsbench.data.camera import Camera
-from gsbench.data.synthetic.optics import fresnel, reflect, refract
 from gsbench.data.synthetic.primitives import Surface
 from gsbench.errors import import_open3d
+from gsbench.geometry.optics import fresnel, reflect, refract
 
 LIGHT = np.array([0.35, -0.55, 0.76]) / np.linalg.norm([0.35, -0.55, 0.76])
 MAX_BOUNCES = 16  # glass interactions a ray may have before it is dropped
@@ -173,11 +174,12 @@ class Renderer:
         outward = np.where(agree[:, None], smooth, outward)
         n = np.where(entering[:, None], outward, -outward)
         n1, n2 = np.where(entering, 1.0, self.glass_ior), np.where(entering, self.glass_ior, 1.0)
-        r = fresnel(-np.sum(d * n, axis=1), n1, n2)
-        through, tir = refract(d, n, n1 / n2)
+        d_t, n_t = torch.from_numpy(d), torch.from_numpy(n)
+        r = fresnel(-(d_t * n_t).sum(-1), torch.from_numpy(n1), torch.from_numpy(n2)).numpy()
+        through, tir = (x.numpy() for x in refract(d_t, n_t, torch.from_numpy(n1 / n2)))
         go = ~tir
         origins = np.concatenate([p + OFFSET * n, p[go] - OFFSET * n[go]])
-        directions = np.concatenate([reflect(d, n), through[go]])
+        directions = np.concatenate([reflect(d_t, n_t).numpy(), through[go]])
         weights = np.concatenate([weight * r, weight[go] * (1.0 - r[go])])
         pixels = np.concatenate([pixel, pixel[go]])
         keep = weights >= MIN_WEIGHT

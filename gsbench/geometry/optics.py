@@ -18,36 +18,38 @@ At index 1 (eta = 1) the interface vanishes: R = 0 and t = d exactly.
 
 from __future__ import annotations
 
-import numpy as np
+import torch
 
 
-def reflect(d: np.ndarray, n: np.ndarray) -> np.ndarray:
+def reflect(d: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     """Mirror direction r = d − 2 (d·n) n of (N,3) directions about (N,3) unit normals."""
-    return d - 2.0 * np.sum(d * n, axis=-1, keepdims=True) * n
+    return d - 2.0 * (d * n).sum(-1, keepdim=True) * n
 
 
-def refract(d: np.ndarray, n: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray]:
+def refract(d: torch.Tensor, n: torch.Tensor, eta) -> tuple[torch.Tensor, torch.Tensor]:
     """(t, tir): Snell's refracted directions of unit ``d`` at unit ``n`` (facing the incoming ray) for
-    index ratio ``eta`` = n₁/n₂ (scalar or (N,)), and the mask of total internal reflection (t = 0 there)."""
-    eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), d.shape[:-1])[..., None]
-    cos_i = np.clip(-np.sum(d * n, axis=-1, keepdims=True), 0.0, 1.0)
+    index ratio ``eta`` = n₁/n₂ (scalar or (N,)), and the mask of total internal reflection (t = 0 there).
+    Differentiable; cos_t is taken as √max(1 − sin²θ_t, 1e-12) so its gradient stays finite at the
+    critical angle."""
+    eta = torch.as_tensor(eta, dtype=d.dtype).expand(d.shape[:-1])[..., None]
+    cos_i = (-(d * n).sum(-1, keepdim=True)).clamp(0.0, 1.0)
     sin2_t = eta**2 * (1.0 - cos_i**2)
     tir = sin2_t[..., 0] > 1.0
-    cos_t = np.sqrt(np.clip(1.0 - sin2_t, 0.0, None))
+    cos_t = torch.sqrt((1.0 - sin2_t).clamp_min(1e-12))
     t = eta * d + (eta * cos_i - cos_t) * n
-    return np.where(tir[..., None], 0.0, t), tir
+    return torch.where(tir[..., None], torch.zeros_like(t), t), tir
 
 
-def fresnel(cos_i: np.ndarray, n1, n2) -> np.ndarray:
+def fresnel(cos_i: torch.Tensor, n1, n2) -> torch.Tensor:
     """Unpolarised Fresnel reflectance R for incidence cosines ``cos_i`` (≥ 0) from index ``n1`` into ``n2``
-    (module docstring); 1 under total internal reflection."""
-    cos_i = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
-    n1, n2 = np.broadcast_arrays(np.asarray(n1, dtype=np.float64), np.asarray(n2, dtype=np.float64))
+    (module docstring); 1 under total internal reflection and at grazing incidence, 0 where n1 = n2."""
+    cos_i = torch.as_tensor(cos_i).clamp(0.0, 1.0)
+    n1, n2 = torch.as_tensor(n1, dtype=cos_i.dtype), torch.as_tensor(n2, dtype=cos_i.dtype)
     sin2_t = (n1 / n2) ** 2 * (1.0 - cos_i**2)
-    cos_t = np.sqrt(np.clip(1.0 - sin2_t, 0.0, None))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rs = ((n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)) ** 2
-        rp = ((n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i)) ** 2
-    r = 0.5 * (np.nan_to_num(rs, nan=1.0) + np.nan_to_num(rp, nan=1.0))  # grazing (cos_i = cos_t = 0): R = 1
-    r = np.where(sin2_t > 1.0, 1.0, np.clip(r, 0.0, 1.0))
-    return np.where(n1 == n2, 0.0, r)  # no interface, no reflection, at grazing incidence too
+    cos_t = torch.sqrt((1.0 - sin2_t).clamp_min(1e-12))
+    s_den, p_den = n1 * cos_i + n2 * cos_t, n1 * cos_t + n2 * cos_i
+    rs = ((n1 * cos_i - n2 * cos_t) / s_den.clamp_min(1e-12)) ** 2
+    rp = ((n1 * cos_t - n2 * cos_i) / p_den.clamp_min(1e-12)) ** 2
+    r = (0.5 * (rs + rp)).clamp(0.0, 1.0)
+    r = torch.where((sin2_t > 1.0) | (cos_i <= 0.0), torch.ones_like(r), r)
+    return torch.where(n1 == n2, torch.zeros_like(r), r)  # no interface, no reflection, at grazing incidence too
