@@ -364,6 +364,19 @@ class Method:
         return rasterize(self.raster_input(), camera, kernel=self.info().kernel, outputs=tuple(sorted(outputs)),
                          settings=self.raster_settings())
 
+    # ---- a second stage -------------------------------------------------------------------------
+    def second_stage_config(self, cfg: RunConfig) -> RunConfig | None:
+        """The run config of a second model trained from this one before meshing (SuGaR's refinement), or None."""
+        return None
+
+    def second_stage(self, scene: Scene, cfg: RunConfig, second_cfg: RunConfig) -> "Method":
+        """The second model, built from this trained one (`second_stage_config` is not None)."""
+        raise NotImplementedError(f"method '{self.name}' has no second stage")
+
+    def describe(self) -> dict:
+        """What a second stage reports into the record's inputs (sizes)."""
+        return {}
+
     # ---- mesh ---------------------------------------------------------------------------------
     @torch.no_grad()
     def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:

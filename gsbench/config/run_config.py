@@ -42,6 +42,7 @@ from gsbench.data.loader import BUILTIN_SCENES, detect_format, has_ground_truth
 from gsbench.errors import ConfigError
 
 EXECUTION_ONLY_KEYS = ("threads", "out", "gt")
+LATER_SWITCH = "later_switch"  # method Config field metadata: left out of the resolved config (and the run id) at its default
 HOLDOUT_WITHOUT_GT = 8  # data.holdout_every "auto" (-1) on a scene without ground truth: 3DGS --eval
 
 
@@ -270,7 +271,11 @@ def _build_method(data: dict, method_config_cls) -> dict:
     if method_config_cls is None:
         return {"name": name, **params}
     built = _build(method_config_cls, params, "method.")
-    return {"name": name, **dataclasses.asdict(built)}
+    values = dataclasses.asdict(built)
+    for f in dataclasses.fields(method_config_cls):  # a switch added after records exist, off: the run id stays
+        if f.metadata.get(LATER_SWITCH) and values[f.name] == f.default:
+            del values[f.name]
+    return {"name": name, **values}
 
 
 def dataset_of(scene: str) -> str:

@@ -174,7 +174,7 @@ def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) 
         record.error_tail = "".join(traceback.format_exc().splitlines(keepends=True)[-ERROR_TAIL_LINES:])
         raise
     finally:
-        keys = ("load", "train", "extract", "evaluate")
+        keys = ("load", "train", "refine", "extract", "evaluate")
         record.timings = {k: stages.data[k]["seconds"] for k in keys if k in stages.data}
         record.timings["total"] = sum(record.timings.values())
         record.timings["wall_this_invocation"] = time.perf_counter() - start
@@ -213,6 +213,24 @@ def _stored_report(eval_path: Path, plan) -> dict | None:
     return report if report.get("plan") == list(plan.names) else None
 
 
+def _second_stage(method, scene, cfg: RunConfig, second_cfg: RunConfig, sub: RunFolder, stages: _Stages, record: RunRecord):
+    """The method's second model (SuGaR's refinement), trained from the first in ``sub`` (its own checkpoints,
+    so it resumes like the first) or loaded when it finished; recorded as the ``refine`` stage."""
+    stage("building the second stage from the trained model")
+    t0 = time.perf_counter()
+    second = method.second_stage(scene, cfg, second_cfg)
+    built = time.perf_counter() - t0
+    record.inputs["second_stage"] = second.describe()
+    if not sub.final_checkpoint.is_file():
+        stage(f"refining: {second_cfg.train.iterations} steps, {len(second.gaussians)} Gaussians")
+        result = Trainer(second, scene, second_cfg, sub.path).fit()
+        stages.done("refine", built + result.seconds, build_seconds=built, it_per_s=result.it_per_s,
+                    num_gaussians=result.num_gaussians, steps=result.steps)
+    else:
+        second.load_state_dict(load_checkpoint(sub.final_checkpoint)["method"])
+    return second
+
+
 def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord, plan) -> dict:
     """The stages proper; fills ``record`` and returns the evaluation report."""
     t0 = time.perf_counter()
@@ -235,6 +253,10 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
     elif not (mesh_path.is_file() and report is not None):
         method.load_state_dict(load_checkpoint(final)["method"])
+
+    second_cfg = method.second_stage_config(cfg)
+    if second_cfg is not None and not mesh_path.is_file():
+        method = _second_stage(method, scene, cfg, second_cfg, RunFolder(folder / "refine"), stages, record)
 
     if not mesh_path.is_file():
         stage(f"extracting the mesh ({cfg.mesh.extractor})")
