@@ -19,10 +19,7 @@ from gsbench.data.synthetic.render import Renderer
 from gsbench.geometry.optics import fresnel, refract
 from gsbench.methods.rt2dgs import surface_light, trace_interface
 from gsbench.raster.types import RasterGaussians
-from gsbench.registry import METHODS
-from gsbench.runs.runner import load_run_scene, resolve_run
-from gsbench.training.trainer import Trainer
-from tests.method_setup import interrupt_at
+from tests.method_setup import straight_and_resumed
 
 BALL = 0.5
 WALLS = [((-3, -3, -2), (3, 3, -2)), ((-3, -3, 4), (3, 3, 4)), ((-3, -3, -2), (-3, 3, 4)), ((3, -3, -2), (3, 3, 4)),
@@ -181,25 +178,9 @@ def test_quick_run_to_ok(tiny_orb, tmp_path, restore_threads):
 def test_resume_is_bit_identical_with_the_traced_light(tiny_orb, tmp_path, monkeypatch, restore_threads):
     """12 steps straight vs 6 + crash + resume + 6, light traced from step 1 (τ starts at 0.1, above the 0.02
     threshold): surfels, transparencies, the index of refraction and the kNN index all equal."""
-    overrides = ["train.iterations=12", "train.checkpoint_every=6", "threads=1", "losses.normal_smoothness.start=0",
-                 "method.trace_pixels=64"]
-
-    def trainer(run_dir):
-        cfg = resolve_run("rt2dgs", str(tiny_orb), preset="quick", overrides=overrides)
-        scene = load_run_scene(cfg)
-        method = METHODS.get("rt2dgs")()
-        method.setup(scene, cfg)
-        return Trainer(method, scene, cfg, run_dir)
-
-    straight = trainer(tmp_path / "a")
-    straight.fit()
-    interrupted = trainer(tmp_path / "b")
-    interrupt_at(interrupted, 7, monkeypatch)
-    with pytest.raises(KeyboardInterrupt):
-        interrupted.fit()
-    monkeypatch.undo()
-    resumed = trainer(tmp_path / "b")
-    assert resumed.fit().resumed_from == 6
+    straight, resumed = straight_and_resumed("rt2dgs", tiny_orb, tmp_path, monkeypatch, "train.iterations=12",
+                                             "train.checkpoint_every=6", "threads=1", "losses.normal_smoothness.start=0",
+                                             "method.trace_pixels=64", crash_after=6)
     assert torch.equal(straight.method.ior_raw, resumed.method.ior_raw) and float(straight.method.ior.detach()) != 1.5
     assert torch.equal(straight.method.neighbours.index, resumed.method.neighbours.index)
     for name, param in straight.method.gaussians.params.items():
