@@ -16,9 +16,9 @@ pixel's surface point x = camera + D·ray (D the median depth) with the rendered
 R₁ the Fresnel reflectance entering at x (air to η), the refracted ray traced through the surfels to the
 exit interface (its τ-weighted depth and normal), R₂ the reflectance leaving there (η to air; total
 internal reflection: 1), E(ray) = Σ_j w_j (1 − τ_j) c_j along a ray (what opaque surfels it meets). Two
-interfaces and one reflection: the bounded tree (§4). L is traced at up to ``trace_pixels`` pixels per
-render (a regular sub-grid with a random offset per step, nearest-neighbour filled between them) whose
-τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out.
+interfaces and one reflection: the bounded tree (docs/methods/rt2dgs.md §2). L is traced at up to
+``trace_pixels`` pixels per render (a regular sub-grid with a random offset per step, nearest-neighbour
+filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out.
 
 Losses (configs/methods/rt2dgs.yaml): 0.8 L1 + 0.2 D-SSIM of C, 2DGS's depth distortion (λ_d = 1000) and
 normal consistency (λ_n = 0.2, the paper's value), and ``normal_smoothness`` (λ = 0.3):
