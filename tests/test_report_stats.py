@@ -266,8 +266,8 @@ def test_claims_between_methods_quote_the_methods_reported_means():
 
 
 def test_suites_list_the_protocols_scenes():
-    assert suite_names() == ["dtu-framed", "dtu-like", "tnt-like"]
-    for name, fmt in (("dtu-framed", "dtu"), ("dtu-like", "dtu"), ("tnt-like", "tnt")):
+    assert suite_names() == ["dtu-framed", "dtu-like", "glass", "tnt-like"]
+    for name, fmt in (("dtu-framed", "dtu"), ("dtu-like", "dtu"), ("glass", "dtu"), ("tnt-like", "tnt")):
         suite = load_suite(name)
         assert suite.seeds == (0, 1, 2)
         assert all(BUILTIN_SCENES[s].format == fmt for s in suite.scenes)
@@ -294,9 +294,9 @@ def test_suites_expand_in_sweeps(tmp_path):
 
 
 def test_unknown_suite_is_an_error_listing_the_suites(tmp_path):
-    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-framed, dtu-like, tnt-like"):
+    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-framed, dtu-like, glass, tnt-like"):
         load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-lik\n"))
-    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-framed, dtu-like, tnt-like"):
+    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-framed, dtu-like, glass, tnt-like"):
         with_suite({"base": {"method": "3dgs"}}, "nope")
     with pytest.raises(ConfigError, match="'suite'.*or 'scenes', not both"):
         load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-like\nscenes: [synthetic/spot]\n"))
@@ -308,4 +308,4 @@ def test_a_suite_as_one_scene_points_to_the_sweep(capsys):
     assert main(["config", "--method", "3dgs", "--scene", "suite:dtu-like"]) == 2
     assert "gsbench sweep FILE --suite dtu-like" in capsys.readouterr().err
     assert main(["run", "--method", "3dgs", "--scene", "suite:nope"]) == 2
-    assert "available suites: dtu-framed, dtu-like, tnt-like" in capsys.readouterr().err
+    assert "available suites: dtu-framed, dtu-like, glass, tnt-like" in capsys.readouterr().err
