@@ -39,12 +39,12 @@ from gsbench.errors import ConfigError
 from gsbench.geometry.neighbours import NeighbourIndex, rows
 from gsbench.geometry.optics import fresnel, reflect, refract
 from gsbench.losses.terms import Batch, TermSpec
-from gsbench.methods.base import MethodInfo
+from gsbench.methods.base import ADAM_EPS, DEPTH_OUTPUTS, MethodInfo
 from gsbench.methods.gs2d import GS2D, GS2DConfig
 from gsbench.raster import rasterize
-from gsbench.raster.reference_projection import eval_sh, quat_to_rotmat
+from gsbench.raster.reference_projection import eval_sh
 from gsbench.raster.sh import C0 as SH_C0
-from gsbench.raster.surfel_rays import CandidateIndex, trace_pairs
+from gsbench.raster.surfel_rays import CandidateIndex, surfel_axes, trace_pairs
 from gsbench.raster.types import RasterGaussians, RenderOutput
 from gsbench.training.optim import make_adam
 
@@ -117,7 +117,7 @@ class RT2DGS(GS2D):
                   if param.requires_grad]
         if self.ior_raw is not None and self.ior_raw.requires_grad:
             groups.append({"params": [self.ior_raw], "name": "ior", "lr": self.params.ior_lr})
-        return make_adam(groups, self.cfg.train.optimizer, 1e-15)
+        return make_adam(groups, self.cfg.train.optimizer, ADAM_EPS)
 
     # ---- the interface ------------------------------------------------------------------------
     @property
@@ -160,6 +160,13 @@ class RT2DGS(GS2D):
         light = self._traced_light(camera, opaque, tau_map, g, tau, colours)
         opaque.rgb = opaque.rgb + tau_map[..., None] * light
         return opaque
+
+    def mesh_depth(self, camera, cfg):
+        """2DGS's depth for the TSDF, its render's colour without the traced light (the TSDF's colours only
+        paint the mesh; tracing them would cost every training view's light)."""
+        key = DEPTH_OUTPUTS[cfg.mesh.depth]
+        out = super().render(camera, {key, "alpha", "rgb"})
+        return getattr(out, key), out
 
     def _traced_light(self, camera, out: RenderOutput, tau_map: torch.Tensor, g: RasterGaussians, tau: torch.Tensor,
                       colours: torch.Tensor) -> torch.Tensor:
@@ -280,7 +287,7 @@ def normal_smoothness_term(render, batch: Batch, state: dict) -> torch.Tensor:
     index = method.neighbour_index()
     if index.shape[1] == 0:
         return g.means.sum() * 0
-    normals = quat_to_rotmat(F.normalize(g.params["quats"], dim=-1))[..., 2]
+    normals = surfel_axes(g.params["quats"])[..., 2]
     cos = (normals[:, None, :] * rows(normals, index)).sum(-1).abs()
     distance = (g.means[:, None, :] - rows(g.means, index)).norm(dim=-1).detach()
     eps = method.params.smooth_epsilon * method.scene_radius

@@ -29,12 +29,13 @@ import torch
 import torch.nn.functional as F
 import trimesh
 
-from gsbench.errors import ConfigError, NumericalError
+from gsbench.errors import ConfigError
 from gsbench.losses.terms import Batch, TermSpec
-from gsbench.methods.base import Method, MethodInfo, _export_atomic
+from gsbench.methods.base import ADAM_EPS, Method, MethodInfo, _export_atomic
 from gsbench.methods.sugar_binding import barycentric, bound_gaussians, initial_log_scales, usable_faces
 from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.types import RasterGaussians
+from gsbench.training.gaussians import check_finite_params
 from gsbench.training.optim import make_adam
 from gsbench.training.strategies.base import Strategy
 
@@ -60,10 +61,7 @@ class BoundGaussians(torch.nn.Module):
         return int(self.params["log_scales"].shape[0])
 
     def check_finite(self) -> None:
-        for name, tensor in self.params.items():
-            if not bool(torch.isfinite(tensor.detach()).all()):
-                raise NumericalError(f"refinement parameter '{name}' is not finite; lower its learning rate or resume "
-                                     "from an earlier checkpoint")
+        check_finite_params(self.params)
 
     def raster_input(self, filter3d=None) -> RasterGaussians:
         p = self.params
@@ -125,7 +123,7 @@ class SugarRefinement(Method):
         lrs = {"vertices": 0.00016 * self.vertex_lr_scale(), "log_scales": 0.005, "rotation": 0.001, "opacity_logits": 0.05,
                "sh_dc": 0.0025, "sh_rest": 0.0025 / 20}
         groups = [{"params": [param], "name": name, "lr": lrs[name]} for name, param in gaussians.params.items()]
-        return make_adam(groups, "adam", 1e-15)
+        return make_adam(groups, "adam", ADAM_EPS)  # SuGaR refine: Adam, eps 1e-15, as 3DGS
 
     def update_schedules(self, step: int, scale: float) -> None:
         """The vertices' log-linear lr decay and the SH degree, in SuGaR's refinement steps (module docstring)."""

@@ -70,7 +70,6 @@ def median_depth(alpha: torch.Tensor, t_star: torch.Tensor, inv_sigma: torch.Ten
         t_lo, t_hi = transmittance(lo[:, None], a, ts, s)[:, 0], transmittance(hi[:, None], a, ts, s)[:, 0]
         share = ((t_lo - HALF) / (t_lo - t_hi).clamp_min(1e-12)).clamp(0.0, 1.0)
         t0 = lo + share * (hi - lo)
-    t0 = t0.requires_grad_(False)
     t_param = t0.clone().requires_grad_(True)
     with torch.enable_grad():
         slope = torch.autograd.grad(transmittance(t_param[:, None], a, ts, s)[:, 0].sum(), t_param)[0]

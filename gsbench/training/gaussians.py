@@ -39,6 +39,20 @@ def knn_initial_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
     return np.sqrt(np.maximum(mean_sq, 1e-7))
 
 
+def check_finite_params(params) -> None:
+    """Raise `NumericalError` naming the first of ``params`` (name -> tensor with rows first) that holds NaN or
+    Inf. One reduction per group on the common path: a sum of finite values is finite unless it overflows,
+    and only then (or when it is not finite) is every element tested."""
+    for name, tensor in params.items():
+        if bool(torch.isfinite(tensor.detach().sum())):
+            continue
+        bad = ~torch.isfinite(tensor.detach())
+        if bad.any():
+            rows = bad.reshape(len(tensor), -1).any(-1).nonzero().flatten()
+            raise NumericalError(f"parameter '{name}' has {len(rows)} non-finite rows (first at index "
+                                 f"{int(rows[0])}); lower the learning rate or resume from an earlier checkpoint")
+
+
 class Gaussians(torch.nn.Module):
     """Learnable Gaussian parameters as an ``nn.ParameterDict``-like module (one tensor per group)."""
 
@@ -136,18 +150,8 @@ class Gaussians(torch.nn.Module):
         return torch.sigmoid(self.params["opacity_logits"])
 
     def check_finite(self) -> None:
-        """Raise `NumericalError` naming the first parameter group that holds NaN or Inf.
-
-        One reduction per group on the common path: a sum of finite values is finite unless it
-        overflows, and only then (or when it is not finite) is every element tested."""
-        for name, tensor in self.params.items():
-            if bool(torch.isfinite(tensor.detach().sum())):
-                continue
-            bad = ~torch.isfinite(tensor.detach())
-            if bad.any():
-                rows = bad.reshape(len(tensor), -1).any(-1).nonzero().flatten()
-                raise NumericalError(f"parameter '{name}' has {len(rows)} non-finite rows (first at index "
-                                     f"{int(rows[0])}); lower the learning rate or resume from an earlier checkpoint")
+        """Raise `NumericalError` naming the first parameter group that holds NaN or Inf (`check_finite_params`)."""
+        check_finite_params(self.params)
 
     def raster_input(self, filter3d: torch.Tensor | None = None) -> RasterGaussians:
         """Activated parameters for `gsbench.raster.rasterize`; the SH as its two parameters (sh_dc, sh_rest), not
