@@ -27,10 +27,13 @@ def test_one_gaussian_matches_its_closed_form():
                              torch.tensor(4.0, dtype=torch.float64))
     assert torch.allclose(T, torch.tensor([1.0, math.sqrt(0.2), 0.2], dtype=torch.float64), atol=1e-12)
     for alpha in (0.6, 0.75, 0.9, 0.99):
-        depth, valid = median_depth(torch.tensor([[alpha]], dtype=torch.float64), torch.tensor([[2.0]], dtype=torch.float64),
-                                    torch.tensor([[4.0]], dtype=torch.float64), 0.1, 10.0)
-        tolerance = 9.9 / 8**5 if alpha == 0.75 else 1e-9  # at α = ¾ the median is the peak, where T' = 0: the cell
-        assert bool(valid[0]) and abs(float(depth[0]) - single_median(alpha, 2.0, 0.25)) < tolerance, alpha
+        for rounds in (5, 8):  # GGGS's training and meshing searches
+            depth, valid = median_depth(torch.tensor([[alpha]], dtype=torch.float64),
+                                        torch.tensor([[2.0]], dtype=torch.float64),
+                                        torch.tensor([[4.0]], dtype=torch.float64), 0.1, 10.0, rounds=rounds)
+            cell = 9.9 / 8**rounds  # the stated tolerance: one last cell
+            tolerance = cell if alpha == 0.75 or rounds == 5 else 1e-9  # at α = ¾ the median is the peak, T' = 0
+            assert bool(valid[0]) and abs(float(depth[0]) - single_median(alpha, 2.0, 0.25)) < tolerance, (alpha, rounds)
     depth, valid = median_depth(torch.tensor([[0.4]], dtype=torch.float64), torch.tensor([[2.0]], dtype=torch.float64),
                                 torch.tensor([[4.0]], dtype=torch.float64), 0.1, 10.0)
     assert not bool(valid[0]) and float(depth[0]) == 0.0 and single_median(0.4, 2.0, 0.25) is None
@@ -45,23 +48,23 @@ def _random_rays(rays=64, gaussians=6, seed=0):
 
 
 def test_the_search_is_within_its_tolerance_of_a_dense_reference():
-    """Six Gaussians per ray, 64 rays: the 8-way search (5 rounds, GGGS's) plus its Newton step lands within
-    one final cell ((far − near)/8⁵) of the first of 200 001 dense samples where T ≤ ½, and within
-    1e-6 after it; the valid rays are exactly those whose dense T reaches ½."""
+    """Six Gaussians per ray, 64 rays: the 8-way search (5 rounds, GGGS's) with its linear interpolation lands
+    within one final cell ((far − near)/8⁵) of the first of 200 001 dense samples where T ≤ ½, where T is ½
+    to 1e-5; the valid rays are exactly those whose dense T reaches ½."""
     alpha, t_star, inv_sigma = _random_rays()
     depth, valid = median_depth(alpha, t_star, inv_sigma, 0.0, 8.0)
     dense, reached = _dense_median(alpha, t_star, inv_sigma, 0.0, 8.0)
     assert torch.equal(valid, reached) and int(valid.sum()) > 40
     cell, step = 8.0 / 8**5, 8.0 / 200_000
     assert float((depth - dense)[valid].abs().max()) < cell
-    assert float((depth - dense)[valid].abs().max()) < step + 1e-6
+    assert float((depth - dense)[valid].abs().max()) < step + cell
     T_at = transmittance(depth[valid][:, None], alpha[valid], t_star[valid], inv_sigma[valid])[:, 0]
-    assert float((T_at - 0.5).abs().max()) < 1e-6
+    assert float((T_at - 0.5).abs().max()) < 1e-5
 
 
 def test_gradients_are_the_implicit_functions():
     """gradcheck (float64) of the median depth in α, t* and 1/σ of every Gaussian, the search run to 12 rounds
-    so the depth is the root to rounding: −(∂T/∂θ)/T' agrees with finite differences."""
+    so the depth is the root to rounding: −(∂ℓ/∂θ)/(∂ℓ/∂t), ℓ = log T, agrees with finite differences."""
     alpha, t_star, inv_sigma = (x[:4].clone().requires_grad_() for x in _random_rays(seed=3))
     with torch.no_grad():
         _, valid = median_depth(alpha, t_star, inv_sigma, 0.0, 8.0)

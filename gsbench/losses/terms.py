@@ -38,7 +38,7 @@ from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
 from gsbench.losses.normal_consistency import normal_consistency
 from gsbench.losses.ssim import ssim
-from gsbench.raster.types import OUTPUTS, RenderOutput
+from gsbench.raster.types import ALL_OUTPUTS, RenderOutput
 
 ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), docs/methods/sugar.md §3.2, docs/methods/sugar.md §3.2, §5
 
@@ -60,7 +60,7 @@ class Batch:
 class TermSpec:
     """A registered loss term: ``fn(render, batch, state, **params) -> scalar``.
 
-    ``requires`` is the set of render outputs (`gsbench.raster.OUTPUTS`) the term reads with its
+    ``requires`` is the set of render outputs (`gsbench.raster.types.ALL_OUTPUTS`) the term reads with its
     current ``params``; ``requires_fn(params)``, when given, recomputes it on `bind`.
     """
 
@@ -101,10 +101,10 @@ def register_term(name: str, fn: Callable[..., torch.Tensor], requires=(), doc: 
                   *, replace: bool = False) -> TermSpec:
     """Add a term to the registry; the doc defaults to ``fn``'s docstring. Re-registering needs ``replace``."""
     requires = frozenset(requires)
-    unknown = requires - set(OUTPUTS)
+    unknown = requires - set(ALL_OUTPUTS)
     if unknown:
         raise ConfigError(f"loss term '{name}' requires unknown render outputs {sorted(unknown)}; "
-                          f"valid outputs: {', '.join(OUTPUTS)}")
+                          f"valid outputs: {', '.join(ALL_OUTPUTS)}")
     if name in _REGISTRY and not replace:
         raise ConfigError(f"loss term '{name}' is already registered; pass replace=True to override it")
     spec = TermSpec(name, fn, requires, doc if doc is not None else (fn.__doc__ or "").strip(),

@@ -3,7 +3,8 @@ structs and the signatures of their entry points.
 
 ``csrc/sort_bin.cpp`` sorts the visible Gaussians by depth and lists them per tile by their rectangles,
 ``csrc/bin_exact.cpp`` by the exact ellipse/tile overlap (ewa, rade), ``csrc/composite.cpp`` composites
-them (forward and backward; ``csrc/raster_common.h`` holds what the three share); ``csrc/project.cpp`` is
+them (forward and backward; ``csrc/raster_common.h`` holds what the three share); ``csrc/solid.cpp`` is GGGS's stochastic-solid
+median depth after the compositing; ``csrc/project.cpp`` is
 the fused EWA-family projection; ``csrc/integrate.cpp`` evaluates GOF's opacity field at 3D points. They are built as one library by `gsbench.native.build`.
 """
 
@@ -15,7 +16,7 @@ from pathlib import Path
 from gsbench.native.build import load_library
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = ("composite.cpp", "sort_bin.cpp", "bin_exact.cpp", "integrate.cpp", "project.cpp")  # + raster_common.h
+SOURCES = ("composite.cpp", "sort_bin.cpp", "bin_exact.cpp", "integrate.cpp", "project.cpp", "solid.cpp")  # + raster_common.h
 
 
 class GsArgs(ctypes.Structure):
@@ -43,6 +44,19 @@ class GsArgs(ctypes.Structure):
     ]
 
 
+class SolidArgs(ctypes.Structure):
+    """Mirror of ``struct SolidArgs`` in csrc/solid.cpp (8-byte fields only)."""
+
+    _fields_ = [
+        (name, ctypes.c_int64)
+        for name in ("dtype", "width", "height", "tiles_x", "tiles_y", "n_gauss", "nthreads", "rounds")
+    ] + [(name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "search_range", "min_transmittance")] + [
+        (name, ctypes.c_void_p)
+        for name in ("params", "bounds", "tile_offsets", "tile_list", "last", "T_final", "inv_sigma", "out_t", "g_t",
+                     "grad_params", "grad_inv_sigma", "absgrad")
+    ] + [("pairs", ctypes.c_int64)]
+
+
 class ProjArgs(ctypes.Structure):
     """Mirror of ``struct ProjArgs`` in csrc/project.cpp (8-byte fields and fixed double arrays only)."""
 
@@ -68,6 +82,8 @@ _BIN = [_i64, _ptr, _ptr, _i64, _i64, _ptr, _ptr, _i64, _i64]
 SIGNATURES = {
     "gs_forward": ([ctypes.POINTER(GsArgs)], _int),
     "gs_backward": ([ctypes.POINTER(GsArgs)], _int),
+    "gs_solid_forward": ([ctypes.POINTER(SolidArgs)], _int),
+    "gs_solid_backward": ([ctypes.POINTER(SolidArgs)], _int),
     "gs_bin": (_BIN, _i64),
     "gs_bin_sorted": (_BIN, _i64),
     "gs_depth_order": ([_i64, _ptr, _ptr, _i64, _ptr, _ptr, _ptr, ctypes.POINTER(ctypes.c_int64)], _i64),

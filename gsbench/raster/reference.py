@@ -57,6 +57,10 @@ Decisions (where the contract leaves room; the fast path must match these):
 14. Plane distance (PGSR, docs/methods/pgsr.md §3.1): d_i = −n_i·μ_i with the kernel's per-Gaussian normal
     (ewa, rade, surfel); raymax, whose normal varies per pixel, uses its normal on the central ray
     −normalize(Σ⁻¹μ) (= rade's), so d_i = μᵀΣ⁻¹μ / ‖Σ⁻¹μ‖. d_i >= 0 by the normals' orientation.
+15. Solid depth (GGGS, ``rade`` only): over the *blended* pairs only (α = 0 for the others), as GGGS's
+    renderer walks its pixel's contributors; its gradient reaches everything α and t* depend on through
+    autograd (a clamped α passes none, as everywhere). The fast path adds the abs-gradient of this output apart
+    from the compositing's (per pair |a| + |b|, not |a + b|); the reference's absgrad is the exact total.
 
 Public functions: `render`, `integrate_reference`, `pair_terms` (per-(pixel, Gaussian) kernel evaluation at
 arbitrary pixel positions); the per-Gaussian half is `gsbench.raster.reference_projection` (`project`,
@@ -79,7 +83,8 @@ from gsbench.raster.reference_projection import (
     safe_div,
     safe_normalize,
 )
-from gsbench.raster.types import OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
+from gsbench.raster.stochastic_solid import median_depth as solid_median
+from gsbench.raster.types import ALL_OUTPUTS, OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
 
 # --------------------------------------------------------------------------------------------------
 # Per-(pixel, Gaussian) kernel evaluation
@@ -192,9 +197,11 @@ def render(
     not blended); w_i = α_i T_i. Outputs as listed in the contract; see the module Decisions.
     """
     outputs = set(outputs)
-    unknown = outputs - set(OUTPUTS)
+    unknown = outputs - set(ALL_OUTPUTS)
     if unknown:
-        raise ValueError(f"unknown outputs {sorted(unknown)}; expected a subset of {OUTPUTS}")
+        raise ValueError(f"unknown outputs {sorted(unknown)}; expected a subset of {ALL_OUTPUTS}")
+    if "solid_depth" in outputs and kernel != "rade":
+        raise ValueError(f"solid_depth is defined for the rade kernel only, not {kernel!r}")
     W, H = camera.width, camera.height
     dtype = gaussians.means.dtype
     proj = project(gaussians, camera, kernel, settings)
@@ -279,6 +286,9 @@ def render(
         n_plane = -safe_normalize((proj.cov_inv @ proj.mu[..., None])[..., 0]) if kernel == "raymax" else proj.normal
         plane_d = -(n_plane * proj.mu).sum(-1)[order]
         out.plane_distance = (w * plane_d[None, :]).sum(-1).reshape(H, W)
+    if "solid_depth" in outputs:
+        out.solid_depth = _solid_depth(proj, pixel_rays(pix, camera), depth, blended, alpha_b, T, T_final, order,
+                                       settings).reshape(H, W)
     if "distortion" in outputs:
         near, far = settings.near, settings.far
         pos_z = blended & (depth > 0)
@@ -287,6 +297,26 @@ def render(
         A_prev, M1, M2 = _exclusive_cumsum(wd), _exclusive_cumsum(wd * m), _exclusive_cumsum(wd * m * m)
         out.distortion = (wd * (m * m * A_prev + M2 - 2 * m * M1)).sum(-1).reshape(H, W)
     return out
+
+
+def _solid_depth(proj: Projected, rays, depth, blended, alpha_b, T, T_final, order, settings: RasterSettings):
+    """GGGS's stochastic-solid median depth per pixel (P,) (contract ``solid_depth``, Decision 15), from the
+    sorted, blended pairs: t*_i = z_i‖r‖ (the rade ray distance), 1/σ_i = √(μ̂ᵀΣ⁻¹μ̂), the search of
+    `gsbench.raster.stochastic_solid` in [init ± range] clipped at 0; camera z = t/‖r‖."""
+    norms = rays.norm(dim=-1)
+    t_star = depth * norms[:, None]
+    direction = safe_normalize(proj.mu)
+    inv_sigma = torch.sqrt(torch.einsum("ni,nij,nj->n", direction, proj.cov_inv, direction))[order]
+    pos = torch.arange(1, depth.shape[1] + 1)
+    cand = blended & (T > 0.5)
+    last = (cand * pos).max(-1, keepdim=True).values
+    init = torch.where(cand & (pos[None, :] == last), t_star, torch.zeros_like(t_star)).sum(-1).detach()
+    r = settings.solid_search_range
+    t, ok = solid_median(alpha_b, torch.where(blended, t_star, torch.zeros_like(t_star)),
+                         inv_sigma[None, :].expand_as(t_star), (init - r).clamp_min(0.0), (init + r).clamp_min(0.0),
+                         rounds=settings.solid_rounds)
+    ok = ok & blended.any(-1) & (T_final <= settings.solid_min_transmittance)
+    return torch.where(ok, t / norms, torch.zeros_like(t))
 
 
 # --------------------------------------------------------------------------------------------------

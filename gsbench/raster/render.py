@@ -1,7 +1,8 @@
 """``rasterize``: one differentiable render of the shared rasterizer (`gsbench.raster`, docs/rasterizer.md).
 
 Validate (`gsbench.raster.validation`), project (`gsbench.raster.projection`), sort and bin into tiles
-(`gsbench.raster.binning`), composite (`gsbench.raster.composite`), each phase timed by
+(`gsbench.raster.binning`), composite (`gsbench.raster.composite`), then, when asked, GGGS's stochastic-solid
+depth on the same tile lists (`gsbench.raster.solid_depth`), each phase timed by
 `gsbench.raster.profiling`; ``GSBENCH_RASTER=reference`` renders with the dense reference instead.
 """
 
@@ -23,6 +24,7 @@ from gsbench.raster.binning import bin_tiles
 from gsbench.raster.composite import RasterFn, RenderState
 from gsbench.raster.payload import NUM_PARAMS, camera_tensors
 from gsbench.raster.projection import project
+from gsbench.raster.solid_depth import SolidFn, inverse_ray_norms, ray_inv_sigma
 from gsbench.raster.types import OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
 from gsbench.raster.validation import background_color, check_kernel_outputs, validate_gaussians
 
@@ -76,6 +78,7 @@ def rasterize(
     profiling.record("sort_bin", time.perf_counter() - t0)
 
     want = {o: (o in outs) for o in OUTPUTS}
+    want_solid = "solid_depth" in outs
     bounds = proj.bounds.contiguous()
     a = GsArgs()
     a.kernel = KERNEL_ID[kernel]
@@ -129,6 +132,9 @@ def rasterize(
         res.distortion = dist
     if want["plane_distance"]:
         res.plane_distance = plane
+    if want_solid:
+        t = SolidFn.apply(proj.params, ray_inv_sigma(gaussians, camera, dtype), state, settings)
+        res.solid_depth = t * inverse_ray_norms(camera, dtype)
     res.means2d = m2d_leaf
     res.radii = proj.radii
     res.visible = proj.visible

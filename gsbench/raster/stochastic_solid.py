@@ -12,14 +12,14 @@ continuous, falling from 1 to 1 − α_i (the alpha-blending factor of the Gauss
 many Gaussians T(t) = Π_i T_i(t), monotone non-increasing. A Gaussian with 1/σ_i = 0 (a degenerate width)
 is a step of 1 − α_i at t*_i.
 
-The median depth is the t where T crosses 0.5. `median_depth` brackets it by splitting a search interval
-into ``split`` cells for ``rounds`` rounds (GGGS: 8 cells, 5 rounds), then interpolates linearly in the last
-cell; a ray whose T stays above 0.5 at the interval's far end (no surface, or the median outside the
-interval) gets depth 0 and ``valid`` False. Its gradient is the implicit function's: the returned depth is
-the bracket's t plus one Newton step −(T(t) − ½)/T'(t) kept inside the last cell, and its derivative in any
-parameter θ is −(∂T/∂θ)/T'(t) with T' held fixed (|T'| at least 1e-7), the closed form GGGS's backward uses.
-Where T' = 0 at the crossing (one Gaussian of α = ¾: the median is its peak; a degenerate width: a step)
-the Newton step is 0 or clamped and the depth is within the last cell, (far − near)/split^rounds.
+The median depth is the t where T crosses 0.5, found as GGGS's rasterizer finds it: the search interval
+[near, far] is split into ``split`` cells for ``rounds`` rounds (GGGS: 8 cells, 5 rounds in training, 8 for
+meshing), each round keeping the cell [t_s, t_s+1] of the last sample s < split with T(t_s) ≥ ½, then the
+crossing is interpolated linearly in the last cell, t = t_s + (T_s − ½)/(T_s − T_s+1)·(t_s+1 − t_s) (the
+weight clamped to [0, 1]). A ray whose T is below ½ at ``near`` or above it at ``far`` gets depth 0 and
+``valid`` False. The gradient is the implicit function's, in GGGS's log form: with ℓ = log T,
+dt/dθ = −(∂ℓ/∂θ)/(∂ℓ/∂t), where ½|∂ℓ/∂t| is taken at least 1e-7 (GGGS's clamp; at T = ½, ½|∂ℓ/∂t| = |T'|).
+The value is within one last cell, (far − near)/split^rounds, of the crossing (better where T is smooth).
 
 One Gaussian has a closed form (`single_median`): no surface if α < ½; before the peak if α ≥ ¾
 (g = 0.75/α); after it if ½ ≤ α < ¾ (g = (1 − 4(1 − α)²)/α); t = t* ∓ σ √(−2 ln g).
@@ -32,7 +32,7 @@ import math
 import torch
 
 HALF = 0.5
-SLOPE_FLOOR = 1e-7  # |T'| below this is taken as this (GGGS's clamp of the implicit gradient's denominator)
+SLOPE_FLOOR = 1e-7  # ½|∂ log T/∂t| below this is taken as this (GGGS's clamp of the implicit gradient's denominator)
 
 
 def single_transmittance(t: torch.Tensor, alpha: torch.Tensor, t_star: torch.Tensor, inv_sigma: torch.Tensor) -> torch.Tensor:
@@ -50,6 +50,11 @@ def transmittance(t: torch.Tensor, alpha: torch.Tensor, t_star: torch.Tensor, in
     return per.prod(-1)
 
 
+def log_transmittance(t: torch.Tensor, alpha: torch.Tensor, t_star: torch.Tensor, inv_sigma: torch.Tensor) -> torch.Tensor:
+    """ℓ = log T(t) = Σ_i log T_i(t) (R, S), arguments as `transmittance`."""
+    return torch.log(single_transmittance(t[..., None], alpha[:, None, :], t_star[:, None, :], inv_sigma[:, None, :])).sum(-1)
+
+
 def median_depth(alpha: torch.Tensor, t_star: torch.Tensor, inv_sigma: torch.Tensor, near: torch.Tensor | float,
                  far: torch.Tensor | float, split: int = 8, rounds: int = 5) -> tuple[torch.Tensor, torch.Tensor]:
     """(depth (R,), valid (R,)) of T = ½ on [near, far] per ray (module docstring); differentiable in the
@@ -62,22 +67,21 @@ def median_depth(alpha: torch.Tensor, t_star: torch.Tensor, inv_sigma: torch.Ten
         valid = transmittance(hi[:, None], a, ts, s)[:, 0] <= HALF
         valid &= transmittance(lo[:, None], a, ts, s)[:, 0] >= HALF
         steps = torch.linspace(0.0, 1.0, split + 1, dtype=alpha.dtype)
+        inner = torch.arange(1, split)
         for _ in range(rounds):
             grid = lo[:, None] + (hi - lo)[:, None] * steps  # (R, split + 1)
-            below = transmittance(grid, a, ts, s) <= HALF
-            first = torch.where(below.any(1), below.float().argmax(1), torch.full((R,), split)).clamp(1, split)
-            lo, hi = grid.gather(1, (first - 1)[:, None])[:, 0], grid.gather(1, first[:, None])[:, 0]
+            T_grid = transmittance(grid, a, ts, s)
+            start = ((T_grid[:, 1:split] >= HALF) * inner).max(1).values  # the last inner sample with T ≥ ½, else 0
+            lo, hi = grid.gather(1, start[:, None])[:, 0], grid.gather(1, (start + 1)[:, None])[:, 0]
         t_lo, t_hi = transmittance(lo[:, None], a, ts, s)[:, 0], transmittance(hi[:, None], a, ts, s)[:, 0]
-        share = ((t_lo - HALF) / (t_lo - t_hi).clamp_min(1e-12)).clamp(0.0, 1.0)
+        share = ((t_lo - HALF) / (t_lo - t_hi).clamp_min(1e-30)).clamp(0.0, 1.0)
         t0 = lo + share * (hi - lo)
     t_param = t0.clone().requires_grad_(True)
     with torch.enable_grad():
-        slope = torch.autograd.grad(transmittance(t_param[:, None], a, ts, s)[:, 0].sum(), t_param)[0]
-    value = transmittance(t0[:, None], alpha, t_star, inv_sigma)[:, 0]
-    slope = torch.where(slope.abs() > SLOPE_FLOOR, slope, torch.full_like(slope, -SLOPE_FLOOR))  # GGGS clamps |T'|
-    with torch.no_grad():  # one Newton step, kept inside the bracket (a flat or stepped T gets none)
-        newton = (t0 - (value - HALF) / slope).clamp(torch.minimum(lo, hi), torch.maximum(lo, hi)) - t0
-    depth = t0 + newton - (value - value.detach()) / slope  # the value t0 + newton; the gradient −(∂T/∂θ)/T'
+        slope = torch.autograd.grad(log_transmittance(t_param[:, None], a, ts, s)[:, 0].sum(), t_param)[0]
+    ell = log_transmittance(t0[:, None], alpha, t_star, inv_sigma)[:, 0]
+    rate = torch.clamp(-0.5 * slope, min=SLOPE_FLOOR)  # GGGS: max(−½ ∂ℓ/∂t, 1e-7)
+    depth = t0 + (ell - ell.detach()) / (2.0 * rate)  # the value t0; the gradient −(∂ℓ/∂θ)/(∂ℓ/∂t)
     return torch.where(valid, depth, torch.zeros_like(depth)), valid
 
 

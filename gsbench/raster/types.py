@@ -48,6 +48,15 @@ any geometric output is requested, depth, median depth and normal together):
                            Gaussian's normal n_i (ewa, rade, surfel: the kernel's per-Gaussian normal; raymax:
                            its normal on the central ray, −normalize(Σ⁻¹μ)). With the ``normal`` output N
                            the unbiased depth of a pixel is −plane_distance / (N·r).
+- ``solid_depth``  (H,W)   ``rade`` only (GGGS, docs/methods/gggs.md §1–§2): camera z of the ray distance t where the
+                           transmittance of the pixel's blended Gaussians as stochastic solids crosses ½,
+                           T(t) = Π_i T_i(t), T_i = √(1 − α_i g_i) before the Gaussian's peak t*_i (its rade
+                           ray distance), (1 − α_i)/√(1 − α_i g_i) after, g_i = exp(−½((t − t*_i)/σ_i)²) with
+                           1/σ_i = √(r̂ᵀΣ⁻¹r̂), r̂ the unit direction of its centre. Searched in
+                           [init ± ``solid_search_range``] (init: the t* of the last blended Gaussian with T > ½
+                           before it), ``solid_rounds`` rounds of 8 cells, then linear interpolation
+                           (`gsbench.raster.stochastic_solid`); 0 where T does not cross ½ there or the final
+                           transmittance exceeds ``solid_min_transmittance``. Gradient: the implicit function's.
 Binning and culling (pinned with the reference, `gsbench.raster.reference` "Decisions"):
 - Pixel (i, j) lies in tile (i // T, j // T). A Gaussian's tile rectangle is the half-open
   ``[clamp(floor((m − r)/T), 0, grid), clamp(floor((m + r + T − 1)/T), 0, grid))`` with m = means2d
@@ -73,7 +82,9 @@ from dataclasses import dataclass, field
 import torch
 
 KERNELS = ("ewa", "surfel", "raymax", "rade")
-OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion", "plane_distance")
+OUTPUTS = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion", "plane_distance")  # every kernel's
+KERNEL_OUTPUTS = {"rade": ("solid_depth",)}  # outputs one kernel defines
+ALL_OUTPUTS = OUTPUTS + tuple(o for extra in KERNEL_OUTPUTS.values() for o in extra)
 
 
 @dataclass
@@ -116,6 +127,8 @@ class RasterSettings:
     ``eps2d`` None means the kernel's default (ewa 0.3, rade 0.0, raymax 0.0; unused by surfel).
     ``surfel_filter`` is k of the surfel kernel's screen-space low-pass term k·|centre − p|² (2DGS: 2;
     0 switches the filter off; unused by the other kernels).
+    ``solid_*`` configure the ``solid_depth`` search (GGGS's defaults: half-width 0.4 in scene units, absolute,
+    not relative to ``scene_radius``; 5 rounds in training, 8 for meshing; no depth where T_final > 0.45).
     """
 
     sh_degree: int = 0
@@ -128,6 +141,9 @@ class RasterSettings:
     antialias2d: float = 0.0
     detach_distortion_weights: bool = False
     tile_size: int = 16
+    solid_search_range: float = 0.4
+    solid_rounds: int = 5
+    solid_min_transmittance: float = 0.45
 
     @property
     def near(self) -> float:
@@ -154,6 +170,7 @@ class RenderOutput:
     normal: torch.Tensor | None = None
     distortion: torch.Tensor | None = None
     plane_distance: torch.Tensor | None = None
+    solid_depth: torch.Tensor | None = None
     means2d: torch.Tensor | None = None
     radii: torch.Tensor | None = None
     visible: torch.Tensor | None = None

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from gsbench.errors import NumericalError
-from gsbench.raster.types import KERNELS, OUTPUTS, RasterGaussians, RasterSettings
+from gsbench.raster.types import KERNEL_OUTPUTS, KERNELS, OUTPUTS, RasterGaussians, RasterSettings
 
 
 def check_finite(name: str, x: torch.Tensor | None) -> None:
@@ -63,9 +63,13 @@ def check_kernel_outputs(kernel: str, outputs) -> tuple[str, ...]:
     if isinstance(outputs, str):
         outputs = (outputs,)
     outs = tuple(dict.fromkeys(outputs))
-    bad = [o for o in outs if o not in OUTPUTS]
+    valid = OUTPUTS + KERNEL_OUTPUTS.get(kernel, ())
+    bad = [o for o in outs if o not in valid]
     if bad:
-        raise ValueError(f"unknown render output(s) {bad}; valid outputs: {', '.join(OUTPUTS)}")
+        owners = {o: k for k, extra in KERNEL_OUTPUTS.items() for o in extra}
+        known = [f"{o} (the {owners[o]} kernel only)" for o in bad if o in owners]
+        raise ValueError(f"render output(s) {bad} not defined for kernel '{kernel}'"
+                         + (f": {', '.join(known)}" if known else "") + f"; valid outputs: {', '.join(valid)}")
     return outs
 
 
