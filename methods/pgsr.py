@@ -98,6 +98,7 @@ class MultiViewContext:
     ref_gray: torch.Tensor
     nb_gray: torch.Tensor
     patch_half: int
+    patch_step: float = 1.0  # px between patch samples (PGSR 1; GGGS 0.5)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ Terms (the method binds nothing; their constants are this module's, PGSR's value
 
 - ``min_scale``: mean over the Gaussians visible in this render of their smallest scale (docs/methods/pgsr.md §4.1);
 - ``l1_exposure``: L1 of exp(a_v)·I + b_v against the GT when the method's exposure compensation is on
-  and active and 1 − SSIM(I, GT) < 0.5, else L1 of I (docs/methods/pgsr.md §4.5);
+  and active and (``ssim_gate``, PGSR) 1 − SSIM(I, GT) < 0.5, else L1 of I (docs/methods/pgsr.md §4.5);
 - ``pgsr_normal``: mean over pixels of w · Σ_c |N_d·α − N| with N_d the normal of the unbiased depth's
   central differences and w = (1 − ĝ)², ĝ the min–max normalised image gradient (docs/methods/pgsr.md §4.2);
 - ``pgsr_geo``: mean over the valid pixels with error < 1 px of exp(−err)·err (docs/methods/pgsr.md §4.3);
@@ -26,7 +26,8 @@ Terms (the method binds nothing; their constants are this module's, PGSR's value
   neighbour's patch warped by the pixel's homography (docs/methods/pgsr.md §4.4).
 
 The two multi-view terms read ``state["pgsr_multiview"](render, batch)``, the method's per-step shared
-context (neighbour choice, neighbour render, warp), so they render the neighbour once per step.
+context (neighbour choice, neighbour render, warp), so they render the neighbour once per step; GGGS's
+``gggs_geo`` / ``gggs_ncc`` (`gsbench.methods.gggs_terms`) are `multiview_geo` / `multiview_ncc` of its own.
 """
 
 from __future__ import annotations
@@ -129,7 +130,7 @@ def sample_image(image: torch.Tensor, pixels: torch.Tensor, padding: str = "bord
     scale = torch.tensor([2.0 / W, 2.0 / H], dtype=pixels.dtype)
     grid = (pixels * scale - 1.0).reshape(1, -1, 1, 2).to(img.dtype)
     out = F.grid_sample(img, grid, mode="bilinear", padding_mode=padding, align_corners=False)[0, :, :, 0]
-    out = out.T.reshape(*pixels.shape[:-1], -1)
+    out = out.T.reshape(*pixels.shape[:-1], img.shape[1])  # the channel count named: no pixels is (0, C)
     return out[..., 0] if squeeze else out
 
 
@@ -258,16 +259,19 @@ def min_scale_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Ten
     return scales.min(dim=-1).values.mean()
 
 
-def l1_exposure_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+def l1_exposure_term(render: RenderOutput, batch: Batch, state: dict, ssim_gate: bool = True) -> torch.Tensor:
     """L1 = mean |Ĩ − GT| with Ĩ = exp(a_v)·I + b_v when ``state["exposure"](batch)`` gives this view's (a_v, b_v)
-    (compensation on and past its start) and 1 − SSIM(I, GT) < 0.5; otherwise Ĩ = I (docs/methods/pgsr.md §4.5)."""
+    (compensation on and past its start) and, with ``ssim_gate`` (PGSR), 1 − SSIM(I, GT) < 0.5; otherwise
+    Ĩ = I (docs/methods/pgsr.md §4.5; GGGS: no gate, docs/methods/gggs.md §3)."""
     rgb, gt = render.rgb, batch.image.to(render.rgb.dtype)
     exposure = state.get("exposure")
     ab = exposure(batch) if exposure is not None else None
     if ab is not None:
-        with torch.no_grad():
-            dssim = 1.0 - float(ssim(rgb.detach(), gt))
-        if dssim < EXPOSURE_SSIM_GATE:
+        use = True
+        if ssim_gate:
+            with torch.no_grad():
+                use = 1.0 - float(ssim(rgb.detach(), gt)) < EXPOSURE_SSIM_GATE
+        if use:
             rgb = torch.exp(ab[0]) * rgb + ab[1]
     return (rgb - gt).abs().mean()
 
@@ -283,34 +287,32 @@ def pgsr_normal_term(render: RenderOutput, batch: Batch, state: dict) -> torch.T
     return (weight * (n_d - render.normal).abs().sum(-1)).mean()
 
 
-def _multiview(state: dict, term: str, render: RenderOutput, batch: Batch):
+def multiview_context(state: dict, term: str, render: RenderOutput, batch: Batch):
     fn = state.get("pgsr_multiview")
     if fn is None:
-        raise ConfigError(f"loss term '{term}' needs a neighbouring view, which only the pgsr method provides "
+        raise ConfigError(f"loss term '{term}' needs a neighbouring view, which only the pgsr and gggs methods provide "
                           f"(state['pgsr_multiview']); remove losses.{term} for this method")
     return fn(render, batch)
 
 
-def pgsr_geo_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
-    """L_mvgeo = mean over the pixels with a valid forward–backward warp and error < 1 px of
-    exp(−err)·err (weight detached; docs/methods/pgsr.md §4.3); 0 without a neighbour or such pixels."""
-    ctx = _multiview(state, "pgsr_geo", render, batch)
+def multiview_geo(ctx, zero: torch.Tensor) -> torch.Tensor:
+    """Mean over the pixels with a valid forward–backward warp and error < 1 px of exp(−err)·err (weight
+    detached; docs/methods/pgsr.md §4.3); ``zero`` without a neighbour or such pixels."""
     if ctx is None or not bool(ctx.warp.mask.any()):
-        return render.plane_distance.sum() * 0.0
+        return zero
     w = ctx.warp
     return (w.weight * w.error)[w.mask].mean()
 
 
-def pgsr_ncc_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
-    """L_mvrgb = mean over the warped pixels (`pgsr_geo`'s mask, at most ``sample`` of them) whose cost is
-    < 0.9 of exp(−err)·ncc_cost(P_r, P_n): P_r the reference GT grey patch, P_n the neighbour's GT grey at the
-    patch pixels mapped by the centre pixel's homography (differentiable through H; docs/methods/pgsr.md §4.4)."""
-    ctx = _multiview(state, "pgsr_ncc", render, batch)
-    zero = render.plane_distance.sum() * 0.0
+def multiview_ncc(ctx, zero: torch.Tensor) -> torch.Tensor:
+    """Mean over the warped pixels (the geometric mask, at most ``sample`` of them) whose cost is < 0.9 of
+    exp(−err)·ncc_cost(P_r, P_n): P_r the reference GT grey patch of (2h+1)² samples ``ctx.patch_step`` px apart
+    (bilinear), P_n the neighbour's GT grey at those samples mapped by the centre pixel's homography
+    (differentiable through H; docs/methods/pgsr.md §4.4); ``zero`` without such pixels."""
     if ctx is None or ctx.ncc_index.numel() == 0:
         return zero
     w, idx = ctx.warp, ctx.ncc_index
-    offsets = patch_offsets(ctx.patch_half, w.pixels.dtype)
+    offsets = patch_offsets(ctx.patch_half, w.pixels.dtype) * ctx.patch_step
     ref_pts = w.pixels[idx][:, None, :] + offsets[None]
     with torch.no_grad():  # border padding: a patch past the image edge repeats it (PGSR pads with zeros)
         ref_vals = sample_image(ctx.ref_gray, ref_pts, padding="border")
@@ -324,8 +326,18 @@ def pgsr_ncc_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tens
     return (cost * w.weight[idx])[keep].mean()
 
 
+def pgsr_geo_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+    """L_mvgeo = `multiview_geo` of the step's warp (docs/methods/pgsr.md §4.3)."""
+    return multiview_geo(multiview_context(state, "pgsr_geo", render, batch), render.plane_distance.sum() * 0.0)
+
+
+def pgsr_ncc_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
+    """L_mvrgb = `multiview_ncc` of the step's warp, 7×7 patches of whole pixels (docs/methods/pgsr.md §4.4)."""
+    return multiview_ncc(multiview_context(state, "pgsr_ncc", render, batch), render.plane_distance.sum() * 0.0)
+
+
 register_term("min_scale", min_scale_term)
-register_term("l1_exposure", l1_exposure_term, {"rgb"})
+register_term("l1_exposure", l1_exposure_term, {"rgb"}, params={"ssim_gate": True})
 register_term("pgsr_normal", pgsr_normal_term, {"plane_distance", "normal", "alpha"})
 register_term("pgsr_geo", pgsr_geo_term, {"plane_distance", "normal"})
 register_term("pgsr_ncc", pgsr_ncc_term, {"plane_distance", "normal"})

@@ -23,6 +23,10 @@ namespace {
 constexpr int SPLIT = 8;  // cells per round (GGGS: 8)
 constexpr int NPR = 15;   // rade payload columns
 constexpr int NSG = NPR + 2;  // gradient slots: payload, inv_sigma, absgrad
+// |t − t*|/σ beyond which g = exp(−½ δ²) < e⁻³⁰ ≈ 1e-13 is taken as 0: a Gaussian whose peak is that far from
+// every sample of a round multiplies them all by 1 (peak behind them) or 1 − α (peak in front) without an
+// exponential. The change to T is below 1e-13 relative: under float32's resolution, and within the float64 tests.
+constexpr double FAR_SIGMAS = 7.745966692414834;  // √60
 
 }  // namespace
 
@@ -72,11 +76,11 @@ inline SolidPair<T> solid_pair(const T* __restrict p, T px, T py, int kk, int la
     return s;
 }
 
-// factor of T_i at t (the module comment)
+// factor of T_i at t (the module comment); g is taken as 0 beyond FAR_SIGMAS
 template <typename T>
 inline T solid_factor(T t, T al, T tpk, T isg) {
     const T dl = (t - tpk) * isg;
-    const T g = isg > T(0) ? std::exp(T(-0.5) * dl * dl) : T(0);
+    const T g = (isg > T(0) && std::fabs(dl) <= T(FAR_SIGMAS)) ? std::exp(T(-0.5) * dl * dl) : T(0);
     const T om = T(1) - al * g;
     return (t > tpk ? T(1) - al : om) / std::sqrt(om);
 }
@@ -120,6 +124,26 @@ inline int tile_last(const SolidArgs& A, int tile, int32_t* lastk) {
     return maxlast;
 }
 
+// The blended pairs of each pixel of a tile, in list (depth) order: one walk with one exponential per pair;
+// the search rounds and the backward then read these compact lists.
+template <typename T>
+struct PixelLists {
+    std::vector<SolidPair<T>> pairs[TP];
+    std::vector<int32_t> ids[TP];
+    int64_t fill(const SolidArgs& A, int tile, int maxlast, const int32_t* lastk, const T* P, const T* BND) {
+        for (int i = 0; i < TP; ++i) {
+            pairs[i].clear();
+            ids[i].clear();
+        }
+        return for_pairs<T>(A, tile, maxlast, P, BND, [&](int i, int kk, int g, const T* p, T px, T py) {
+            const SolidPair<T> s = solid_pair<T>(p, px, py, kk, lastk[i]);
+            if (!s.v) return;
+            pairs[i].push_back(s);
+            ids[i].push_back(g);
+        });
+    }
+};
+
 template <typename T>
 void solid_forward(SolidArgs& A) {
     const int W = (int)A.width, H = (int)A.height, ntiles = (int)(A.tiles_x * A.tiles_y);
@@ -134,60 +158,55 @@ void solid_forward(SolidArgs& A) {
 #pragma omp parallel num_threads((int)A.nthreads) reduction(+ : pairs)
     {
         int32_t lastk[TP];
-        T Trun[TP], init[TP], lo[TP], hi[TP], Tp[SPLIT + 1][TP];
-        bool inr[TP];
+        PixelLists<T> lists;
+        T Tp[SPLIT + 1];
 #pragma omp for schedule(dynamic, 1)
         for (int tile = 0; tile < ntiles; ++tile) {
             const int TX = (int)A.tiles_x, x0 = (tile % TX) * TS, y0 = (tile / TX) * TS;
             const int maxlast = tile_last<T>(A, tile, lastk);
-            for (int i = 0; i < TP; ++i) {
-                Trun[i] = T(1);
-                init[i] = T(0);
-                Tp[0][i] = Tp[SPLIT][i] = T(1);
-            }
-            // the initial estimate: t* of the last blended Gaussian with T > ½ before it
-            pairs += for_pairs<T>(A, tile, maxlast, P, BND, [&](int i, int kk, int, const T* p, T px, T py) {
-                const SolidPair<T> s = solid_pair<T>(p, px, py, kk, lastk[i]);
-                if (!s.v) return;
-                if (Trun[i] > T(0.5)) init[i] = s.tpk;
-                Trun[i] *= T(1) - s.al;
-            });
-            for (int i = 0; i < TP; ++i) {
-                const int lx = i % TS, ly = i / TS;
-                const bool in = x0 + lx < W && y0 + ly < H;
-                lo[i] = std::max(init[i] - R, T(0));
-                hi[i] = std::max(init[i] + R, T(0));
-                inr[i] = in && lastk[i] > 0 && TF[(int64_t)(y0 + ly) * W + x0 + lx] <= minT;
-            }
-            for (int round = 0; round < rounds && maxlast > 0; ++round) {
-                const int s0 = round == 0 ? 0 : 1, s1 = round == 0 ? SPLIT : SPLIT - 1;
-                for (int s = s0; s <= s1; ++s)
-                    for (int i = 0; i < TP; ++i) Tp[s][i] = T(1);
-                pairs += for_pairs<T>(A, tile, maxlast, P, BND, [&](int i, int kk, int g, const T* p, T px, T py) {
-                    if (!inr[i]) return;
-                    const SolidPair<T> s = solid_pair<T>(p, px, py, kk, lastk[i]);
-                    if (!s.v) return;
-                    const T isg = ISG[g], step = (hi[i] - lo[i]) / T(SPLIT);
-                    for (int q = s0; q <= s1; ++q) Tp[q][i] *= solid_factor<T>(lo[i] + step * T(q), s.al, s.tpk, isg);
-                });
-                for (int i = 0; i < TP; ++i) {
-                    if (round == 0) inr[i] = inr[i] && Tp[0][i] >= T(0.5) && Tp[SPLIT][i] <= T(0.5);
-                    int start = 0;
-                    for (int q = 1; q < SPLIT; ++q) start = Tp[q][i] >= T(0.5) ? q : start;
-                    const T step = (hi[i] - lo[i]) / T(SPLIT), base = lo[i];
-                    lo[i] = base + step * T(start);
-                    hi[i] = base + step * T(start + 1);
-                    const T a = Tp[start][i], b = Tp[start + 1][i];
-                    Tp[0][i] = a;
-                    Tp[SPLIT][i] = b;
-                }
-            }
+            pairs += lists.fill(A, tile, maxlast, lastk, P, BND);
             for (int i = 0; i < TP; ++i) {
                 const int lx = i % TS, ly = i / TS;
                 if (x0 + lx >= W || y0 + ly >= H) continue;
-                const T den = Tp[0][i] - Tp[SPLIT][i];
-                const T w = den > T(0) ? std::min(std::max((Tp[0][i] - T(0.5)) / den, T(0)), T(1)) : T(0);
-                out[(int64_t)(y0 + ly) * W + x0 + lx] = (inr[i] && maxlast > 0) ? w * hi[i] + (T(1) - w) * lo[i] : T(0);
+                const int64_t pix = (int64_t)(y0 + ly) * W + x0 + lx;
+                const auto& ps = lists.pairs[i];
+                const auto& gs = lists.ids[i];
+                const int n = (int)ps.size();
+                // the initial estimate: t* of the last blended Gaussian with T > ½ before it
+                T Trun = T(1), init = T(0);
+                for (int e = 0; e < n; ++e) {
+                    if (Trun > T(0.5)) init = ps[e].tpk;
+                    Trun *= T(1) - ps[e].al;
+                }
+                bool inr = n > 0 && TF[pix] <= minT;
+                T lo = std::max(init - R, T(0)), hi = std::max(init + R, T(0));
+                for (int round = 0; round < rounds && inr; ++round) {
+                    const int s0 = round == 0 ? 0 : 1, s1 = round == 0 ? SPLIT : SPLIT - 1;
+                    const T step = (hi - lo) / T(SPLIT);
+                    for (int q = s0; q <= s1; ++q) Tp[q] = T(1);
+                    for (int e = 0; e < n; ++e) {
+                        const SolidPair<T>& s = ps[e];
+                        const T isg = ISG[gs[e]];
+                        const T first = (lo + step * T(s0) - s.tpk) * isg, last = (lo + step * T(s1) - s.tpk) * isg;
+                        if (last < T(-FAR_SIGMAS)) continue;  // every sample before the peak, g ≈ 0: factor 1
+                        if (first > T(FAR_SIGMAS)) {          // every sample after it: factor 1 − α
+                            for (int q = s0; q <= s1; ++q) Tp[q] *= T(1) - s.al;
+                            continue;
+                        }
+                        for (int q = s0; q <= s1; ++q) Tp[q] *= solid_factor<T>(lo + step * T(q), s.al, s.tpk, isg);
+                    }
+                    if (round == 0) inr = Tp[0] >= T(0.5) && Tp[SPLIT] <= T(0.5);
+                    int start = 0;
+                    for (int q = 1; q < SPLIT; ++q) start = Tp[q] >= T(0.5) ? q : start;
+                    const T a = Tp[start], b = Tp[start + 1], base = lo;
+                    lo = base + step * T(start);
+                    hi = base + step * T(start + 1);
+                    Tp[0] = a;
+                    Tp[SPLIT] = b;
+                }
+                const T den = Tp[0] - Tp[SPLIT];
+                const T w = den > T(0) ? std::min(std::max((Tp[0] - T(0.5)) / den, T(0)), T(1)) : T(0);
+                out[pix] = inr ? w * hi + (T(1) - w) * lo : T(0);
             }
         }
     }
@@ -213,65 +232,71 @@ void solid_backward(SolidArgs& A) {
         std::vector<T>& buf = bufs[tid];
         buf.assign((size_t)N * NSG, T(0));
         int32_t lastk[TP];
-        T tm[TP], gt[TP], c[TP];
+        PixelLists<T> lists;
 #pragma omp for schedule(static, 1)
         for (int tile = 0; tile < ntiles; ++tile) {
             const int TX = (int)A.tiles_x, x0 = (tile % TX) * TS, y0 = (tile / TX) * TS;
-            int maxlast = tile_last<T>(A, tile, lastk);
             bool any = false;
-            for (int i = 0; i < TP; ++i) {
+            for (int i = 0; i < TP && !any; ++i) {
                 const int lx = i % TS, ly = i / TS;
-                const bool in = x0 + lx < W && y0 + ly < H;
                 const int64_t pix = (int64_t)(y0 + ly) * W + x0 + lx;
-                tm[i] = in ? OT[pix] : T(0);
-                gt[i] = (in && tm[i] != T(0)) ? GT[pix] : T(0);
-                c[i] = T(0);
-                any = any || gt[i] != T(0);
+                any = x0 + lx < W && y0 + ly < H && OT[pix] != T(0) && GT[pix] != T(0);
             }
             if (!any) continue;
-            // ½ ∂ log T/∂t at the found t (GGGS's dT_dtm), then c = g / max(−that, 1e-7)
-            pairs += for_pairs<T>(A, tile, maxlast, P, BND, [&](int i, int kk, int g, const T* p, T px, T py) {
-                if (gt[i] == T(0)) return;
-                const SolidPair<T> s = solid_pair<T>(p, px, py, kk, lastk[i]);
-                if (!s.v) return;
-                const T isg = ISG[g], dl = (tm[i] - s.tpk) * isg;
-                const T Gt = s.al * std::exp(T(-0.5) * dl * dl);
-                c[i] += T(-0.25) * Gt / (T(1) - Gt) * std::fabs(dl) * isg;
-            });
-            for (int i = 0; i < TP; ++i) c[i] = gt[i] / std::max(-c[i], T(1e-7));
-            pairs += for_pairs<T>(A, tile, maxlast, P, BND, [&](int i, int kk, int g, const T* p, T px, T py) {
-                if (gt[i] == T(0)) return;
-                const SolidPair<T> s = solid_pair<T>(p, px, py, kk, lastk[i]);
-                if (!s.v) return;
-                const T isg = ISG[g], dt = tm[i] - s.tpk, dl = dt * isg;
-                const T Ge = std::exp(T(-0.5) * dl * dl), Gt = s.al * Ge;
-                T dGt = c[i] * T(0.25) / (T(1) - Gt);
-                dGt = tm[i] > s.tpk ? dGt : -dGt;
-                dGt = isg > T(0) ? dGt : T(0);
-                const T dal = dGt * Ge - (dl > T(0) ? c[i] * T(0.5) / (T(1) - s.al) : T(0));
-                const T ddl = -dGt * Gt * dl;
-                const T dtpk = -ddl * isg;
-                T* gp = buf.data() + (int64_t)g * NSG;
-                gp[NPR] += ddl * dt;  // inv_sigma
-                T gmx = T(0), gmy = T(0);
-                if (s.oG <= T(0.99)) {  // alpha not clamped: its gradient reaches o and G
-                    gp[P_O] += s.G * dal;
-                    const T gG = p[P_O] * dal * s.G;
-                    gmx = gG * (p[P_CA] * s.dx + p[P_CB] * s.dy);
-                    gmy = gG * (p[P_CB] * s.dx + p[P_CC] * s.dy);
-                    gp[P_CA] += T(-0.5) * gG * s.dx * s.dx;
-                    gp[P_CB] += -gG * s.dx * s.dy;
-                    gp[P_CC] += T(-0.5) * gG * s.dy * s.dy;
+            const int maxlast = tile_last<T>(A, tile, lastk);
+            pairs += lists.fill(A, tile, maxlast, lastk, P, BND);
+            for (int i = 0; i < TP; ++i) {
+                const int lx = i % TS, ly = i / TS;
+                if (x0 + lx >= W || y0 + ly >= H) continue;
+                const int64_t pix = (int64_t)(y0 + ly) * W + x0 + lx;
+                const T tm = OT[pix], gt = GT[pix];
+                if (tm == T(0) || gt == T(0)) continue;
+                const auto& ps = lists.pairs[i];
+                const auto& gs = lists.ids[i];
+                const int n = (int)ps.size();
+                // ½ ∂ log T/∂t at the found t (GGGS's dT_dtm), then c = g / max(−that, 1e-7)
+                T slope = T(0);
+                for (int e = 0; e < n; ++e) {
+                    const T isg = ISG[gs[e]], dl = (tm - ps[e].tpk) * isg;
+                    if (std::fabs(dl) > T(FAR_SIGMAS)) continue;
+                    const T Gt = ps[e].al * std::exp(T(-0.5) * dl * dl);
+                    slope += T(-0.25) * Gt / (T(1) - Gt) * std::fabs(dl) * isg;
                 }
-                gp[P_X] += dtpk;
-                gp[P_X + 1] += dtpk * s.dx;
-                gp[P_X + 2] += dtpk * s.dy;
-                gmx -= dtpk * p[P_X + 1];
-                gmy -= dtpk * p[P_X + 2];
-                gp[P_MX] += gmx;
-                gp[P_MY] += gmy;
-                gp[NPR + 1] += std::fabs(gmx) * halfW + std::fabs(gmy) * halfH;
-            });
+                const T c = gt / std::max(-slope, T(1e-7));
+                for (int e = 0; e < n; ++e) {
+                    const SolidPair<T>& s = ps[e];
+                    const int g = gs[e];
+                    const T* p = P + (int64_t)g * NPR;
+                    const T isg = ISG[g], dt = tm - s.tpk, dl = dt * isg;
+                    const T Ge = std::fabs(dl) > T(FAR_SIGMAS) ? T(0) : std::exp(T(-0.5) * dl * dl), Gt = s.al * Ge;
+                    T dGt = c * T(0.25) / (T(1) - Gt);
+                    dGt = tm > s.tpk ? dGt : -dGt;
+                    dGt = isg > T(0) ? dGt : T(0);
+                    const T dal = dGt * Ge - (dl > T(0) ? c * T(0.5) / (T(1) - s.al) : T(0));
+                    const T ddl = -dGt * Gt * dl;
+                    const T dtpk = -ddl * isg;
+                    T* gp = buf.data() + (int64_t)g * NSG;
+                    gp[NPR] += ddl * dt;  // inv_sigma
+                    T gmx = T(0), gmy = T(0);
+                    if (s.oG <= T(0.99)) {  // alpha not clamped: its gradient reaches o and G
+                        gp[P_O] += s.G * dal;
+                        const T gG = p[P_O] * dal * s.G;
+                        gmx = gG * (p[P_CA] * s.dx + p[P_CB] * s.dy);
+                        gmy = gG * (p[P_CB] * s.dx + p[P_CC] * s.dy);
+                        gp[P_CA] += T(-0.5) * gG * s.dx * s.dx;
+                        gp[P_CB] += -gG * s.dx * s.dy;
+                        gp[P_CC] += T(-0.5) * gG * s.dy * s.dy;
+                    }
+                    gp[P_X] += dtpk;
+                    gp[P_X + 1] += dtpk * s.dx;
+                    gp[P_X + 2] += dtpk * s.dy;
+                    gmx -= dtpk * p[P_X + 1];
+                    gmy -= dtpk * p[P_X + 2];
+                    gp[P_MX] += gmx;
+                    gp[P_MY] += gmy;
+                    gp[NPR + 1] += std::fabs(gmx) * halfW + std::fabs(gmy) * halfH;
+                }
+            }
         }
     }
     T* gp = (T*)A.grad_params;

@@ -36,7 +36,8 @@ class DefaultStrategy(Strategy):
       parent is removed. Both use the pre-densification g, so fresh clones are never split;
     - prune  where o < ``prune_opacity`` (not within ``prune_grace`` steps after a periodic opacity
       reset — the white-background reset at ``refine_start`` gets no grace; 0, the paper's
-      behaviour, prunes at every refinement), and when ``step > reset_every`` also s_max >
+      behaviour, prunes at every refinement), and when ``step > reset_every`` also, with
+      ``prune_world_size`` (every method but GGGS, which prunes by opacity only), s_max >
       ``big_world``·extent and, only with ``prune_screen_size``, max radius > ``screen_size`` px.
       3DGS 2023 resets the radii during clone/split, so its screen test never fires (issues
       #123/#643; gsplat disables it too): ``prune_screen_size = False`` is that faithful behaviour;
@@ -63,6 +64,7 @@ class DefaultStrategy(Strategy):
     screen_size: float = 20.0
     big_world: float = 0.1
     prune_screen_size: bool = False
+    prune_world_size: bool = True
     split_n: int = 2
     prune_grace: int = 0
     white_background: bool = False
@@ -168,7 +170,7 @@ class DefaultStrategy(Strategy):
         prune = gaussians.opacities.detach() < self.prune_opacity
         if step >= self.reset_every and step % self.reset_every < self.prune_grace:
             prune[:] = False  # opacities reset moments ago have not had time to recover
-        if step > self.reset_every:
+        if step > self.reset_every and self.prune_world_size:
             prune |= gaussians.scales.detach().max(-1).values > self.big_world * extent
             if self.prune_screen_size:
                 prune |= radii > self.screen_size

@@ -1,0 +1,203 @@
+"""GGGS, Geometry-Grounded Gaussian Splatting (Zhang, Jiang, Li, Shen, Tan 2026), docs/methods/gggs.md.
+
+Differences from 3DGS, after the authors' code (HKUST-SAIL, f727413; docs/methods/gggs.md §3):
+
+- ``rade`` kernel (RaDe-GS's depth plane, same authors' group) with the Mip-Splatting 3D filter and no 2D dilation,
+  plus the ``solid_depth`` output: the depth where the Gaussians' transmittance as stochastic solids crosses ½
+  (docs/rasterizer.md §9a), searched in [init ± ``solid_search_range``·scene radius] (5 rounds of 8 cells);
+- losses (docs/methods/gggs.md §3): 0.8·L1 of the exposure-compensated render (PGSR's per-image exp(a)·I + b,
+  from step 0, no SSIM gate) + 0.2·D-SSIM of the raw render, and from step 7000 0.05·``gggs_normal`` +
+  0.02·``gggs_geo`` + 0.6·``gggs_ncc`` (`gsbench.methods.gggs_terms`): the depth–normal consistency of the
+  solid depth and PGSR's multi-view geometric and NCC terms on the solid depth and the rendered normal, one of
+  the (up to) 8 PGSR neighbours per step;
+- colour learning rates 0.0013 (DC) and 0.00011 (rest); initial scales at most 0.05 × the distance to the
+  nearest training camera;
+- densification: GOF's (`AbsGradStrategy`: abs-gradient quantile split, sampled clones, 3D filter
+  recomputed), pruning by opacity < 0.05 only (no world- or screen-size pruning);
+- mesh: TSDF of the solid depth (``mesh.depth: solid``), the largest cluster kept (DTU voxel and truncation
+  in ``configs/methods/gggs.dtu.yaml``).
+
+Not implemented (docs/methods/gggs.md §5): the neighbour's depth is read from its rendered solid-depth map
+(bilinear, as PGSR's plane) rather than by a query along the warped ray; TnT's marching tetrahedra on the
+stochastic-solid field (TSDF on TnT too); the spherical-Gaussian colour (off in the DTU and TnT scripts).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from gsbench.config.run_config import RunConfig
+from gsbench.data.camera import Scene
+from gsbench.errors import ConfigError
+from gsbench.geometry.depth import pixel_rays
+from gsbench.losses.terms import Batch
+from gsbench.methods import gggs_terms, pgsr_terms  # noqa: F401  (gggs_terms registers the gggs_* terms)
+from gsbench.methods.base import ADAM_EPS, DEPTH_OUTPUTS, MethodInfo
+from gsbench.methods.filtered import FilteredConfig, FilteredMethod
+from gsbench.methods.pgsr import MultiViewContext, neighbour_views
+from gsbench.raster import RasterSettings, profiling
+from gsbench.raster.types import RenderOutput
+from gsbench.training.gaussians import Gaussians
+
+
+@dataclass
+class GGGSConfig(FilteredConfig):
+    """GGGS's hyper-parameters (arguments/__init__.py of the authors' code, docs/methods/gggs.md §3)."""
+
+    feature_lr: float = 0.0013
+    feature_rest_divisor: float = 0.0013 / 0.00011  # sh_rest lr 0.00011
+    prune_world_size: bool = False
+    init_scale_camera_share: float = 0.05  # initial scale <= this × distance to the nearest training camera
+    solid_search_range: float = 0.4  # × scene radius (the authors' 0.4 is in DTU's normalised frame, radius 1)
+    solid_rounds: int = 5
+    multi_view_num: int = 8
+    multi_view_max_angle: float = 30.0  # degrees between viewing directions
+    multi_view_min_dis: float = 0.01  # camera distances, in scene radii
+    multi_view_max_dis: float = 1.5
+    multi_view_patch_half: int = 3  # 7x7 samples ...
+    multi_view_patch_step: float = 0.5  # ... half a pixel apart
+    multi_view_pixel_noise_th: float = 1.0  # px
+    exposure_lr: float = 0.001
+
+
+def solid_planes(render: RenderOutput, camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """(plane distance (H, W), unit normal (H, W, 3)) of the plane through each pixel's solid-depth point D·r with
+    the rendered normal's direction: d = −D (n̂·r), so n̂·X = −d on it (PGSR's plane convention, 0 where D = 0)."""
+    normal = torch.nn.functional.normalize(render.normal, dim=-1)
+    rays = pixel_rays(camera, render.solid_depth.dtype)
+    return -render.solid_depth * (normal * rays).sum(-1), normal
+
+
+class GGGS(FilteredMethod):
+    """Geometry-Grounded Gaussian Splatting (module docstring)."""
+
+    name = "gggs"
+    Config = GGGSConfig
+    INFO = MethodInfo(primitive="3d", kernel="rade", outputs=("rgb", "alpha", "normal", "solid_depth"))
+    MESH_DEPTHS = ("solid", *DEPTH_OUTPUTS)
+
+    def __init__(self):
+        super().__init__()
+        self.exposure: torch.nn.Parameter | None = None
+        self.multiview_seconds = 0.0
+        self._cache: tuple | None = None
+
+    # ---- configuration ------------------------------------------------------------------------
+    def check_params(self) -> None:
+        super().check_params()
+        p, cfg = self.params, self.cfg
+        if cfg.train.optimizer != "adam":
+            raise ConfigError(f"method gggs trains a per-image exposure as one more Adam group; train.optimizer "
+                              f"{cfg.train.optimizer} steps only visible Gaussian rows: set train.optimizer=adam")
+        checks = [("solid_search_range", p.solid_search_range > 0), ("solid_rounds", 1 <= p.solid_rounds <= 12),
+                  ("init_scale_camera_share", p.init_scale_camera_share > 0),
+                  ("multi_view_num", p.multi_view_num >= 1), ("multi_view_patch_half", p.multi_view_patch_half >= 1),
+                  ("multi_view_patch_step", p.multi_view_patch_step > 0),
+                  ("multi_view_pixel_noise_th", p.multi_view_pixel_noise_th > 0),
+                  ("multi_view_max_angle", 0 < p.multi_view_max_angle <= 180),
+                  ("multi_view_max_dis", p.multi_view_max_dis > p.multi_view_min_dis >= 0),
+                  ("exposure_lr", p.exposure_lr > 0)]
+        for key, ok in checks:
+            if not ok:
+                raise ConfigError(f"method.{key} is out of range (got {getattr(p, key)}); see docs/methods/gggs.md §3")
+
+    def setup(self, scene: Scene, cfg: RunConfig) -> None:
+        self.exposure = torch.nn.Parameter(torch.zeros(len(scene.cameras), 2))
+        super().setup(scene, cfg)
+        p = self.params
+        self.cameras = list(scene.cameras)
+        self.neighbours = neighbour_views(self.cameras, scene.train_views, p.multi_view_num, p.multi_view_max_angle,
+                                          p.multi_view_min_dis * scene.radius, p.multi_view_max_dis * scene.radius)
+        self.gray = [pgsr_terms.gray(torch.as_tensor(np.asarray(img, dtype=np.float32))) for img in scene.images] \
+            if scene.images is not None else []
+
+    def initial_gaussians(self, scene: Scene, cfg: RunConfig) -> Gaussians:
+        """The base initialisation with each scale at most ``init_scale_camera_share`` × the distance from the
+        centre to the nearest training camera (GGGS scene/__init__.py)."""
+        g = super().initial_gaussians(scene, cfg)
+        centres = torch.as_tensor(np.stack([scene.cameras[i].center for i in scene.train_views]), dtype=torch.float64)
+        means = g.params["means"].detach().to(torch.float64)
+        nearest = torch.cdist(means, centres).min(1).values.clamp_min(1e-12)
+        limit = torch.log(self.params.init_scale_camera_share * nearest).to(g.params["log_scales"].dtype)
+        g.params["log_scales"].data = torch.minimum(g.params["log_scales"].data, limit[:, None])
+        return g
+
+    def make_optimizer(self, gaussians):
+        optimizer = super().make_optimizer(gaussians)
+        optimizer.add_param_group({"params": [self.exposure], "name": "exposure", "lr": self.params.exposure_lr,
+                                   "eps": ADAM_EPS})  # Adam's default betas: GGGS's "beta" key is ignored by torch
+        return optimizer
+
+    def raster_settings(self) -> RasterSettings:
+        """The base settings with the solid-depth search (module docstring)."""
+        p = self.params
+        return dataclasses.replace(super().raster_settings(), solid_rounds=p.solid_rounds,
+                                   solid_search_range=p.solid_search_range * self.scene_radius)
+
+    def term_params(self) -> dict[str, dict]:
+        """The L1 on the exposure-compensated render without PGSR's SSIM gate."""
+        return {"l1_exposure": {"ssim_gate": False}} if "l1_exposure" in self.cfg.losses else {}
+
+    def training_phases(self) -> dict[str, float]:
+        return {"multiview": self.multiview_seconds}
+
+    # ---- what the loss terms read -------------------------------------------------------------
+    def loss_state(self) -> dict:
+        return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview}
+
+    def _exposure_of(self, batch: Batch):
+        view = batch.view
+        return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
+
+    def _multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
+        """This step's neighbour render and warp, computed on first use and shared by the two terms."""
+        key = (batch.step, id(render))
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        t0 = time.perf_counter()
+        with profiling.profile_as("neighbour."):
+            ctx = self._build_multiview(render, batch)
+        self.multiview_seconds += time.perf_counter() - t0
+        self._cache = (key, ctx)
+        return ctx
+
+    def _build_multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
+        p = self.params
+        view = batch.view
+        candidates = self.neighbours.get(view, []) if view is not None else []
+        if not candidates:
+            return None
+        nb = candidates[random.randrange(len(candidates))]  # GGGS: random.sample(nearest_id, 1)
+        nb_cam = self.cameras[nb]
+        nb_render = self.render(nb_cam, {"solid_depth", "normal"})
+        warp = pgsr_terms.warp_to_neighbour(solid_planes(render, batch.camera), batch.camera,
+                                            solid_planes(nb_render, nb_cam), nb_cam,
+                                            near=self.raster_settings().near, threshold=p.multi_view_pixel_noise_th)
+        ref_gray = pgsr_terms.gray(batch.image.to(torch.float32)) if view is None else self.gray[view]
+        return MultiViewContext(warp=warp, ncc_index=torch.nonzero(warp.mask).flatten(), ref_gray=ref_gray,
+                                nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half,
+                                patch_step=p.multi_view_patch_step)
+
+    # ---- mesh ---------------------------------------------------------------------------------
+    def mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
+        """``mesh.depth`` for the TSDF; ``solid``: the stochastic-solid depth with the training search (GGGS's
+        mesh_extract.py renders with the same ±0.4, 5 rounds)."""
+        if cfg.mesh.depth != "solid":
+            return super().mesh_depth(camera, cfg)
+        out = self.render(camera, {"solid_depth", "alpha", "rgb"})
+        return out.solid_depth, out
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {**super().state_dict(), "exposure": self.exposure.detach().clone()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.exposure = torch.nn.Parameter(state["exposure"].clone())
+        super().load_state_dict(state)
+
