@@ -11,8 +11,8 @@ render, loss, backward, densification, Adam, checks), seeded, in a temporary run
 
 Phases, milliseconds per step (mean over the timed steps):
 
-- ``projection``, ``sort_bin``, ``raster_fwd``, ``raster_bwd``: the rasterizer's own timers
-  (`gsbench.raster.profiling.profile`);
+- ``projection``, ``sort_bin``, ``raster_fwd``, ``raster_bwd``, ``solid_fwd``, ``solid_bwd``: the rasterizer's own
+  timers (`gsbench.raster.profiling.profile`; ``solid_*``: GGGS's stochastic-solid depth, docs/rasterizer.md §9a);
 - ``render_rest``: the rest of the method's render call (building the raster input, 3D filter, IBGS's
   kNN covariance, …) = Trainer ``render`` − projection − sort_bin − raster_fwd;
 - ``fwd.<term>``: each loss term's forward (the Trainer's ``loss`` phase split by term), ``loss_rest``
@@ -71,10 +71,11 @@ WORKLOADS = {
     "ibgs": Workload("ibgs"),
     "sugar": Workload("sugar"),
     "pgsr": Workload("pgsr"),
+    "gggs": Workload("gggs"),
     "3dgs-random-100k": Workload("3dgs", ("method.random_init_region=sphere",), start=0.0),
     "3dgs-visible-adam": Workload("3dgs", ("train.optimizer=visible_adam",)),
 }
-RASTER_PHASES = ("projection", "sort_bin", "raster_fwd", "raster_bwd")
+RASTER_PHASES = ("projection", "sort_bin", "raster_fwd", "raster_bwd", "solid_fwd", "solid_bwd")
 NEIGHBOUR = "neighbour."  # the profile tag of PGSR's neighbour render (methods/pgsr.py)
 
 
@@ -170,12 +171,12 @@ def _phases_ms(name, workload, per_step, phases, prof, term_fwd, probe, gaussian
     ms.update({k: ms.get(k, 0.0) for k in RASTER_PHASES})
     step_ms = 1e3 * sum(per_step) / n
     trainer_ms = {k: 1e3 * v / n for k, v in phases.items()}
-    ms["render_rest"] = trainer_ms["render"] - ms["projection"] - ms["sort_bin"] - ms["raster_fwd"]
+    ms["render_rest"] = trainer_ms["render"] - ms["projection"] - ms["sort_bin"] - ms["raster_fwd"] - ms["solid_fwd"]
     ms.update({f"fwd.{t}": 1e3 * s / n for t, s in term_fwd.items()})
     ms["loss_rest"] = trainer_ms["loss"] - sum(1e3 * s / n for s in term_fwd.values())
     bwd = {t: 1e3 * statistics.mean(p.get(t, 0.0) for p in probe) for t in term_fwd} if probe else {}
     ms.update({f"bwd.{t}": v for t, v in bwd.items()})
-    ms["backward_rest"] = trainer_ms["backward"] - ms["raster_bwd"] - sum(bwd.values())
+    ms["backward_rest"] = trainer_ms["backward"] - ms["raster_bwd"] - ms["solid_bwd"] - sum(bwd.values())
     for k in ("optimizer", "densify", "checks"):
         ms[k] = trainer_ms[k]
     ms["other"] = step_ms - sum(trainer_ms.values())
@@ -205,17 +206,17 @@ def run_train_benchmark(workloads=None, *, steps: int = STEPS, warmup: int = WAR
 
 
 def format_table(result: dict) -> str:
-    """Rows: workloads; columns: ms/step, it/s, the rasterizer phases, loss terms (fwd+bwd; in brackets the
+    """Rows: workloads; columns: ms/step, it/s, the rasterizer phases (s.: the solid depth), loss terms (fwd+bwd; in brackets the
     neighbour render's rasterizer share of them), the rest."""
-    header = ["workload", "N", "ms/step", "it/s", "proj", "sort", "r.fwd", "r.bwd", "bwd.rest", "render.rest",
-              "terms", "(nb.raster)", "optim", "densify", "checks", "other", "non-raster"]
+    header = ["workload", "N", "ms/step", "it/s", "proj", "sort", "r.fwd", "r.bwd", "s.fwd", "s.bwd", "bwd.rest",
+              "render.rest", "terms", "(nb.raster)", "optim", "densify", "checks", "other", "non-raster"]
     rows = [header]
     for r in result["results"]:
         p = r["phases_ms"]
         terms = sum(v for k, v in p.items() if k.startswith(("fwd.", "bwd."))) + p["loss_rest"]
         rows.append([r["workload"], str(r["gaussians"]["timed_start"]), f"{r['step_ms']:.1f}", f"{r['it_per_s']:.2f}",
-                     *(f"{p[k]:.1f}" for k in ("projection", "sort_bin", "raster_fwd", "raster_bwd",
-                                                 "backward_rest", "render_rest")),
+                     *(f"{p[k]:.1f}" for k in ("projection", "sort_bin", "raster_fwd", "raster_bwd", "solid_fwd",
+                                                 "solid_bwd", "backward_rest", "render_rest")),
                      f"{terms:.1f}", f"({p['neighbour_raster']:.1f})",
                      *(f"{p[k]:.1f}" for k in ("optimizer", "densify", "checks", "other")),
                      f"{100 * r['non_raster_share']:.0f}%"])

@@ -76,15 +76,6 @@ inline SolidPair<T> solid_pair(const T* __restrict p, T px, T py, int kk, int la
     return s;
 }
 
-// factor of T_i at t (the module comment); g is taken as 0 beyond FAR_SIGMAS
-template <typename T>
-inline T solid_factor(T t, T al, T tpk, T isg) {
-    const T dl = (t - tpk) * isg;
-    const T g = (isg > T(0) && std::fabs(dl) <= T(FAR_SIGMAS)) ? std::exp(T(-0.5) * dl * dl) : T(0);
-    const T om = T(1) - al * g;
-    return (t > tpk ? T(1) - al : om) / std::sqrt(om);
-}
-
 // Visit every (pixel, Gaussian) pair of a tile whose pixel centre lies in the Gaussian's box, for list
 // positions below maxlast: fn(i, kk, g, p, px, py).
 template <typename T, typename F>
@@ -144,6 +135,43 @@ struct PixelLists {
     }
 };
 
+// One round of the search: T at the samples S0..S1 of [lo, hi] (SPLIT cells) into Tp, over a pixel's blended
+// pairs. A pair whose peak lies FAR_SIGMAS widths behind every sample changes nothing; one whose peak lies that
+// far in front multiplies every sample by 1 − α (collected in one product); the others are evaluated at each
+// sample (a constant trip count, vectorised: fexp is the compositing's exponential, exact in float64).
+template <typename T, int S0, int S1>
+inline void search_round(const std::vector<SolidPair<T>>& ps, const int32_t* gs, const T* ISG, T lo, T hi,
+                         T* __restrict Tp) {
+    const T step = (hi - lo) / T(SPLIT);
+    alignas(64) T acc[SPLIT + 1], ts[SPLIT + 1];
+    for (int q = 0; q <= SPLIT; ++q) {
+        acc[q] = T(1);
+        ts[q] = lo + step * T(q);
+    }
+    T passed = T(1);  // Π (1 − α) of the pairs whose peak is in front of every sample
+    const int n = (int)ps.size();
+    for (int e = 0; e < n; ++e) {
+        const SolidPair<T>& s = ps[e];
+        const T isg = ISG[gs[e]];
+        const T first = (ts[S0] - s.tpk) * isg, last = (ts[S1] - s.tpk) * isg;
+        if (last < T(-FAR_SIGMAS)) continue;
+        if (first > T(FAR_SIGMAS)) {
+            passed *= T(1) - s.al;
+            continue;
+        }
+        const T al = s.al, tpk = s.tpk, after = T(1) - al;
+        const bool ball = isg > T(0);
+#pragma omp simd
+        for (int q = S0; q <= S1; ++q) {
+            const T dl = (ts[q] - tpk) * isg;
+            const T g = bsel<T>(ball, fexp<T>(std::max(T(-0.5) * dl * dl, T(-30))), T(0));
+            const T om = T(1) - al * g;
+            acc[q] *= bsel<T>(ts[q] > tpk, after, om) / std::sqrt(om);
+        }
+    }
+    for (int q = S0; q <= S1; ++q) Tp[q] = acc[q] * passed;
+}
+
 template <typename T>
 void solid_forward(SolidArgs& A) {
     const int W = (int)A.width, H = (int)A.height, ntiles = (int)(A.tiles_x * A.tiles_y);
@@ -181,24 +209,15 @@ void solid_forward(SolidArgs& A) {
                 bool inr = n > 0 && TF[pix] <= minT;
                 T lo = std::max(init - R, T(0)), hi = std::max(init + R, T(0));
                 for (int round = 0; round < rounds && inr; ++round) {
-                    const int s0 = round == 0 ? 0 : 1, s1 = round == 0 ? SPLIT : SPLIT - 1;
-                    const T step = (hi - lo) / T(SPLIT);
-                    for (int q = s0; q <= s1; ++q) Tp[q] = T(1);
-                    for (int e = 0; e < n; ++e) {
-                        const SolidPair<T>& s = ps[e];
-                        const T isg = ISG[gs[e]];
-                        const T first = (lo + step * T(s0) - s.tpk) * isg, last = (lo + step * T(s1) - s.tpk) * isg;
-                        if (last < T(-FAR_SIGMAS)) continue;  // every sample before the peak, g ≈ 0: factor 1
-                        if (first > T(FAR_SIGMAS)) {          // every sample after it: factor 1 − α
-                            for (int q = s0; q <= s1; ++q) Tp[q] *= T(1) - s.al;
-                            continue;
-                        }
-                        for (int q = s0; q <= s1; ++q) Tp[q] *= solid_factor<T>(lo + step * T(q), s.al, s.tpk, isg);
+                    if (round == 0) {
+                        search_round<T, 0, SPLIT>(ps, gs.data(), ISG, lo, hi, Tp);
+                        inr = Tp[0] >= T(0.5) && Tp[SPLIT] <= T(0.5);
+                    } else {
+                        search_round<T, 1, SPLIT - 1>(ps, gs.data(), ISG, lo, hi, Tp);
                     }
-                    if (round == 0) inr = Tp[0] >= T(0.5) && Tp[SPLIT] <= T(0.5);
                     int start = 0;
                     for (int q = 1; q < SPLIT; ++q) start = Tp[q] >= T(0.5) ? q : start;
-                    const T a = Tp[start], b = Tp[start + 1], base = lo;
+                    const T step = (hi - lo) / T(SPLIT), a = Tp[start], b = Tp[start + 1], base = lo;
                     lo = base + step * T(start);
                     hi = base + step * T(start + 1);
                     Tp[0] = a;
