@@ -46,3 +46,17 @@ def test_pgsr_neighbour_render_is_timed_as_rasterizer_inside_its_term(tiny_spot)
 def test_unknown_workload_is_an_error_listing_the_workloads():
     with pytest.raises(ConfigError, match="3dgs-random-100k"):
         run_train_benchmark(["3dgs-random-1m"])
+
+
+def test_papers_size_workloads_run_at_a_tiny_size(tmp_path, monkeypatch):
+    """Every method has papers'-size workloads; one, shrunk to 64x48 and 3 000 Gaussians, runs: the scene is
+    made at its resolution in the IDR layout and training starts from exactly that many Gaussians."""
+    from gsbench.bench.train import PAPER_METHODS, PAPER_SIZES, Workload
+
+    assert {f"{m}-{s}" for m in PAPER_METHODS for s in PAPER_SIZES} <= set(WORKLOADS)
+    assert WORKLOADS["radegs-800x600-300k"].resolution == (800, 600)
+    monkeypatch.setenv("GSBENCH_DATA", str(tmp_path))
+    tiny = Workload("radegs", resolution=(64, 48), gaussians=3000)
+    result = bench_workload("radegs-tiny", tiny, steps=1, warmup=1, probe_steps=1, threads=1)
+    assert result["resolution"] == [64, 48] and result["gaussians"]["initial"] == 3000
+    assert (tmp_path / "bench" / "dtu-bunny-64x48" / "cameras.npz").exists()

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 import gsbench.raster as R
+from gsbench.bench import roofline
 from gsbench.data.camera import Camera
 from gsbench.raster import profiling, rasterize, reference
 from gsbench.raster.abi import library
@@ -174,8 +175,11 @@ def run_raster_benchmark(
     repeats: int = 5,
     threads: int | None = None,
     reference_case: tuple[int, int, int] | None = (1000, 80, 60),
+    measure_machine: bool = True,
 ) -> dict:
-    """Benchmark ``kernels`` × ``workloads`` (names of `STANDARD_WORKLOADS` or dicts n/width/height/opacity).
+    """Benchmark ``kernels`` × ``workloads`` (names of `STANDARD_WORKLOADS` or dicts n/width/height/opacity);
+    with ``measure_machine``, also the machine's limits and each phase's fraction of its bound
+    (`gsbench.bench.roofline`).
 
     ``None`` for ``kernels`` or ``workloads`` means all of them (the CLI passes None when a flag is omitted).
     """
@@ -199,6 +203,10 @@ def run_raster_benchmark(
                 r = _bench_one(kernel, g, cam, repeats, RasterSettings())
                 r.update(kernel=kernel, workload=name, n=spec["n"], width=spec["width"], height=spec["height"])
                 rows.append(r)
+        machine = roofline.machine_limits(nthreads) if measure_machine else None
+        if machine is not None:
+            for row in rows:
+                row["roofline"] = roofline.annotate(row, machine)
         ref = None
         if reference_case is not None:
             n, w, h = reference_case
@@ -210,6 +218,7 @@ def run_raster_benchmark(
             "floor_pairs_per_s": {"fwd": FLOOR_FWD, "bwd": FLOOR_BWD},
             "targets_ms": {"50k-400x300 ewa fwd+bwd": 150, "200k-800x600 ewa fwd+bwd": 300},
             "results": rows,
+            "machine": machine,
             "reference": ref,
             "torch": torch.__version__,
         }
@@ -237,6 +246,8 @@ def format_table(result: dict) -> str:
             f"{r['pairs_fwd'] / 1e6:.1f} | {r['pairs_bwd'] / 1e6:.1f} | {r['tile_pairs_x256'] / 1e6:.1f} | "
             f"{'-' if ff is None else f'{ff:.2f}'} | {'-' if fb is None else f'{fb:.2f}'} | {r['peak_extra_rss_mb']:.0f} |"
         )
+    if result.get("machine"):
+        lines += ["", roofline.format_roofline({"machine": result["machine"], "rows": result["results"]})]
     ref = result.get("reference")
     if ref:
         lines += [

@@ -5,7 +5,11 @@ initial points in the masks' visual hull), stepped from a quarter of the cpu sch
 3000, in the densification window) or, when a loss term starts later, from the step after the last
 term starts (GOF / RaDe-GS / IBGS 1501, SuGaR 1801, past the window), so every term is timed; and ``3dgs-random-100k``: 3DGS from 100 000 random points in the scene sphere, stepped from
 step 1 (what a capture without points and masks costs at the start); ``3dgs-visible-adam``: 3DGS
-with the opt-in visible-only Adam (`gsbench.training.optim`). Each workload runs ``warmup``
+with the opt-in visible-only Adam (`gsbench.training.optim`); ``<method>-800x600-300k`` and ``-1m`` (every
+method of `PAPER_METHODS`): the papers' size, ``synthetic/dtu-bunny`` made at 800x600 (DTU's 1600x1200 at
+the papers' ``-r 2``) in the IDR layout, from 300 000 or 1 000 000 random Gaussians in the scene sphere, as
+``3dgs-random-100k`` (the DTU-like and, by count, TnT-like sizes the papers reach; TnT's 980x545 images
+have 11% more pixels), the budget twice that, stepped as the cpu-preset workloads. Each workload runs ``warmup``
 steps, then ``steps`` timed steps of `gsbench.training.trainer.Trainer.train_step` (the real step: schedules,
 render, loss, backward, densification, Adam, checks), seeded, in a temporary run folder.
 
@@ -45,6 +49,8 @@ from dataclasses import dataclass
 import torch
 
 import gsbench.training.trainer as train
+from gsbench.data.cache import cache_dir
+from gsbench.data.loader import make_scene
 from gsbench.errors import ConfigError
 from gsbench.losses.terms import Batch, active_terms, required_outputs
 from gsbench.raster import profiling
@@ -61,6 +67,22 @@ class Workload:
     method: str
     overrides: tuple[str, ...] = ()
     start: float = 0.25  # fraction of train.iterations to start at, or later when a term starts later (0: step 1)
+    resolution: tuple[int, int] | None = None  # the papers' size: the scene made at (W, H) in the IDR layout
+    gaussians: int = 0  # with ``resolution``: this many random initial Gaussians in the scene sphere
+
+    def run_overrides(self) -> tuple[str, ...]:
+        """The run config overrides of the workload (the papers' size: images, initial Gaussians and budget)."""
+        if self.resolution is None:
+            return self.overrides
+        w, h = self.resolution
+        return (*self.overrides, "data.downscale=1", f"data.max_size=[{w}, {h}]",
+                f"method.random_init_points={self.gaussians}", "method.random_init_region=sphere",
+                f"train.max_gaussians={2 * self.gaussians}")
+
+
+PAPER_SCENE = "synthetic/dtu-bunny"  # scanned, framed as DTU
+PAPER_METHODS = ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs", "pgsr", "gggs")
+PAPER_SIZES = {"800x600-300k": ((800, 600), 300_000), "800x600-1m": ((800, 600), 1_000_000)}
 
 
 WORKLOADS = {
@@ -74,6 +96,8 @@ WORKLOADS = {
     "gggs": Workload("gggs"),
     "3dgs-random-100k": Workload("3dgs", ("method.random_init_region=sphere",), start=0.0),
     "3dgs-visible-adam": Workload("3dgs", ("train.optimizer=visible_adam",)),
+    **{f"{m}-{size}": Workload(m, resolution=res, gaussians=n) for m in PAPER_METHODS
+       for size, (res, n) in PAPER_SIZES.items()},
 }
 RASTER_PHASES = ("projection", "sort_bin", "raster_fwd", "raster_bwd", "solid_fwd", "solid_bwd")
 NEIGHBOUR = "neighbour."  # the profile tag of PGSR's neighbour render (methods/pgsr.py)
@@ -121,11 +145,22 @@ def _term_backward_seconds(trainer, step: int) -> dict[str, float]:
     return seconds
 
 
+def paper_scene(resolution: tuple[int, int]) -> str:
+    """The folder of `PAPER_SCENE` made at ``resolution`` in the IDR layout (no SfM points, so the initial
+    Gaussians are the workload's random ones), generated once into the data cache."""
+    w, h = resolution
+    return str(make_scene(PAPER_SCENE, fmt="dtu", out=cache_dir() / "bench" / f"dtu-bunny-{w}x{h}", res=(w, h)))
+
+
 def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup: int = WARMUP,
                    probe_steps: int = PROBE_STEPS, threads: int = 2, scenes: dict | None = None,
-                   scene_name: str = SCENE) -> dict:
-    """Time one workload (module docstring); ``scenes`` caches loaded scenes between workloads."""
-    cfg = resolve_run(workload.method, scene_name, preset="cpu", overrides=(*workload.overrides, "train.checkpoint_every=0"))
+                   scene_name: str | None = None) -> dict:
+    """Time one workload (module docstring); ``scenes`` caches loaded scenes between workloads. ``scene_name``
+    replaces the workload's scene (`SCENE`, or the papers'-size scene made at its resolution)."""
+    if scene_name is None:
+        scene_name = SCENE if workload.resolution is None else paper_scene(workload.resolution)
+    cfg = resolve_run(workload.method, scene_name, preset="cpu",
+                      overrides=(*workload.run_overrides(), "train.checkpoint_every=0"))
     cfg.threads = threads
     scenes = {} if scenes is None else scenes
     key = (cfg.scene, tuple(cfg.data.max_size), cfg.data.downscale)
@@ -184,7 +219,7 @@ def _phases_ms(name, workload, per_step, phases, prof, term_fwd, probe, gaussian
     ms["neighbour_raster"] = sum(ms[NEIGHBOUR + k] for k in RASTER_PHASES)
     raster_ms = sum(ms[k] for k in RASTER_PHASES) + ms["neighbour_raster"] + ms["backward_rest"]
     return {"workload": name, "method": workload.method, "overrides": list(workload.overrides),
-            "scene": SCENE, "preset": "cpu", "first_timed_step": first_timed, "steps": n,
+            "preset": "cpu", "first_timed_step": first_timed, "steps": n,
             "step_ms": step_ms, "step_ms_median": 1e3 * statistics.median(per_step), "it_per_s": 1e3 / step_ms,
             "phases_ms": ms, "non_raster_share": 1.0 - raster_ms / step_ms, "gaussians": gaussians}
 

@@ -14,6 +14,7 @@ from gsbench.raster.sh import sh_to_rgb
 from gsbench.raster.types import RasterGaussians, RasterSettings
 
 BIG = 1.0e6  # pixel-box sentinel (kept finite: the C++ is built with -ffinite-math-only)
+SURFEL_OFF = 1.0e6  # px: the payload centre of a surfel whose disc reaches the camera plane (no low-pass term)
 
 
 def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -139,12 +140,15 @@ def project_torch(
         X0, X1, X2 = X[:, 0, :], X[:, 1, :], X[:, 2, :]
         cut2 = 9.0
         dd = cut2 * (X2[:, 0] ** 2 + X2[:, 1] ** 2) - X2[:, 2] ** 2
-        ok = (dd != 0) & (cos != 0) & ~culled
-        dds = torch.where(ok, dd, -torch.ones_like(dd))
+        ok = (cos != 0) & ~culled
+        crossing = ok & (dd >= 0)  # the 3σ disc reaches the camera plane: no screen box (contract, surfel)
+        dds = torch.where(ok & ~crossing, dd, -torch.ones_like(dd))
         fvec = torch.stack([torch.full_like(dds, cut2), torch.full_like(dds, cut2), -torch.ones_like(dds)], -1) / dds[:, None]
         cnx = _dot(fvec, X0 * X2)
         cny = _dot(fvec, X1 * X2)
-        means2d = torch.stack([fx * cnx + cx, fy * cny + cy], -1)
+        box_centre = torch.stack([fx * cnx + cx, fy * cny + cy], -1)
+        projected = torch.stack([fx * u + cx, fy * v + cy], -1).detach()
+        means2d = torch.where(crossing[:, None], projected, box_centre)
         with torch.no_grad():
             hnx = cnx * cnx - _dot(fvec, X0 * X0)
             hny = cny * cny - _dot(fvec, X1 * X1)
@@ -153,6 +157,7 @@ def project_torch(
             k = settings.surfel_filter  # the low-pass disc's 3σ, σ = 1/√k (2DGS: 3·0.707106)
             floor = 3.0 / math.sqrt(k) if k > 0 else 0.0
             radius = torch.ceil(torch.maximum(torch.maximum(ext_x, ext_y), torch.full_like(ext_x, floor)))
+            radius = torch.where(crossing, _corner_radius(means2d.double(), W, H).to(radius.dtype), radius)
             radius = torch.where(ok, radius, torch.zeros_like(radius))
             valid = ok
             bounds = _surfel_bounds(X.detach().double(), means2d.detach().double(), tau, camera, settings.surfel_filter)
@@ -217,7 +222,10 @@ def project_torch(
 
     o = torch.where(valid, o, torch.zeros_like(o))
     # Invalid (culled) Gaussians are never binned, so their payload is never read; only the opacity is zeroed.
-    params = torch.cat([means2d, conic, o[:, None], rgb, extra], -1)
+    payload_centre = means2d
+    if kernel == "surfel":  # a crossing disc's payload centre is moved off the image: no low-pass term (contract)
+        payload_centre = means2d + torch.where(crossing, SURFEL_OFF, 0.0).to(dtype)[:, None] * torch.tensor([1.0, 0.0], dtype=dtype)
+    params = torch.cat([payload_centre, conic, o[:, None], rgb, extra], -1)
 
     with torch.no_grad():
         m2 = means2d.detach().double()
@@ -292,6 +300,14 @@ def _raymax_bounds(M: torch.Tensor, mu: torch.Tensor, tau: torch.Tensor, camera:
         hi_p = torch.where(ok, hi_p + pad, torch.full_like(hi_p, BIG))
         out += [lo_p, hi_p]
     return torch.stack(out, -1)
+
+
+def _corner_radius(centre: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """A radius from each screen centre (N,2) that reaches every image corner (+1): its tile rectangle is the
+    whole image (a surfel disc that reaches the camera plane, contract)."""
+    dx = torch.maximum(centre[:, 0].abs(), (centre[:, 0] - width).abs())
+    dy = torch.maximum(centre[:, 1].abs(), (centre[:, 1] - height).abs())
+    return torch.ceil(torch.sqrt(dx * dx + dy * dy)) + 1.0
 
 
 def _surfel_bounds(X: torch.Tensor, m2: torch.Tensor, tau: torch.Tensor, camera: Camera,

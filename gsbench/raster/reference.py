@@ -16,8 +16,8 @@ Decisions (where the contract leaves room; the fast path must match these):
     A pair contributes only if the pixel's tile lies in [rect_min, rect_max). An empty rectangle culls
     the Gaussian (radius 0, not visible). ``visible = radius > 0``.
  3. Culling (radius 0, contributes nothing): centre z <= near (all kernels); EWA-conic determinant
-    <= 0 after eps2d and antialias (ewa, rade, raymax); surfel: box denominator d == 0 or
-    μ·n == 0 (edge-on, docs/methods/2dgs.md §3.1, §3.3). Culled Gaussians have ``means2d = 0``.
+    <= 0 after eps2d and antialias (ewa, rade, raymax); surfel: μ·n == 0 (edge-on,
+    docs/methods/2dgs.md §3.1; a disc reaching the camera plane is not culled, Decision 4). Culled Gaussians have ``means2d = 0``.
  4. ``means2d``: ewa/rade/raymax the projected centre ``(fx μx/μz + cx, fy μy/μz + cy)`` (unclamped);
     surfel the centre of the exact 3σ screen box (docs/methods/2dgs.md §3.3, cutoff 3), radius
     ``ceil(max(extent_x, extent_y, 3/√k))`` (k = ``surfel_filter``, 2DGS: 3·0.707106) with ``extent = sqrt(max(1e-4, h))``.
@@ -68,6 +68,8 @@ arbitrary pixel positions); the per-Gaussian half is `gsbench.raster.reference_p
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -154,6 +156,7 @@ def pair_terms(
         s = safe_div(p[..., :2], p[..., 2:3], hit[..., None])
         rho3d = (s * s).sum(-1)
         rho2d = settings.surfel_filter * ((m2d - pix[:, None, :]) ** 2).sum(-1)
+        rho2d = torch.where(proj.surfel_crossing[None, :], torch.full_like(rho2d, math.inf), rho2d)  # Decision 4
         rho = torch.minimum(rho3d, rho2d) if settings.surfel_filter > 0 else rho3d
         depth = (s * Tw[None, :, :2]).sum(-1) + Tw[None, :, 2]
         ok = hit & (depth >= near)

@@ -144,6 +144,7 @@ class Projected:
     rade_l: torch.Tensor | None = None  # (N,) ‖μ‖
     rade_p: torch.Tensor | None = None  # (N,2) −(Q20, Q21)/Q22
     surfel_H: torch.Tensor | None = None  # (N,3,3) rows Tu, Tv, Tw (docs/methods/2dgs.md §3.1)
+    surfel_crossing: torch.Tensor | None = None  # (N,) bool: the 3σ disc reaches the camera plane (Decision 4)
 
 
 def camera_tensors(camera: Camera, dtype: torch.dtype):
@@ -201,14 +202,16 @@ def _ewa_conic(mu, z_safe, cov, K, camera: Camera, kernel: str, settings: Raster
     return conic, factor, radius, bad
 
 
-def _surfel_setup(mu, rot_cam, scales, K, filter_k: float):
+def _surfel_setup(mu, z_safe, rot_cam, scales, K, filter_k: float, width: int, height: int):
     """2DGS homography rows, box centre, radius and normal (docs/methods/2dgs.md §3.1, §3.3).
 
     H = K·[s_u R_cw t_u | s_v R_cw t_v | μ] (rows Tu, Tv, Tw); box with f = (9, 9, −1)/d,
     d = 9(Tw.x² + Tw.y²) − Tw.z²: centre = (Σ f Tu Tw, Σ f Tv Tw), h = centre² − Σ f T², extent
     = sqrt(max(1e-4, h)), radius = ceil(max(extent, 3/√k)) (k = ``surfel_filter``; 2DGS's k = 2 gives
     its 3·0.707106; k = 0: ceil(extent)). Normal n = R_cw t_w flipped by the
-    constant sign(−μ·n). Returns (H, centre, radius (no grad), normal, bad (N,) bool).
+    constant sign(−μ·n). A disc with d ≥ 0 reaches the camera plane (*crossing*, Decision 4): its centre is
+    the projected μ (no gradient) and its radius reaches every image corner (+1).
+    Returns (H, centre, radius (no grad), normal, bad (N,) bool, crossing (N,) bool).
     """
     cols = torch.stack([rot_cam[:, :, 0] * scales[:, 0:1], rot_cam[:, :, 1] * scales[:, 1:2], mu], -1)  # (N,3,3)
     H = K @ cols
@@ -218,16 +221,23 @@ def _surfel_setup(mu, rot_cam, scales, K, filter_k: float):
     d = (tvec * Tw * Tw).sum(-1)
     normal = rot_cam[:, :, 2]
     cos_theta = -(mu * normal).sum(-1)
-    bad = (d == 0) | (cos_theta == 0)
-    f = safe_div(tvec.expand_as(Tw), d[:, None], ~bad[:, None])
-    centre = torch.stack([(f * Tu * Tw).sum(-1), (f * Tv * Tw).sum(-1)], -1)
+    bad = cos_theta == 0
+    crossing = ~bad & (d >= 0)
+    f = safe_div(tvec.expand_as(Tw), d[:, None], ~(bad | crossing)[:, None])
+    box_centre = torch.stack([(f * Tu * Tw).sum(-1), (f * Tv * Tw).sum(-1)], -1)
+    projected = torch.stack([K[0, 0] * mu[:, 0] / z_safe + K[0, 2], K[1, 1] * mu[:, 1] / z_safe + K[1, 2]], -1)
+    centre = torch.where(crossing[:, None], projected.detach(), box_centre)
     normal = normal * torch.sign(cos_theta).detach()[:, None]
     with torch.no_grad():
-        h = centre**2 - torch.stack([(f * Tu * Tu).sum(-1), (f * Tv * Tv).sum(-1)], -1)
+        h = box_centre**2 - torch.stack([(f * Tu * Tu).sum(-1), (f * Tv * Tv).sum(-1)], -1)
         extent = torch.sqrt(torch.clamp(h, min=1e-4))
         floor = SURFEL_CUTOFF / math.sqrt(filter_k) if filter_k > 0 else 0.0
         radius = torch.ceil(torch.clamp(extent.max(-1).values, min=floor))
-    return H, centre, radius, normal, bad
+        c = centre.detach()
+        dx = torch.maximum(c[:, 0].abs(), (c[:, 0] - width).abs())
+        dy = torch.maximum(c[:, 1].abs(), (c[:, 1] - height).abs())
+        radius = torch.where(crossing, torch.ceil(torch.sqrt(dx * dx + dy * dy)) + 1.0, radius)
+    return H, centre, radius, normal, bad, crossing
 
 
 def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: RasterSettings) -> Projected:
@@ -260,8 +270,9 @@ def project(gaussians: RasterGaussians, camera: Camera, kernel: str, settings: R
 
     fields: dict = {}
     if kernel == "surfel":
-        H, means2d, radius, normal, bad = _surfel_setup(mu, rot_cam, scales, K, settings.surfel_filter)
-        fields.update(surfel_H=H, normal=normal)
+        H, means2d, radius, normal, bad, crossing = _surfel_setup(mu, z_safe, rot_cam, scales, K, settings.surfel_filter,
+                                                                  camera.width, camera.height)
+        fields.update(surfel_H=H, normal=normal, surfel_crossing=crossing)
     else:
         cov = rot_cam @ torch.diag_embed(scales * scales) @ rot_cam.transpose(-1, -2)
         conic, aa_factor, radius, bad = _ewa_conic(mu, z_safe, cov, K, camera, kernel, settings)

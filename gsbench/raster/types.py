@@ -64,7 +64,8 @@ Binning and culling (pinned with the reference, `gsbench.raster.reference` "Deci
   tile; an empty rectangle culls the Gaussian. ``visible = radius > 0``; culled Gaussians have
   means2d = 0.
 - Culled: centre z <= near (every kernel); EWA determinant <= 0 after eps2d/antialias (ewa, rade,
-  raymax); surfel box denominator == 0 or exactly edge-on (μ·n == 0).
+  raymax); surfel exactly edge-on (μ·n == 0). A surfel whose 3σ disc reaches the camera plane (no bounded
+  screen box) is binned to the whole image with its projected centre and no low-pass term.
 - Densification proxies: for ``raymax`` the mean-2D gradient is GOF's proxy (conic-based ∂α/∂means2d
   times the per-pixel dL/dα, docs/methods/gof.md §3.6) and for ``surfel`` the 2DGS shortcut; the reference gives the
   true partial derivative instead, so those two are tested against their own formulas.

@@ -61,6 +61,7 @@ namespace {
 using D = double;
 constexpr int K_EWA = 0, K_RADE = 1, K_RAYMAX = 2, K_SURFEL = 3;
 constexpr D BIGV = 1.0e6;
+constexpr D SURFEL_OFF = 1.0e6;  // px: the payload centre of a crossing surfel, off the image (no low-pass term)
 constexpr D SH0 = 0.28209479177387814;
 constexpr D SH1 = 0.4886025119029199;
 constexpr D SH2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
@@ -151,8 +152,10 @@ struct Fw {
     // raymax (mut shared with rade): E = Rc S⁻¹ (rows ẽ_i), S6 = E Eᵀ (00,01,02,11,12,22), braw = E μ̃,
     // cs = μ̃·μ̃ (1 if culled), sq = √cs, muh = μ̃/sq, vx = muh × ẽ_0, vy = muh × ẽ_1, dM = (vx·vx, vx·vy, vy·vy)
     D E[9], S6[6], braw[3], cs, sqc, muh[3], vx[3], vy[3], dM[3];
-    // surfel: X rows (se_u t_u, se_v t_v, μ) per camera axis, cos = −μ·t_w, sign, dd, dds, centre (cnx, cny)
+    // surfel: X rows (se_u t_u, se_v t_v, μ) per camera axis, cos = −μ·t_w, sign, dd, dds, centre (cnx, cny);
+    // crossing: the 3σ disc reaches the camera plane (dd >= 0), so it has no screen box (contract, surfel)
     D X[9], cosv, sgs, snrm[3], dd, dds, cnx, cny, dpl, au[3], av[3], mau, mav;
+    bool crossing;
 };
 
 template <typename T, int KER>
@@ -237,8 +240,9 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         for (int r = 0; r < 3; ++r) f.snrm[r] = f.Rc[3 * r + 2] * f.sgs;
         const D* X2 = f.X + 6;
         f.dd = 9.0 * (X2[0] * X2[0] + X2[1] * X2[1]) - X2[2] * X2[2];
-        f.ok = f.dd != 0 && f.cosv != 0 && !f.culled;
-        f.dds = f.ok ? f.dd : -1.0;
+        f.ok = f.cosv != 0 && !f.culled;
+        f.crossing = f.ok && f.dd >= 0;
+        f.dds = (f.ok && !f.crossing) ? f.dd : -1.0;
         const D f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
         f.cnx = f0 * (f.X[0] * X2[0]) + f0 * (f.X[1] * X2[1]) + f2 * (f.X[2] * X2[2]);
         f.cny = f0 * (f.X[3] * X2[0]) + f0 * (f.X[4] * X2[1]) + f2 * (f.X[5] * X2[2]);
@@ -420,8 +424,10 @@ void project_forward(const ProjArgs& A) {
         T* p = (T*)A.params + i * P;
         D mx, my;
         if constexpr (KER == K_SURFEL) {
-            mx = A.fx * f.cnx + A.cx;
-            my = A.fy * f.cny + A.cy;
+            // a crossing disc: the projected centre, and in the payload a centre SURFEL_OFF px away, so the
+            // low-pass term (k|centre − p|²) never applies to it (contract)
+            mx = A.fx * (f.crossing ? f.u : f.cnx) + A.cx;
+            my = A.fy * (f.crossing ? f.v : f.cny) + A.cy;
             p[2] = p[3] = p[4] = T(0);
         } else {
             mx = A.fx * f.u + A.cx;
@@ -432,6 +438,9 @@ void project_forward(const ProjArgs& A) {
         }
         p[0] = (T)mx;
         p[1] = (T)my;
+        if constexpr (KER == K_SURFEL) {
+            if (f.crossing) p[0] = (T)(mx + SURFEL_OFF);
+        }
         p[5] = (T)(f.ok ? f.o2 : 0.0);
         p[6] = (T)f.rgb[0];
         p[7] = (T)f.rgb[1];
@@ -474,6 +483,11 @@ void project_forward(const ProjArgs& A) {
             const D ext_y = std::sqrt(std::max(A.fy * A.fy * hny, 1e-4));
             const D fl = A.surfel_k > 0 ? 3.0 / std::sqrt(A.surfel_k) : 0.0;
             radius = f.ok ? std::ceil(std::max(std::max(ext_x, ext_y), fl)) : 0.0;
+            if (f.crossing) {  // a radius that reaches every image corner: the tile rectangle is the whole image
+                const D dx = std::max(std::abs(mx), std::abs(mx - (D)A.width));
+                const D dy = std::max(std::abs(my), std::abs(my - (D)A.height));
+                radius = std::ceil(std::sqrt(dx * dx + dy * dy)) + 1.0;
+            }
             surfel_bounds(A, f, tau, mx, my, bnd);
         } else {
             const D mid = 0.5 * (f.a + f.c);
@@ -595,7 +609,8 @@ void project_backward(const ProjArgs& A) {
             }
             // centre: cn_a = (9 Xa0 X20 + 9 Xa1 X21 − Xa2 X22)/dds, dds = dd (ok) = 9(X20² + X21²) − X22²
             D gX[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-            const D gcn[2] = {fx * g[0], fy * g[1]};
+            const D keep = f.crossing ? 0.0 : 1.0;  // a crossing disc's payload centre is a constant (forward)
+            const D gcn[2] = {keep * fx * g[0], keep * fy * g[1]};
             const D cn[2] = {f.cnx, f.cny};
             D gdds = 0;
             const D* X = f.X;
