@@ -18,7 +18,10 @@ exit interface (its τ-weighted depth and normal), R₂ the reflectance leaving 
 internal reflection: 1), E(ray) = Σ_j w_j (1 − τ_j) c_j along a ray (what opaque surfels it meets). Two
 interfaces and one reflection: the bounded tree (docs/methods/rt2dgs.md §2). L is traced at up to
 ``trace_pixels`` pixels per render (a regular sub-grid with a random offset per step, nearest-neighbour
-filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out.
+filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out. The light
+is traced from step ``trace_from`` (7 000 of 30 000, scaled to the run); before it the render is 2DGS's and
+τ gets no gradient, so the transparency is not driven to 0 by a traced light computed on the first,
+noisy surfaces (docs/methods/rt2dgs.md §8).
 
 Losses (configs/methods/rt2dgs.yaml): 0.8 L1 + 0.2 D-SSIM of C, 2DGS's depth distortion (λ_d = 1000) and
 normal consistency (λ_n = 0.2, the paper's value), and ``normal_smoothness`` (λ = 0.3):
@@ -47,6 +50,7 @@ from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.surfel_rays import CandidateIndex, surfel_axes, trace_pairs
 from gsbench.raster.types import RasterGaussians, RenderOutput
 from gsbench.training.optim import make_adam
+from gsbench.training.trainer import scale_step
 
 IOR_MAX = 3.0  # the learned index lives in (1, IOR_MAX): η = 1 + (IOR_MAX − 1) sigmoid(raw)
 EXIT_MIN = 0.1  # Σ w τ along the refracted ray below which no exit interface is found (the ray goes on)
@@ -64,6 +68,7 @@ class RT2DGSConfig(GS2DConfig):
     transparency_lr: float = 0.05
     min_scale: float = 0.0005
     trace_pixels: int = 256
+    trace_from: int = 7000  # step (of 30 000, scaled) from which the light is traced; 2DGS's render before it
     trace_min_transparency: float = 0.02
     smooth_neighbours: int = 8
     smooth_epsilon: float = 0.001
@@ -87,6 +92,7 @@ class RT2DGS(GS2D):
         self.ior_raw: torch.nn.Parameter | None = None
         self.neighbours: NeighbourIndex | None = None
         self.step = 0
+        self.scale = 1.0
 
     def check_params(self) -> None:
         super().check_params()
@@ -95,6 +101,8 @@ class RT2DGS(GS2D):
             raise ConfigError(f"method.ior must be in (1, {IOR_MAX}), got {p.ior}")
         if not 0.0 < p.transparency_init < 1.0:
             raise ConfigError(f"method.transparency_init must be in (0, 1), got {p.transparency_init}")
+        if p.trace_from < 0:
+            raise ConfigError(f"method.trace_from must be >= 0 (a step of 30 000), got {p.trace_from}")
         for name in ("trace_pixels", "smooth_neighbours", "smooth_refresh"):
             if getattr(p, name) < 1:
                 raise ConfigError(f"method.{name} must be >= 1, got {getattr(p, name)}")
@@ -141,10 +149,15 @@ class RT2DGS(GS2D):
         dirs = F.normalize(g.means - centre, dim=-1)
         return (eval_sh(g.all_sh(), dirs, self.sh_degree) + 0.5).clamp_min(0.0)
 
+    def tracing(self) -> bool:
+        """Whether the light is traced at this step (from ``trace_from``, scaled to the run)."""
+        return self.step >= scale_step(self.params.trace_from, self.scale)
+
     def render(self, camera, outputs) -> RenderOutput:
-        """The pixel colour of the module docstring; other outputs are 2DGS's (the surfaces)."""
+        """The pixel colour of the module docstring from ``trace_from`` on (2DGS's before it, τ unused); other
+        outputs are 2DGS's (the surfaces)."""
         outputs = set(outputs)
-        if "rgb" not in outputs:
+        if "rgb" not in outputs or not self.tracing():
             return super().render(camera, outputs)
         g = self.raster_input()
         tau = self.transparency
@@ -212,7 +225,7 @@ class RT2DGS(GS2D):
 
     def update_schedules(self, step: int, scale: float) -> None:
         super().update_schedules(step, scale)
-        self.step = step
+        self.step, self.scale = step, scale
 
     def neighbour_index(self) -> torch.Tensor:
         """The kNN index of the surfel centres, refreshed every ``smooth_refresh`` steps and whenever the

@@ -180,8 +180,27 @@ def test_resume_is_bit_identical_with_the_traced_light(tiny_orb, tmp_path, monke
     threshold): surfels, transparencies, the index of refraction and the kNN index all equal."""
     straight, resumed = straight_and_resumed("rt2dgs", tiny_orb, tmp_path, monkeypatch, "train.iterations=12",
                                              "train.checkpoint_every=6", "threads=1", "losses.normal_smoothness.start=0",
-                                             "method.trace_pixels=64", crash_after=6)
+                                             "method.trace_pixels=64", "method.trace_from=0", crash_after=6)
     assert torch.equal(straight.method.ior_raw, resumed.method.ior_raw) and float(straight.method.ior.detach()) != 1.5
     assert torch.equal(straight.method.neighbours.index, resumed.method.neighbours.index)
     for name, param in straight.method.gaussians.params.items():
         assert torch.equal(param, resumed.method.gaussians.params[name]), name
+
+
+def test_the_light_is_traced_from_trace_from_only(tiny_orb, tmp_path, monkeypatch, restore_threads):
+    """trace_from 15 000 of 30 000 in a 12-step run: the light is traced from step 6; before it the render is
+    2DGS's (the transparency unused: no gradient reaches τ), from it τ gets one."""
+    straight, _ = straight_and_resumed("rt2dgs", tiny_orb, tmp_path, monkeypatch, "train.iterations=12",
+                                       "train.checkpoint_every=6", "threads=1", "method.trace_pixels=64",
+                                       "method.trace_from=15000", crash_after=6)
+    method = straight.method
+    camera = straight.scene.cameras[0]
+    grads = {}
+    for step in (5, 6):
+        method.update_schedules(step, 12 / 30000)
+        logits = method.gaussians.params["transparency_logits"]
+        logits.grad = None
+        method.render(camera, {"rgb"}).rgb.sum().backward()
+        grads[step] = logits.grad
+    assert method.tracing() and (grads[5] is None or not bool(grads[5].any()))
+    assert grads[6] is not None and bool(grads[6].any())
