@@ -146,12 +146,13 @@ def test_budget_takes_highest_gradients():
 def test_world_size_pruning_after_first_reset_and_screen_size_option():
     rows = [(SMALL, OPAQUE), (math.log(0.5), OPAQUE), (SMALL, OPAQUE)]
     radii = [5, 5, 30]
-    for step, screen, expected in ((1, False, 3), (1001, False, 2), (1001, True, 1)):
+    for step, screen, world, expected in ((1, False, True, 3), (1001, False, True, 2), (1001, True, True, 1),
+                                          (1001, True, False, 3)):  # GGGS: no size pruning at all
         g, opt = make_setup(rows)
         strategy = DefaultStrategy(refine_start=0, refine_every=1, refine_stop=2000, reset_every=1000,
-                                   prune_screen_size=screen)
+                                   prune_screen_size=screen, prune_world_size=world)
         strategy.step_post_backward(g, opt, strategy.init_state(3), step, fake_render([LOW] * 3, radii=radii))
-        assert len(g) == expected, (step, screen)
+        assert len(g) == expected, (step, screen, world)
 
 
 def test_prune_grace_spares_faint_gaussians_right_after_a_reset():
