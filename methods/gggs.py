@@ -25,8 +25,6 @@ stochastic-solid field (TSDF on TnT too); the spherical-Gaussian colour (off in 
 from __future__ import annotations
 
 import dataclasses
-import random
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,11 +35,11 @@ from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError
 from gsbench.geometry.depth import pixel_rays
 from gsbench.losses.terms import Batch
-from gsbench.methods import gggs_terms, pgsr_terms  # noqa: F401  (gggs_terms registers the gggs_* terms)
+from gsbench.methods import gggs_terms  # noqa: F401  (registers the gggs_* terms)
 from gsbench.methods.base import ADAM_EPS, DEPTH_OUTPUTS, MethodInfo
 from gsbench.methods.filtered import FilteredConfig, FilteredMethod
-from gsbench.methods.pgsr import MultiViewContext, neighbour_views
-from gsbench.raster import RasterSettings, profiling
+from gsbench.methods.multiview import NeighbourViews, check_multiview_params
+from gsbench.raster import RasterSettings
 from gsbench.raster.types import RenderOutput
 from gsbench.training.gaussians import Gaussians
 
@@ -74,19 +72,18 @@ def solid_planes(render: RenderOutput, camera) -> tuple[torch.Tensor, torch.Tens
     return -render.solid_depth * (normal * rays).sum(-1), normal
 
 
-class GGGS(FilteredMethod):
+class GGGS(NeighbourViews, FilteredMethod):
     """Geometry-Grounded Gaussian Splatting (module docstring)."""
 
     name = "gggs"
     Config = GGGSConfig
     INFO = MethodInfo(primitive="3d", kernel="rade", outputs=("rgb", "alpha", "normal", "solid_depth"))
     MESH_DEPTHS = ("solid", *DEPTH_OUTPUTS)
+    NEIGHBOUR_OUTPUTS = ("solid_depth", "normal")
 
     def __init__(self):
         super().__init__()
-        self.exposure: torch.nn.Parameter | None = None
-        self.multiview_seconds = 0.0
-        self._cache: tuple | None = None
+        self.init_neighbours()
 
     # ---- configuration ------------------------------------------------------------------------
     def check_params(self) -> None:
@@ -95,27 +92,18 @@ class GGGS(FilteredMethod):
         if cfg.train.optimizer != "adam":
             raise ConfigError(f"method gggs trains a per-image exposure as one more Adam group; train.optimizer "
                               f"{cfg.train.optimizer} steps only visible Gaussian rows: set train.optimizer=adam")
+        check_multiview_params(p, "docs/methods/gggs.md §3")
         checks = [("solid_search_range", p.solid_search_range > 0), ("solid_rounds", 1 <= p.solid_rounds <= 12),
                   ("init_scale_camera_share", p.init_scale_camera_share > 0),
-                  ("multi_view_num", p.multi_view_num >= 1), ("multi_view_patch_half", p.multi_view_patch_half >= 1),
-                  ("multi_view_patch_step", p.multi_view_patch_step > 0),
-                  ("multi_view_pixel_noise_th", p.multi_view_pixel_noise_th > 0),
-                  ("multi_view_max_angle", 0 < p.multi_view_max_angle <= 180),
-                  ("multi_view_max_dis", p.multi_view_max_dis > p.multi_view_min_dis >= 0),
-                  ("exposure_lr", p.exposure_lr > 0)]
+                  ("multi_view_patch_step", p.multi_view_patch_step > 0)]
         for key, ok in checks:
             if not ok:
                 raise ConfigError(f"method.{key} is out of range (got {getattr(p, key)}); see docs/methods/gggs.md §3")
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
-        self.exposure = torch.nn.Parameter(torch.zeros(len(scene.cameras), 2))
+        self.new_exposure(scene)
         super().setup(scene, cfg)
-        p = self.params
-        self.cameras = list(scene.cameras)
-        self.neighbours = neighbour_views(self.cameras, scene.train_views, p.multi_view_num, p.multi_view_max_angle,
-                                          p.multi_view_min_dis * scene.radius, p.multi_view_max_dis * scene.radius)
-        self.gray = [pgsr_terms.gray(torch.as_tensor(np.asarray(img, dtype=np.float32))) for img in scene.images] \
-            if scene.images is not None else []
+        self.setup_neighbours(scene)
 
     def initial_gaussians(self, scene: Scene, cfg: RunConfig) -> Gaussians:
         """The base initialisation with each scale at most ``init_scale_camera_share`` × the distance from the
@@ -144,9 +132,6 @@ class GGGS(FilteredMethod):
         """The L1 on the exposure-compensated render without PGSR's SSIM gate."""
         return {"l1_exposure": {"ssim_gate": False}} if "l1_exposure" in self.cfg.losses else {}
 
-    def training_phases(self) -> dict[str, float]:
-        return {"multiview": self.multiview_seconds}
-
     # ---- what the loss terms read -------------------------------------------------------------
     def loss_state(self) -> dict:
         return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview}
@@ -155,34 +140,12 @@ class GGGS(FilteredMethod):
         view = batch.view
         return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
 
-    def _multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
-        """This step's neighbour render and warp, computed on first use and shared by the two terms."""
-        key = (batch.step, id(render))
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
-        t0 = time.perf_counter()
-        with profiling.profile_as("neighbour."):
-            ctx = self._build_multiview(render, batch)
-        self.multiview_seconds += time.perf_counter() - t0
-        self._cache = (key, ctx)
-        return ctx
+    def planes(self, render: RenderOutput, camera) -> tuple[torch.Tensor, torch.Tensor]:
+        """The planes through the solid-depth points with the rendered normals (`solid_planes`)."""
+        return solid_planes(render, camera)
 
-    def _build_multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
-        p = self.params
-        view = batch.view
-        candidates = self.neighbours.get(view, []) if view is not None else []
-        if not candidates:
-            return None
-        nb = candidates[random.randrange(len(candidates))]  # GGGS: random.sample(nearest_id, 1)
-        nb_cam = self.cameras[nb]
-        nb_render = self.render(nb_cam, {"solid_depth", "normal"})
-        warp = pgsr_terms.warp_to_neighbour(solid_planes(render, batch.camera), batch.camera,
-                                            solid_planes(nb_render, nb_cam), nb_cam,
-                                            near=self.raster_settings().near, threshold=p.multi_view_pixel_noise_th)
-        ref_gray = pgsr_terms.gray(batch.image.to(torch.float32)) if view is None else self.gray[view]
-        return MultiViewContext(warp=warp, ncc_index=torch.nonzero(warp.mask).flatten(), ref_gray=ref_gray,
-                                nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half,
-                                patch_step=p.multi_view_patch_step)
+    def patch_step(self) -> float:
+        return self.params.multi_view_patch_step
 
     # ---- mesh ---------------------------------------------------------------------------------
     def mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
@@ -192,12 +155,3 @@ class GGGS(FilteredMethod):
             return super().mesh_depth(camera, cfg)
         out = self.render(camera, {"solid_depth", "alpha", "rgb"})
         return out.solid_depth, out
-
-    # ---- checkpoints --------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {**super().state_dict(), "exposure": self.exposure.detach().clone()}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.exposure = torch.nn.Parameter(state["exposure"].clone())
-        super().load_state_dict(state)
-

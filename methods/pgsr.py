@@ -29,11 +29,8 @@ docs/methods/pgsr.md §8.
 from __future__ import annotations
 
 import math
-import random
-import time
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from gsbench.config.run_config import RunConfig
@@ -43,7 +40,7 @@ from gsbench.geometry.depth import depth_to_normal, pixel_rays
 from gsbench.losses.terms import Batch
 from gsbench.methods import pgsr_terms
 from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo
-from gsbench.raster import profiling
+from gsbench.methods.multiview import NeighbourViews, check_multiview_params
 from gsbench.raster.types import RenderOutput
 from gsbench.training.strategies.absgrad import AbsGradStatistics
 from gsbench.training.strategies.base import Strategy
@@ -71,36 +68,6 @@ class PGSRConfig(GSConfig):
     tsdf_max_view_angle: float = 0.0  # degrees; 0 = no filter (PGSR --use_depth_filter: 80)
 
 
-def neighbour_views(cameras, views, k: int, max_angle: float, min_dis: float, max_dis: float) -> dict[int, list[int]]:
-    """PGSR's neighbours of each training view: the others sorted by camera-centre distance (ties by the angle
-    between viewing directions), kept when angle < ``max_angle`` degrees and ``min_dis`` < distance < ``max_dis``,
-    the first ``k`` (docs/methods/pgsr.md §4.3). Returns {view index: [view indices]}."""
-    views = list(views)
-    centres = np.stack([np.asarray(cameras[i].center, np.float64) for i in views])
-    axes = np.stack([np.asarray(cameras[i].R, np.float64)[2] for i in views])  # camera z in world
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    dist = np.linalg.norm(centres[:, None] - centres[None], axis=-1)
-    angle = np.degrees(np.arccos(np.clip(axes @ axes.T, -1.0, 1.0)))
-    out = {}
-    for a, view in enumerate(views):
-        order = np.lexsort((angle[a], dist[a]))
-        keep = [b for b in order if angle[a, b] < max_angle and min_dis < dist[a, b] < max_dis]
-        out[view] = [views[b] for b in keep[:k]]
-    return out
-
-
-@dataclass
-class MultiViewContext:
-    """One step's neighbour and warp, shared by ``pgsr_geo`` and ``pgsr_ncc`` (`gsbench.methods.pgsr_terms`)."""
-
-    warp: pgsr_terms.Warp
-    ncc_index: torch.Tensor
-    ref_gray: torch.Tensor
-    nb_gray: torch.Tensor
-    patch_half: int
-    patch_step: float = 1.0  # px between patch samples (PGSR 1; GGGS 0.5)
-
-
 @dataclass(frozen=True)
 class PGSRStrategy(AbsGradStatistics):
     """PGSR's densification (docs/methods/pgsr.md §5): `DefaultStrategy` (3DGS) with clones sampled at μ + R(s ⊙ ε)
@@ -125,21 +92,20 @@ class PGSRStrategy(AbsGradStatistics):
         return standard | extra, torch.maximum(grads, absgrads)
 
 
-class PGSR(Method):
+class PGSR(NeighbourViews, Method):
     """PGSR (module docstring)."""
 
     name = "pgsr"
     Config = PGSRConfig
     INFO = MethodInfo(primitive="3d", kernel="ewa", outputs=("rgb", "alpha", "normal", "plane_distance"))
     MESH_DEPTHS = ("unbiased", *DEPTH_OUTPUTS)
+    NEIGHBOUR_OUTPUTS = ("plane_distance", "normal")
 
     def __init__(self):
         super().__init__()
-        self.exposure: torch.nn.Parameter | None = None
+        self.init_neighbours()
         self.step = 0
         self.scale = 1.0
-        self.multiview_seconds = 0.0
-        self._cache: tuple | None = None
 
     # ---- configuration ------------------------------------------------------------------------
     def check_params(self) -> None:
@@ -149,26 +115,16 @@ class PGSR(Method):
             raise ConfigError(f"method.exposure_compensation needs train.optimizer=adam (the per-image exposure is "
                               f"one more Adam group; {cfg.train.optimizer} steps only visible Gaussian rows); "
                               "set method.exposure_compensation=false or train.optimizer=adam")
-        checks = [("multi_view_num", p.multi_view_num >= 1), ("multi_view_patch_half", p.multi_view_patch_half >= 1),
-                  ("multi_view_sample_num", p.multi_view_sample_num >= 1),
-                  ("multi_view_pixel_noise_th", p.multi_view_pixel_noise_th > 0),
-                  ("multi_view_max_angle", 0 < p.multi_view_max_angle <= 180),
-                  ("multi_view_max_dis", p.multi_view_max_dis > p.multi_view_min_dis >= 0),
-                  ("tsdf_max_view_angle", 0 <= p.tsdf_max_view_angle < 90), ("exposure_lr", p.exposure_lr > 0)]
-        for key, ok in checks:
+        check_multiview_params(p, "docs/methods/pgsr.md §7")
+        for key, ok in (("multi_view_sample_num", p.multi_view_sample_num >= 1),
+                        ("tsdf_max_view_angle", 0 <= p.tsdf_max_view_angle < 90)):
             if not ok:
                 raise ConfigError(f"method.{key} is out of range (got {getattr(p, key)}); see docs/methods/pgsr.md §7")
 
     def setup(self, scene: Scene, cfg: RunConfig) -> None:
-        self.exposure = torch.nn.Parameter(torch.zeros(len(scene.cameras), 2))
+        self.new_exposure(scene)
         super().setup(scene, cfg)
-        p = self.params
-        self.cameras = list(scene.cameras)
-        views = scene.train_views
-        self.neighbours = neighbour_views(self.cameras, views, p.multi_view_num, p.multi_view_max_angle,
-                                          p.multi_view_min_dis * scene.radius, p.multi_view_max_dis * scene.radius)
-        self.gray = [pgsr_terms.gray(torch.as_tensor(np.asarray(img, dtype=np.float32))) for img in scene.images] \
-            if scene.images is not None else []
+        self.setup_neighbours(scene)
 
     def make_optimizer(self, gaussians):
         optimizer = super().make_optimizer(gaussians)
@@ -184,9 +140,6 @@ class PGSR(Method):
         super().update_schedules(step, scale)
         self.step, self.scale = step, scale
 
-    def training_phases(self) -> dict[str, float]:
-        return {"multiview": self.multiview_seconds}
-
     # ---- what the loss terms read -------------------------------------------------------------
     def loss_state(self) -> dict:
         return {"gaussians": self.gaussians, "exposure": self._exposure_of, "pgsr_multiview": self._multiview}
@@ -199,38 +152,12 @@ class PGSR(Method):
         view = batch.view
         return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
 
-    def _multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
-        """This step's neighbour render and warp, computed on first use and shared by the terms (module docstring)."""
-        key = (batch.step, id(render))
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
-        t0 = time.perf_counter()
-        # the neighbour's render is part of this loss term's cost; `gsbench bench train` times its rasterizer
-        # phases apart from the step's own render (gsbench/bench/train.py, ``neighbour_raster``)
-        with profiling.profile_as("neighbour."):
-            ctx = self._build_multiview(render, batch)
-        self.multiview_seconds += time.perf_counter() - t0
-        self._cache = (key, ctx)
-        return ctx
+    def planes(self, render: RenderOutput, camera) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rendered plane distance and normal (docs/methods/pgsr.md §3.1)."""
+        return render.plane_distance, render.normal
 
-    def _build_multiview(self, render: RenderOutput, batch: Batch) -> MultiViewContext | None:
-        p = self.params
-        view = batch.view
-        candidates = self.neighbours.get(view, []) if view is not None else []
-        if not candidates:
-            return None
-        nb = candidates[random.randrange(len(candidates))]  # PGSR random.sample(nearest_id, 1)
-        nb_cam = self.cameras[nb]
-        nb_render = self.render(nb_cam, {"plane_distance", "normal"})
-        warp = pgsr_terms.warp_to_neighbour((render.plane_distance, render.normal), batch.camera,
-                                            (nb_render.plane_distance, nb_render.normal), nb_cam,
-                                            near=self.raster_settings().near, threshold=p.multi_view_pixel_noise_th)
-        index = torch.nonzero(warp.mask).flatten()
-        if index.numel() > p.multi_view_sample_num:
-            index = index[torch.randperm(index.numel())[:p.multi_view_sample_num]]
-        ref_gray = pgsr_terms.gray(batch.image.to(torch.float32)) if view is None else self.gray[view]
-        return MultiViewContext(warp=warp, ncc_index=index, ref_gray=ref_gray,
-                                nb_gray=self.gray[nb], patch_half=p.multi_view_patch_half)
+    def ncc_sample_cap(self) -> int:
+        return self.params.multi_view_sample_num
 
     # ---- mesh ---------------------------------------------------------------------------------
     def mesh_depth(self, camera, cfg: RunConfig) -> tuple[torch.Tensor, RenderOutput]:
@@ -252,11 +179,3 @@ class PGSR(Method):
         rays = torch.nn.functional.normalize(pixel_rays(camera, depth.dtype), dim=-1)
         cos = (normal * rays).sum(-1).abs()
         return torch.where(cos < math.cos(math.radians(limit)), torch.zeros_like(depth), depth)
-
-    # ---- checkpoints --------------------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {**super().state_dict(), "exposure": self.exposure.detach().clone()}
-
-    def load_state_dict(self, state: dict) -> None:
-        self.exposure = torch.nn.Parameter(state["exposure"].clone())
-        super().load_state_dict(state)

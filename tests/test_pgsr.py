@@ -19,7 +19,8 @@ from raster_scenes import concat, look_at_camera, make_camera, single_gaussian  
 from gsbench.config.files import reported_numbers  # noqa: E402
 from gsbench.losses.terms import Batch, active_terms, required_outputs  # noqa: E402
 from gsbench.methods import pgsr_terms as T  # noqa: E402
-from gsbench.methods.pgsr import PGSR, MultiViewContext, PGSRStrategy, neighbour_views  # noqa: E402
+from gsbench.methods.multiview import MultiViewContext, neighbour_views  # noqa: E402
+from gsbench.methods.pgsr import PGSR, PGSRStrategy  # noqa: E402
 from gsbench.raster import RasterSettings, RenderOutput, rasterize, reference  # noqa: E402
 from gsbench.registry import METHODS  # noqa: E402
 from gsbench.runs.runner import resolve_run  # noqa: E402
