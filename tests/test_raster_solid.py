@@ -128,3 +128,21 @@ def test_computed_only_when_asked():
     both = rasterize(g, cam, kernel="rade", outputs=("rgb", "median_depth", "solid_depth"), settings=RasterSettings())
     assert plain.solid_depth is None and both.solid_depth is not None
     assert torch.equal(plain.rgb, both.rgb) and torch.equal(plain.median_depth, both.median_depth)
+
+
+@pytest.mark.parametrize("unit", [1e-3, 1e3])
+def test_millimetres_and_kilometres_scale_the_depth(unit):
+    """The same scene in units 1000 times smaller or larger (centres, scales, search range and near plane
+    scaled): the solid depth scales with it to float64 round-off, its gradients stay finite, nothing is NaN."""
+    cam, g = _scene(n=60)
+    base = rasterize(g, cam, kernel="rade", outputs=("solid_depth",), settings=SETTINGS).solid_depth
+    scaled = g.map(lambda x: x)
+    scaled.means, scaled.scales = g.means * unit, g.scales * unit
+    scaled.filter3d = None if g.filter3d is None else g.filter3d * unit**2
+    settings = RasterSettings(solid_search_range=SETTINGS.solid_search_range * unit, scene_radius=unit)
+    wg = with_grad(scaled)
+    depth = rasterize(wg, cam, kernel="rade", outputs=("solid_depth",), settings=settings).solid_depth
+    assert torch.isfinite(depth).all() and int((base > 0).sum()) > 100
+    assert float((depth.detach() / unit - base).abs().max()) < 1e-9 * float(base.max())
+    depth.sum().backward()
+    assert all(torch.isfinite(getattr(wg, p).grad).all() for p in PARAMS)
