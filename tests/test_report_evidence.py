@@ -58,3 +58,17 @@ def test_a_run_folder_without_a_record_is_listed_as_unfinished(tmp_path):
     assert any(w.startswith("dtu/scan24/3dgs/0123456789ab: a run folder without a record") for w in warnings)
     md = (tmp_path / "out" / "leaderboard.md").read_text()
     assert "| dtu/scan24/3dgs/0123456789ab | no record: killed before it finished?" in md
+
+
+def test_a_finished_runs_second_stage_folder_is_not_an_unfinished_run(tmp_path):
+    """SuGaR's refinement trains in ``refine/`` of its run folder, with its own config and checkpoints: once the
+    run has its record, that folder is part of it, not a run killed before it finished."""
+    runs = _copy_runs(tmp_path)
+    finished = sorted(runs.glob("dtu/scan24/gof/*/record.json"))[0].parent
+    stage = finished / "refine"
+    stage.mkdir()
+    (stage / "config.yaml").write_text("method: {name: sugar}\n")
+    (stage / "checkpoint-final.pt").write_bytes(b"")
+    warnings = []
+    write_report(runs, tmp_path / "out", plots=False, warn=warnings.append)
+    assert not any("refine: a run folder without a record" in w for w in warnings), warnings

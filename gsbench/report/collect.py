@@ -146,11 +146,18 @@ def _keep_first(copies: list[Run]) -> list[Run]:
 
 def unfinished_folders(runs_dir: Path) -> list[str]:
     """Run folders below ``runs_dir`` (relative paths) that hold a run's config or checkpoint but no record: runs
-    killed before they wrote one (`gsbench run` with the same settings resumes them)."""
+    killed before they wrote one (`gsbench run` with the same settings resumes them). A folder inside a run
+    folder that has its record (a second stage's, SuGaR's ``refine/``) belongs to that finished run."""
     runs_dir = Path(runs_dir)
     folders = {p.parent for name in (RunFolder.CONFIG, RunFolder.CHECKPOINT, RunFolder.FINAL_CHECKPOINT)
                for p in runs_dir.rglob(name)}
-    return sorted(f.relative_to(runs_dir).as_posix() for f in folders if not RunFolder(f).record.is_file())
+
+    def finished_parent(folder: Path) -> bool:
+        return any(RunFolder(parent).record.is_file() for parent in folder.parents if parent != runs_dir
+                   and runs_dir in parent.parents)
+
+    return sorted(f.relative_to(runs_dir).as_posix() for f in folders
+                  if not RunFolder(f).record.is_file() and not finished_parent(f))
 
 
 def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
