@@ -50,7 +50,7 @@ class SolidArgs(ctypes.Structure):
     _fields_ = [
         (name, ctypes.c_int64)
         for name in ("dtype", "width", "height", "tiles_x", "tiles_y", "n_gauss", "nthreads", "rounds")
-    ] + [(name, ctypes.c_double) for name in ("fx", "fy", "cx", "cy", "search_range", "min_transmittance")] + [
+    ] + [(name, ctypes.c_double) for name in ("search_range", "min_transmittance")] + [
         (name, ctypes.c_void_p)
         for name in ("params", "bounds", "tile_offsets", "tile_list", "last", "T_final", "inv_sigma", "out_t", "g_t",
                      "grad_params", "grad_inv_sigma", "absgrad")

@@ -51,7 +51,6 @@ class SolidFn(torch.autograd.Function):
         a = SolidArgs()
         a.dtype, a.width, a.height, a.tiles_x, a.tiles_y = ca.dtype, ca.width, ca.height, ca.tiles_x, ca.tiles_y
         a.n_gauss, a.nthreads, a.rounds = ca.n_gauss, ca.nthreads, int(settings.solid_rounds)
-        a.fx, a.fy, a.cx, a.cy = ca.fx, ca.fy, ca.cx, ca.cy
         a.search_range, a.min_transmittance = float(settings.solid_search_range), float(settings.solid_min_transmittance)
         a.bounds, a.tile_offsets, a.tile_list = ca.bounds, ca.tile_offsets, ca.tile_list
         saved = state.saved

@@ -35,7 +35,7 @@ extern "C" {
 // Keep in sync with SolidArgs in gsbench/raster/abi.py (ctypes): 8-byte fields only.
 struct SolidArgs {
     int64_t dtype, width, height, tiles_x, tiles_y, n_gauss, nthreads, rounds;
-    double fx, fy, cx, cy, search_range, min_transmittance;
+    double search_range, min_transmittance;
     const void* params;           // (N, 15) rade payload
     const void* bounds;           // (N, 4) alpha >= 1/255 pixel box
     const int32_t* tile_offsets;  // (tiles + 1)
