@@ -1,9 +1,9 @@
 """Copy finished runs' records into a committed records folder, machine paths made relative.
 
-    python tools/commit_records.py RUNS_DIR RECORDS_DIR [--sweep FILE ...]
+    python tools/commit_records.py RUNS_DIR RECORDS_DIR [--sweep FILE ...] [--suite NAME] [--seeds SEED ...]
 
 Every ``record.json`` under ``RUNS_DIR`` (only the runs of the given sweep files, expanded as
-``gsbench sweep FILE --dry-run`` lists them, when ``--sweep`` is given)
+``gsbench sweep FILE --dry-run [--suite NAME] [--seeds SEED ...]`` lists them, when ``--sweep`` is given)
 is written to the same relative place under ``RECORDS_DIR`` with one change (docs/results/README.md): the
 runs folder becomes ``.`` (so the run's files are relative to the records folder) and the data cache
 (``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``; every other
@@ -18,7 +18,7 @@ from pathlib import Path
 
 from gsbench.atomic import atomic_path
 from gsbench.data.cache import cache_dir
-from gsbench.runs.sweep import expand, load_sweep
+from gsbench.runs.sweep import expand, load_sweep, with_suite
 
 
 def relative(value, runs: str, cache: str):
@@ -34,11 +34,12 @@ def relative(value, runs: str, cache: str):
     return value
 
 
-def sweep_runs(files: list[Path]) -> set[str] | None:
-    """Run ids of every run of the sweep ``files`` (None: every run)."""
+def sweep_runs(files: list[Path], suite: str | None = None, seeds=None) -> set[str] | None:
+    """Run ids of every run of the sweep ``files``, each on ``suite`` and ``seeds`` when given, as `gsbench sweep`
+    overrides them (None: every run)."""
     if not files:
         return None
-    return {run.run_id for file in files for run in expand(load_sweep(file))}
+    return {run.run_id for file in files for run in expand(with_suite(load_sweep(file), suite, seeds))}
 
 
 def main() -> None:
@@ -46,9 +47,11 @@ def main() -> None:
     parser.add_argument("runs", type=Path)
     parser.add_argument("records", type=Path)
     parser.add_argument("--sweep", action="append", default=[], type=Path, help="a sweep file (repeatable)")
+    parser.add_argument("--suite", default=None, help="run every sweep file on this suite (as gsbench sweep --suite)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="and with these seeds (gsbench sweep --seeds)")
     args = parser.parse_args()
     runs, cache = str(args.runs.resolve()), str(cache_dir().resolve())
-    wanted = sweep_runs(args.sweep)
+    wanted = sweep_runs(args.sweep, args.suite, args.seeds)
     copied = 0
     for path in sorted(args.runs.resolve().rglob("record.json")):
         record = json.loads(path.read_text())
