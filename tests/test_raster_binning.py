@@ -1,4 +1,4 @@
-"""Exact ellipse/tile overlap binning (ewa, rade): fewer tile pairs, bit-identical images and gradients.
+"""Exact ellipse/tile overlap binning (ewa, rade, surfel): fewer tile pairs, bit-identical images and gradients.
 
 `gsbench.raster.binning.EXACT_OVERLAP` (default on, env GSBENCH_EXACT_OVERLAP) switches between the exact test and
 the old binning (every tile of the Gaussian's bounding rectangle). A tile is dropped only if no pixel
@@ -77,7 +77,7 @@ def thin_scene(n, seed, dtype, cam, kernel="ewa"):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("kernel", ["ewa", "rade"])
+@pytest.mark.parametrize("kernel", ["ewa", "rade", "surfel"])
 def test_thin_rotated_identical_and_fewer_pairs(kernel, dtype):
     cam = make_camera(112, 80, fov_x_deg=50.0)
     g = thin_scene(150, 1, dtype, cam, kernel)
@@ -87,7 +87,7 @@ def test_thin_rotated_identical_and_fewer_pairs(kernel, dtype):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-@pytest.mark.parametrize("kernel", ["ewa", "rade"])
+@pytest.mark.parametrize("kernel", ["ewa", "rade", "surfel"])
 def test_random_scenes_and_output_subsets(kernel, seed):
     cam = make_camera(70, 53, fov_x_deg=60.0)
     g = concat(
@@ -107,19 +107,53 @@ def test_settings_variants(kernel):
         _assert_identical(kernel, g, cam, settings=st)
 
 
-@pytest.mark.parametrize("kernel", ["raymax", "surfel"])
-def test_ray_kernels_unchanged(kernel):
-    """raymax/surfel keep the rectangle (same pairs either way), and the flag changes nothing."""
+def test_surfel_filter_variants():
+    """The surfel's contributing set is its 3D ellipse united with the low-pass disc (k = 2), or the ellipse
+    alone (k = 0); a wide disc (k = 0.5) reaches tiles the ellipse does not."""
+    cam = make_camera(64, 48)
+    g = thin_scene(80, 3, torch.float32, cam, "surfel")
+    for k in (0.0, 0.5, 2.0, 8.0):
+        _assert_identical("surfel", g, cam, settings=RasterSettings(surfel_filter=k))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_surfels_near_the_camera_plane(dtype):
+    """Long thin surfels 0.3-1.5 units from the camera, many reaching behind it: projected centres far off the
+    image (a sentinel) and conics that are hyperbolas; each must keep every contribution."""
+    cam = make_camera(96, 72)
+    g = random_gaussians(120, "surfel", seed=11, dtype=torch.float64, camera=cam, depth_range=(0.3, 1.5),
+                         scale_range=(0.003, 0.01), opacity_range=(0.1, 1.0))
+    gen = torch.Generator().manual_seed(12)
+    g.scales[:, 0] = 0.2 + 0.6 * torch.rand(120, generator=gen, dtype=torch.float64)
+    g.quats.copy_(random_quats(120, gen))
+    f = lambda x: None if x is None else x.to(dtype)  # noqa: E731
+    g = type(g)(f(g.means), f(g.quats), f(g.scales), f(g.opacities), f(g.sh))
+    settings = RasterSettings(near_plane=0.01)
+    _assert_identical("surfel", g, cam, settings=settings)
+    for i in range(0, 120, 3):
+        sub = type(g)(*(getattr(g, p)[i:i + 1] for p in PARAMS))
+        _assert_identical("surfel", sub, cam, ("rgb", "alpha"), settings=settings)
+    # one found by a random search: its disc reaches behind the camera, so its projected centre is the far-away
+    # sentinel of a crossing disc, and its conic written about that centre lost every digit (the whole splat
+    # was dropped); about the ray's own origin it is exact
+    crossing = single_gaussian((-0.31370750069618225, 0.27148959040641785, 1.4304492473602295), kernel="surfel",
+                               scales=(0.615109920501709, 0.008506668731570244), opacity=0.23604248464107513,
+                               quat=(-0.18410341441631317, 0.6360309720039368, 0.2786305546760559, -0.6956547498703003),
+                               dtype=dtype)
+    _assert_identical("surfel", crossing, make_camera(160, 120, fov_x_deg=2 * math.degrees(math.atan(80 / 176))),
+                      ("rgb", "alpha"), settings=settings)
+
+
+def test_raymax_keeps_the_rectangle():
+    """raymax keeps the rectangle (same pairs either way), and the flag changes nothing."""
     cam = make_camera(48, 40)
-    g = thin_scene(40, 4, torch.float32, cam, kernel)
-    if kernel == "surfel":
-        g = type(g)(g.means, g.quats, g.scales[:, :2].contiguous(), g.opacities, g.sh)
-    pa, pb = _assert_identical(kernel, g, cam, ("rgb", "alpha", "depth"))
+    g = thin_scene(40, 4, torch.float32, cam, "raymax")
+    pa, pb = _assert_identical("raymax", g, cam, ("rgb", "alpha", "depth"))
     assert pa == pb
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("kernel", ["ewa", "rade"])
+@pytest.mark.parametrize("kernel", ["ewa", "rade", "surfel"])
 def test_hard_cases(kernel, dtype):
     cam = make_camera(80, 64)
     sc = (0.5, 0.02, 0.01)

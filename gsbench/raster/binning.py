@@ -1,6 +1,7 @@
 """Which Gaussians each 16x16 tile composites, in depth order: the C++ radix sort of the visible Gaussians
-by (depth, id) and the per-tile lists (``csrc/sort_bin.cpp``), by the exact ellipse/tile overlap (ewa, rade)
-or every tile of the bounding rectangle."""
+by (depth, id) and the per-tile lists (``csrc/sort_bin.cpp``), by the exact overlap of the tile with the
+Gaussian's contributing ellipse (ewa, rade, surfel; ``csrc/bin_exact.cpp``) or every tile of the bounding
+rectangle (raymax)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from gsbench.native.build import omp_threads
 from gsbench.raster.composite import pointer
 from gsbench.raster.payload import Projection
 
-# Binning of ewa/rade: True = exact ellipse/tile overlap, False = every tile of the bounding rectangle (the
+# Binning of ewa/rade/surfel: True = exact ellipse/tile overlap, False = every tile of the bounding rectangle (the
 # images and gradients are identical; only the tile pairs differ). None = the GSBENCH_EXACT_OVERLAP
 # environment variable ("0"/"false"/"off" = rectangle), default on.
 EXACT_OVERLAP: bool | None = None
@@ -41,9 +42,10 @@ class Bins:
 
 
 def bin_tiles(lib, proj: Projection, n: int, dtype: torch.dtype, kernel: str, outs: tuple[str, ...], W: int, H: int,
-              ts: int) -> Bins:
+              ts: int, intrinsics: tuple[float, float, float, float], surfel_k: float) -> Bins:
     """Sort the visible Gaussians of ``proj`` (``n`` Gaussians of ``dtype``) by depth and list them per tile of a
-    ``W`` x ``H`` image (``ts``-pixel tiles; module docstring)."""
+    ``W`` x ``H`` image (``ts``-pixel tiles; module docstring). ``intrinsics`` (fx, fy, cx, cy) and ``surfel_k``
+    (the surfel low-pass k) place a surfel's ellipse."""
     tiles_x = (W + ts - 1) // ts
     tiles_y = (H + ts - 1) // ts
     # visible ids by (depth, id) (C++ radix sort) with their tile rectangles in that order, then per-tile lists
@@ -60,7 +62,7 @@ def bin_tiles(lib, proj: Projection, n: int, dtype: torch.dtype, kernel: str, ou
     capacity = int(cap.value)
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int32)
     nthr = omp_threads()
-    if kernel in ("ewa", "rade") and exact_overlap_enabled():
+    if kernel in ("ewa", "rade", "surfel") and exact_overlap_enabled():
         # exact ellipse/tile overlap (csrc/bin_exact.cpp): a Gaussian is listed only in the tiles of its rectangle
         # that its alpha >= 1/255 ellipse meets; the count pass sizes tile_list exactly
         params_c = proj.params.detach().contiguous()
@@ -70,9 +72,11 @@ def bin_tiles(lib, proj: Projection, n: int, dtype: torch.dtype, kernel: str, ou
         cursors = torch.empty(nthr * tiles_x * tiles_y, dtype=torch.int32)
         dt_id = 0 if dtype == torch.float32 else 1
         npar = int(params_c.shape[1])
+        setup = torch.tensor([float(kernel == "surfel"), *map(float, intrinsics), float(surfel_k)], dtype=torch.float64)
         capacity = int(lib.gs_bin_exact_count(
             m_vis, pointer(order), pointer(rect_sorted), n, pointer(visible_u8), pointer(rect), pointer(params_c), npar, dt_id, H,
             tiles_x, tiles_y, keep_first, pointer(first), pointer(rec), pointer(offsets), pointer(cursors), nthr,
+            pointer(setup),
         ))
         if capacity < 0:
             raise RuntimeError("gsbench rasterizer: tile list overflow")
@@ -80,6 +84,7 @@ def bin_tiles(lib, proj: Projection, n: int, dtype: torch.dtype, kernel: str, ou
         got = lib.gs_bin_exact_fill(
             m_vis, pointer(order), pointer(rect_sorted), pointer(rec), pointer(params_c), npar, dt_id, H, tiles_x, tiles_y,
             keep_first, pointer(first), pointer(offsets), pointer(cursors), pointer(tile_list), capacity, nthr,
+            pointer(setup),
         )
     else:
         tile_list = torch.empty(max(capacity, 1), dtype=torch.int32)

@@ -74,7 +74,8 @@ def rasterize(
     profiling.record("projection", time.perf_counter() - t0)
 
     t0 = time.perf_counter()
-    bins = bin_tiles(lib, proj, n, dtype, kernel, outs, W, H, ts)
+    bins = bin_tiles(lib, proj, n, dtype, kernel, outs, W, H, ts, (camera.fx, camera.fy, camera.cx, camera.cy),
+                     settings.surfel_filter)
     profiling.record("sort_bin", time.perf_counter() - t0)
 
     want = {o: (o in outs) for o in OUTPUTS}

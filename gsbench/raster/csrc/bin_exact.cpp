@@ -1,9 +1,9 @@
-// gsbench tile rasterizer: the exact ellipse/tile overlap binning of ewa and rade.
+// gsbench tile rasterizer: the exact ellipse/tile overlap binning of ewa, rade and surfel.
 
 #include "raster_common.h"
 
 // ---------------------------------------------------------------------------------------------
-// Exact ellipse/tile overlap binning (ewa, rade).
+// Exact ellipse/tile overlap binning (ewa, rade; surfels through make_surfel_ellipse below).
 //
 // A pixel (centre p, d = p − mean2d) gets a contribution from an ewa/rade Gaussian only if
 // o·exp(−q/2) >= 1/255 with q = A dx² + 2B dx dy + C dy² (the conic of the payload), i.e. q <= K with
@@ -121,6 +121,135 @@ inline void ellipse_row_span(const double* e, int ty, int H, int r0, int r1, int
     }
 }
 
+// What the records need beyond the payload (gs_bin_exact_count's `setup`): the kernel (0: ewa/rade, 1: surfel)
+// and, for surfels, the camera's fx, fy, cx, cy and the low-pass k.
+struct BinSetup {
+    double surfel, fx, fy, cx, cy, surfel_k;
+};
+
+// A Gaussian's contributing set as up to two padded ellipses (the second ELL_EMPTY when unused); the tile
+// spans of a row are the hull of theirs.
+struct Shape {
+    double e[2][ELL_N];
+};
+
+// The surfel's 3D branch (docs/methods/2dgs.md §3.2): with r = (rx, ry, 1) = ((x − cx)/fx, (y − cy)/fy, 1) the
+// pixel's ray, ρ = s_u² + s_v², s_u = (d a_u·r − b_u n·r)/(n·r), so ρ <= K is (U·r)² + (V·r)² − K (n·r)² <= 0 with
+// U = d a_u − b_u n, V = d a_v − b_v n: a conic in (rx, ry), A rx² + 2B rx ry + C ry² + 2D rx + 2E ry + F <= 0
+// (both sheets of the cone: a superset). Where it is an ellipse it is written in make_ellipse's form about its
+// centre r0 = −M⁻¹(D, E) (in pixels: M scaled by fx, fy), with K_c = −Q(r0) (Q evaluated at r0, which is
+// insensitive to r0's rounding to first order; F + (D, E)·r0 is not) widened by Q's rounding and by the
+// centre's; a hyperbola or parabola (grazing or crossing splats) keeps the rectangle. K = 2 ln(255 o) padded as
+// make_ellipse pads it, then √K widened by 128 ε (|b_u| + |b_v| + |d| Σ|a| + 4) for the float lanes' rounding
+// of s_u, s_v (ε of T). Working in rays, not pixel offsets from the projected centre, keeps the coefficients
+// small when that centre is far away (a splat near the camera plane).
+template <typename T>
+inline void make_surfel_ellipse(const T* p, const BinSetup& s, double* e) {
+    e[0] = ELL_RECT;
+    const double o = (double)p[P_O];
+    if (!(o * 255.0 > 0.5)) {
+        e[0] = ELL_EMPTY;
+        return;
+    }
+    const double tau2 = 2.0 * ln_pos(255.0 * o);
+    const double K0 = tau2 + 1e-3 + 1e-4 * std::fabs(tau2);
+    if (K0 < 0.0) {
+        e[0] = ELL_EMPTY;
+        return;
+    }
+    const T* X = p + P_X;  // n (3), d, a_u (3), b_u, a_v (3), b_v
+    const double d = (double)X[3], bu = (double)X[7], bv = (double)X[11];
+    double n[3], U[3], V[3], amag = 0.0;
+    for (int j = 0; j < 3; ++j) {
+        n[j] = (double)X[j];
+        U[j] = d * (double)X[4 + j] - bu * n[j];
+        V[j] = d * (double)X[8 + j] - bv * n[j];
+        amag += std::fabs((double)X[4 + j]) + std::fabs((double)X[8 + j]);
+    }
+    const double eps = sizeof(T) == 4 ? 6e-8 : 1.2e-16;
+    const double ds = 64.0 * eps * (std::fabs(bu) + std::fabs(bv) + std::fabs(d) * amag + 4.0);
+    const double K = (std::sqrt(K0) + 2.0 * ds) * (std::sqrt(K0) + 2.0 * ds);
+    const double mag = std::fabs(d) + std::fabs(bu) + std::fabs(bv) + amag;
+    if (K > 50.0 || !(mag < 1e12)) return;
+    const double A = U[0] * U[0] + V[0] * V[0] - K * n[0] * n[0];
+    const double B = U[0] * U[1] + V[0] * V[1] - K * n[0] * n[1];
+    const double C = U[1] * U[1] + V[1] * V[1] - K * n[1] * n[1];
+    const double D = U[0] * U[2] + V[0] * V[2] - K * n[0] * n[2];
+    const double E = U[1] * U[2] + V[1] * V[2] - K * n[1] * n[2];
+    const double F = U[2] * U[2] + V[2] * V[2] - K * n[2] * n[2];
+    const double det = A * C - B * B;
+    if (!(A > 0.0) || !(C > 0.0) || !(det > 1e-9 * A * C)) return;
+    constexpr double E64 = 1.2e-16;
+    const double rx0 = -(C * D - B * E) / det, ry0 = -(A * E - B * D) / det;
+    const double ex = 16.0 * E64 * (std::fabs(C * D) + std::fabs(B * E)) / det + 16.0 * E64 * std::fabs(rx0);
+    const double ey = 16.0 * E64 * (std::fabs(A * E) + std::fabs(B * D)) / det + 16.0 * E64 * std::fabs(ry0);
+    const double t1 = A * rx0 * rx0, t2 = 2.0 * B * rx0 * ry0, t3 = C * ry0 * ry0, t4 = 2.0 * D * rx0,
+                 t5 = 2.0 * E * ry0;
+    const double q0 = t1 + t2 + t3 + t4 + t5 + F;
+    const double qerr = 64.0 * E64 * (std::fabs(t1) + std::fabs(t2) + std::fabs(t3) + std::fabs(t4) + std::fabs(t5) +
+                                      std::fabs(F));
+    const double shift = A * ex * ex + 2.0 * std::fabs(B) * ex * ey + C * ey * ey;  // (centre error)ᵀ M (…)
+    const double kin = -q0 + qerr;
+    if (kin < 0.0) {
+        e[0] = ELL_EMPTY;
+        return;
+    }
+    const double Kc = (std::sqrt(kin) + 2.0 * std::sqrt(shift)) * (std::sqrt(kin) + 2.0 * std::sqrt(shift));
+    // in pixels: x = cx + fx rx, so the pixel conic is M scaled by 1/fx, 1/fy with the same K_c
+    const double a = A / (s.fx * s.fx), b = B / (s.fx * s.fy), c = C / (s.fy * s.fy), dp = det / (s.fx * s.fx * s.fy * s.fy);
+    const double cxp = s.cx + s.fx * rx0, cyp = s.cy + s.fy * ry0;
+    if (!(std::fabs(cxp) < 1e9) || !(std::fabs(cyp) < 1e9)) return;
+    const double hx = std::sqrt(Kc * c / dp);
+    const double hy = std::sqrt(Kc * a / dp) * (1.0 + 1e-6) + 1e-3;
+    e[0] = ELL_CONIC;
+    e[1] = cxp;
+    e[2] = cyp;
+    e[3] = b;
+    e[4] = a * Kc;
+    e[5] = dp;
+    e[6] = 1.0 / a;
+    e[7] = hy;
+    e[8] = -b * hx / c;
+    e[9] = 1e-6 * (hx + std::fabs(b) * e[6] * hy + std::fabs(cxp)) + 1e-3;
+}
+
+template <typename T>
+inline void make_shape(const T* p, const BinSetup& s, Shape& sh) {
+    sh.e[1][0] = ELL_EMPTY;
+    if (s.surfel == 0.0) {
+        make_ellipse<T>(p, sh.e[0]);
+        return;
+    }
+    make_surfel_ellipse<T>(p, s, sh.e[0]);
+    if (s.surfel_k > 0.0) {  // the low-pass branch ρ = k |centre − pixel|²: the disc as make_ellipse's conic k I
+        T q[P_X] = {p[P_MX], p[P_MY], (T)s.surfel_k, T(0), (T)s.surfel_k, p[P_O]};
+        make_ellipse<T>(q, sh.e[1]);
+    }
+}
+
+inline double shape_mode(const Shape& sh) {
+    const double m0 = sh.e[0][0], m1 = sh.e[1][0];
+    if (m0 == ELL_RECT || m1 == ELL_RECT) return ELL_RECT;
+    return (m0 == ELL_EMPTY && m1 == ELL_EMPTY) ? ELL_EMPTY : ELL_CONIC;
+}
+
+// Tile columns [c0, c1) of tile row ty (within [r0, r1)): the hull of the shape's ellipses' spans.
+inline void shape_row_span(const Shape& sh, int ty, int H, int r0, int r1, int& c0, int& c1) {
+    c0 = c1 = r0;
+    for (int k = 0; k < 2; ++k) {
+        int a0, a1;
+        ellipse_row_span(sh.e[k], ty, H, r0, r1, a0, a1);
+        if (a0 >= a1) continue;
+        if (c0 >= c1) {
+            c0 = a0;
+            c1 = a1;
+        } else {
+            c0 = std::min(c0, a0);
+            c1 = std::max(c1, a1);
+        }
+    }
+}
+
 // first[t] = the first entry (depth order) whose rectangle covers tile t, -1 if none.
 inline void first_cover(int64_t M, const int32_t* rs, int64_t tiles_x, int64_t tiles_y, int32_t* first) {
     const int64_t ntiles = tiles_x * tiles_y;
@@ -147,7 +276,7 @@ constexpr int32_t REC_RECT = 0, REC_EMPTY = 1, REC_SPANS = 2, REC_RECOMPUTE = 3;
 
 template <typename T>
 void ellipse_records(int64_t N, const uint8_t* visible, const int32_t* rect, const T* P, int64_t npar, int64_t H,
-                     int64_t tiles_x, int32_t* rec, int nt) {
+                     int64_t tiles_x, const BinSetup& setup, int32_t* rec, int nt) {
 #pragma omp parallel for num_threads(nt) schedule(static, 1024)
     for (int64_t i = 0; i < N; ++i) {
         int32_t* q = rec + REC * i;
@@ -156,24 +285,33 @@ void ellipse_records(int64_t N, const uint8_t* visible, const int32_t* rect, con
             q[0] = REC_RECT;
             continue;
         }
-        double e[ELL_N];
-        make_ellipse<T>(P + i * npar, e);
-        if (e[0] == ELL_RECT) {
+        Shape sh;
+        make_shape<T>(P + i * npar, setup, sh);
+        const double mode = shape_mode(sh);
+        if (mode == ELL_RECT) {
             q[0] = REC_RECT;
-        } else if (e[0] == ELL_EMPTY) {
+        } else if (mode == ELL_EMPTY) {
             q[0] = REC_EMPTY;
         } else if (r[3] - r[2] > REC_ROWS) {
             q[0] = REC_RECOMPUTE;
         } else {
-            // conic_row_span of the (at most REC_ROWS) rows as SIMD lanes
             q[0] = REC_SPANS;
             const int ty0 = r[2], nr = r[3] - r[2];
             int32_t out[8];
+            if (sh.e[1][0] == ELL_EMPTY && sh.e[0][0] == ELL_CONIC) {  // one ellipse: conic_row_span as SIMD lanes
+                const double* e = sh.e[0];
 #pragma omp simd
-            for (int k = 0; k < 8; ++k) {
-                int c0, c1;
-                conic_row_span(e, ty0 + k, (int)H, r[0], r[1], c0, c1);
-                out[k] = c0 | (c1 << 16);
+                for (int k = 0; k < 8; ++k) {
+                    int c0, c1;
+                    conic_row_span(e, ty0 + k, (int)H, r[0], r[1], c0, c1);
+                    out[k] = c0 | (c1 << 16);
+                }
+            } else {
+                for (int k = 0; k < nr; ++k) {
+                    int c0, c1;
+                    shape_row_span(sh, ty0 + k, (int)H, r[0], r[1], c0, c1);
+                    out[k] = c0 | (c1 << 16);
+                }
             }
             for (int k = 0; k < nr; ++k) q[1 + k] = out[k];
         }
@@ -182,7 +320,8 @@ void ellipse_records(int64_t N, const uint8_t* visible, const int32_t* rect, con
 
 // Calls f(y, c0, c1) for every rectangle row y of entry (g, r) with its tile-column range.
 template <typename T, class F>
-inline void for_row_spans(const int32_t* q, const int32_t* r, const T* P, int64_t npar, int H, int32_t g, F&& f) {
+inline void for_row_spans(const int32_t* q, const int32_t* r, const T* P, int64_t npar, int H, int32_t g,
+                          const BinSetup& setup, F&& f) {
     switch (q[0]) {
         case REC_SPANS:
             for (int y = r[2]; y < r[3]; ++y) {
@@ -194,11 +333,11 @@ inline void for_row_spans(const int32_t* q, const int32_t* r, const T* P, int64_
             for (int y = r[2]; y < r[3]; ++y) f(y, r[0], r[0]);
             break;
         case REC_RECOMPUTE: {
-            double e[ELL_N];
-            make_ellipse<T>(P + (int64_t)g * npar, e);
+            Shape sh;
+            make_shape<T>(P + (int64_t)g * npar, setup, sh);
             for (int y = r[2]; y < r[3]; ++y) {
                 int c0, c1;
-                ellipse_row_span(e, y, H, r[0], r[1], c0, c1);
+                shape_row_span(sh, y, H, r[0], r[1], c0, c1);
                 f(y, c0, c1);
             }
             break;
@@ -215,10 +354,10 @@ template <typename T>
 int64_t bin_exact_count_impl(int64_t M, const int32_t* order, const int32_t* rs, int64_t N, const uint8_t* visible,
                              const int32_t* rect, const T* P, int64_t npar, int64_t H, int64_t tiles_x,
                              int64_t tiles_y, int32_t* first, int32_t* rec, int32_t* offsets, int32_t* cursors,
-                             int64_t nchunks) {
+                             int64_t nchunks, const BinSetup& setup) {
     const int64_t ntiles = tiles_x * tiles_y;
     const int nt = (int)std::max<int64_t>(1, nchunks);
-    ellipse_records<T>(N, visible, rect, P, npar, H, tiles_x, rec, nt);
+    ellipse_records<T>(N, visible, rect, P, npar, H, tiles_x, setup, rec, nt);
     if (first) first_cover(M, rs, tiles_x, tiles_y, first);
     std::fill(cursors, cursors + (int64_t)nt * ntiles, 0);
 #pragma omp parallel for num_threads(nt) schedule(static, 1)
@@ -229,7 +368,7 @@ int64_t bin_exact_count_impl(int64_t M, const int32_t* order, const int32_t* rs,
             if (j + 32 < je) __builtin_prefetch(rec + REC * (int64_t)order[j + 32], 0, 1);
             const int32_t g = order[j];
             const int32_t* r = rs + 4 * j;
-            for_row_spans<T>(rec + REC * (int64_t)g, r, P, npar, (int)H, g, [&](int y, int c0, int c1) {
+            for_row_spans<T>(rec + REC * (int64_t)g, r, P, npar, (int)H, g, setup, [&](int y, int c0, int c1) {
                 int32_t* cr = cnt + y * tiles_x;
                 for (int x = c0; x < c1; ++x) cr[x]++;
                 if (first) {
@@ -258,7 +397,7 @@ template <typename T>
 int64_t bin_exact_fill_impl(int64_t M, const int32_t* order, const int32_t* rs, const int32_t* rec, const T* P,
                             int64_t npar, int64_t H, int64_t tiles_x, int64_t tiles_y, const int32_t* first,
                             const int32_t* offsets, int32_t* cursors, int32_t* list, int64_t capacity,
-                            int64_t nchunks) {
+                            int64_t nchunks, const BinSetup& setup) {
     const int64_t ntiles = tiles_x * tiles_y;
     const int nt = (int)std::max<int64_t>(1, nchunks);
     if (offsets[ntiles] > capacity) return -1;
@@ -270,7 +409,7 @@ int64_t bin_exact_fill_impl(int64_t M, const int32_t* order, const int32_t* rs, 
             if (j + 32 < je) __builtin_prefetch(rec + REC * (int64_t)order[j + 32], 0, 1);
             const int32_t* r = rs + 4 * j;
             const int32_t g = order[j];
-            for_row_spans<T>(rec + REC * (int64_t)g, r, P, npar, (int)H, g, [&](int y, int c0, int c1) {
+            for_row_spans<T>(rec + REC * (int64_t)g, r, P, npar, (int)H, g, setup, [&](int y, int c0, int c1) {
                 int32_t* c = cur + y * tiles_x;
                 for (int x = c0; x < c1; ++x) list[c[x]++] = g;
                 if (first) {
@@ -290,21 +429,23 @@ int64_t bin_exact_fill_impl(int64_t M, const int32_t* order, const int32_t* rs, 
 
 extern "C" {
 
-// Count pass of the exact ellipse/tile binning of ewa/rade on the output of gs_depth_order (M, order, rs):
+// Count pass of the exact ellipse/tile binning of ewa/rade/surfel on the output of gs_depth_order (M, order, rs):
 // `visible` (N,) and `rect` (N, 4) as given to gs_depth_order, `params` the payload (N, n_params), dtype
-// 0 = float32, 1 = float64, `nchunks` the number of chunks (= threads) of both passes. Fills `rec` (N × 8
+// 0 = float32, 1 = float64, `nchunks` the number of chunks (= threads) of both passes, `setup` the six
+// doubles of BinSetup (surfel flag, fx, fy, cx, cy, low-pass k). Fills `rec` (N × 8
 // int32), `cursors` (nchunks × tiles int32), both read by gs_bin_exact_fill, `first` (tiles int32, only when
 // keep_first; may be null otherwise) and `offsets` (tiles + 1). Returns the pair count (the exact
 // capacity), -1 on overflow.
 int64_t gs_bin_exact_count(int64_t M, const int32_t* order, const int32_t* rs, int64_t N, const uint8_t* visible,
                            const int32_t* rect, const void* params, int64_t n_params, int64_t dtype, int64_t height,
                            int64_t tiles_x, int64_t tiles_y, int64_t keep_first, int32_t* first, int32_t* rec,
-                           int32_t* offsets, int32_t* cursors, int64_t nchunks) {
+                           int32_t* offsets, int32_t* cursors, int64_t nchunks, const double* setup) {
     int32_t* f = keep_first ? first : nullptr;
+    const BinSetup s{setup[0], setup[1], setup[2], setup[3], setup[4], setup[5]};
     return dtype == 0 ? bin_exact_count_impl<float>(M, order, rs, N, visible, rect, (const float*)params, n_params,
-                                                    height, tiles_x, tiles_y, f, rec, offsets, cursors, nchunks)
+                                                    height, tiles_x, tiles_y, f, rec, offsets, cursors, nchunks, s)
                       : bin_exact_count_impl<double>(M, order, rs, N, visible, rect, (const double*)params, n_params,
-                                                     height, tiles_x, tiles_y, f, rec, offsets, cursors, nchunks);
+                                                     height, tiles_x, tiles_y, f, rec, offsets, cursors, nchunks, s);
 }
 
 // Fill pass: the per-tile lists (depth order) into `list` (same arguments as the count pass; `cursors` is
@@ -312,12 +453,13 @@ int64_t gs_bin_exact_count(int64_t M, const int32_t* order, const int32_t* rs, i
 int64_t gs_bin_exact_fill(int64_t M, const int32_t* order, const int32_t* rs, const int32_t* rec, const void* params,
                           int64_t n_params, int64_t dtype, int64_t height, int64_t tiles_x, int64_t tiles_y,
                           int64_t keep_first, const int32_t* first, const int32_t* offsets, int32_t* cursors,
-                          int32_t* list, int64_t capacity, int64_t nchunks) {
+                          int32_t* list, int64_t capacity, int64_t nchunks, const double* setup) {
     const int32_t* f = keep_first ? first : nullptr;
+    const BinSetup s{setup[0], setup[1], setup[2], setup[3], setup[4], setup[5]};
     return dtype == 0 ? bin_exact_fill_impl<float>(M, order, rs, rec, (const float*)params, n_params, height, tiles_x,
-                                                   tiles_y, f, offsets, cursors, list, capacity, nchunks)
+                                                   tiles_y, f, offsets, cursors, list, capacity, nchunks, s)
                       : bin_exact_fill_impl<double>(M, order, rs, rec, (const double*)params, n_params, height,
-                                                    tiles_x, tiles_y, f, offsets, cursors, list, capacity, nchunks);
+                                                    tiles_x, tiles_y, f, offsets, cursors, list, capacity, nchunks, s);
 }
 
 }  // extern "C"
