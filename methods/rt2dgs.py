@@ -18,7 +18,9 @@ exit interface (its τ-weighted depth and normal), R₂ the reflectance leaving 
 internal reflection: 1), E(ray) = Σ_j w_j (1 − τ_j) c_j along a ray (what opaque surfels it meets). Two
 interfaces and one reflection: the bounded tree (docs/methods/rt2dgs.md §2). L is traced at up to
 ``trace_pixels`` pixels per render (a regular sub-grid with a random offset per step, nearest-neighbour
-filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out. The light
+filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out. With
+``transparency_gradient`` "traced" (the default) τ learns only at the traced pixels: the filled ones copy
+a neighbour's L, so their dC/dτ = L − c is wrong; "filled" takes it from every pixel. The light
 is traced from step ``trace_from`` (7 000 of 30 000, scaled to the run); before it the render is 2DGS's and
 τ gets no gradient, so the transparency is not driven to 0 by a traced light computed on the first,
 noisy surfaces (docs/methods/rt2dgs.md §8).
@@ -54,6 +56,7 @@ from gsbench.training.trainer import scale_step
 
 IOR_MAX = 3.0  # the learned index lives in (1, IOR_MAX): η = 1 + (IOR_MAX − 1) sigmoid(raw)
 EXIT_MIN = 0.1  # Σ w τ along the refracted ray below which no exit interface is found (the ray goes on)
+TRANSPARENCY_GRADIENTS = ("traced", "filled")  # docs/methods/rt2dgs.md §4
 
 
 @dataclass
@@ -70,6 +73,7 @@ class RT2DGSConfig(GS2DConfig):
     trace_pixels: int = 256
     trace_from: int = 7000  # step (of 30 000, scaled) from which the light is traced; 2DGS's render before it
     trace_min_transparency: float = 0.02
+    transparency_gradient: str = "traced"  # where τ learns: "traced" pixels only, or every "filled" one as well
     smooth_neighbours: int = 8
     smooth_epsilon: float = 0.001
     smooth_refresh: int = 100
@@ -101,6 +105,9 @@ class RT2DGS(GS2D):
             raise ConfigError(f"method.ior must be in (1, {IOR_MAX}), got {p.ior}")
         if not 0.0 < p.transparency_init < 1.0:
             raise ConfigError(f"method.transparency_init must be in (0, 1), got {p.transparency_init}")
+        if p.transparency_gradient not in TRANSPARENCY_GRADIENTS:
+            raise ConfigError(f"method.transparency_gradient must be one of {', '.join(TRANSPARENCY_GRADIENTS)}, "
+                              f"got {p.transparency_gradient!r}")
         if p.trace_from < 0:
             raise ConfigError(f"method.trace_from must be >= 0 (a step of 30 000), got {p.trace_from}")
         for name in ("trace_pixels", "smooth_neighbours", "smooth_refresh"):
@@ -161,17 +168,32 @@ class RT2DGS(GS2D):
             return super().render(camera, outputs)
         g = self.raster_input()
         tau = self.transparency
+        only_traced = self.params.transparency_gradient == "traced"
+        fixed = tau.detach() if only_traced else tau
         colours = self._colours(g, camera)
         settings = self.raster_settings()
         degree0 = lambda c: ((c - 0.5) / SH_C0)[:, None, :]  # noqa: E731  (a colour as a degree-0 SH row)
-        opaque = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0((1 - tau)[:, None] * colours)),
+        opaque = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0((1 - fixed)[:, None] * colours)),
                            camera, kernel="surfel", outputs=tuple(sorted(outputs | {"median_depth", "normal", "alpha"})),
                            settings=_degree0(settings, settings.background))
         clear = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0(tau[:, None].expand(-1, 3))),
                           camera, kernel="surfel", outputs=("rgb",), settings=_degree0(settings, (0.0, 0.0, 0.0)))
         tau_map = clear.rgb[..., 0]
-        light = self._traced_light(camera, opaque, tau_map, g, tau, colours)
-        opaque.rgb = opaque.rgb + tau_map[..., None] * light
+        light, traced = self._traced_light(camera, opaque, tau_map, g, tau, colours)
+        if not only_traced:
+            opaque.rgb = opaque.rgb + tau_map[..., None] * light
+            return opaque
+        if not bool(traced.any()):
+            return opaque
+        # τ learns only where L was traced (docs/methods/rt2dgs.md §4): there C gets −Σ w τ c through a pass that
+        # carries τ's gradient alone (zero in value), elsewhere the τ̄ L term is held fixed
+        shift = rasterize(RasterGaussians(g.means.detach(), g.quats.detach(), g.scales.detach(), g.opacities.detach(),
+                                          degree0(tau[:, None] * colours.detach())),
+                          camera, kernel="surfel", outputs=("rgb",), settings=_degree0(settings, (0.0, 0.0, 0.0))).rgb
+        mask = traced[..., None]
+        through = tau_map[..., None] * light
+        opaque.rgb = (opaque.rgb - torch.where(mask, shift - shift.detach(), torch.zeros_like(shift))
+                      + torch.where(mask, through, through.detach()))
         return opaque
 
     def mesh_depth(self, camera, cfg):
@@ -183,21 +205,23 @@ class RT2DGS(GS2D):
 
     def _traced_light(self, camera, out: RenderOutput, tau_map: torch.Tensor, g: RasterGaussians, tau: torch.Tensor,
                       colours: torch.Tensor) -> torch.Tensor:
-        """L (H, W, 3) at the traced sub-grid, nearest-filled; 0 where τ̄ is below the threshold."""
+        """(L (H, W, 3) at the traced sub-grid, nearest-filled, 0 where τ̄ is below the threshold; the traced
+        pixels (H, W) bool)."""
         p = self.params
         H, W = tau_map.shape
         light = torch.zeros(H, W, 3, dtype=colours.dtype)
         candidates = (tau_map.detach() > p.trace_min_transparency) & (out.median_depth.detach() > 0)
         count = int(candidates.sum())
         if count == 0:
-            return light
+            return light, torch.zeros(H, W, dtype=torch.bool)
         stride = max(1, math.ceil(math.sqrt(count / p.trace_pixels)))
         oy, ox = (int(v) for v in torch.randint(0, stride, (2,))) if stride > 1 else (0, 0)
         grid = torch.zeros(H, W, dtype=torch.bool)
         grid[oy::stride, ox::stride] = True
-        pick = (grid & candidates).nonzero()
+        traced = grid & candidates
+        pick = traced.nonzero()
         if len(pick) == 0:
-            return light
+            return light, traced
         ys, xs = pick[:, 0], pick[:, 1]
         R = torch.as_tensor(camera.R, dtype=colours.dtype)
         pixel = torch.stack([xs + 0.5, ys + 0.5, torch.ones_like(xs, dtype=torch.float64)], -1).to(colours.dtype)
@@ -213,7 +237,7 @@ class RT2DGS(GS2D):
         cy = (torch.arange(H) - oy).clamp_min(0) // stride * stride + oy
         cx = (torch.arange(W) - ox).clamp_min(0) // stride * stride + ox
         filled = block[cy.clamp_max(H - 1)][:, cx.clamp_max(W - 1)]
-        return torch.where(candidates[..., None], filled, light)
+        return torch.where(candidates[..., None], filled, light), traced
 
     # ---- losses, schedules, checkpoints --------------------------------------------------------
     def loss_terms(self) -> dict[str, TermSpec]:

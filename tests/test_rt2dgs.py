@@ -19,7 +19,8 @@ from gsbench.data.synthetic.render import Renderer
 from gsbench.geometry.optics import fresnel, refract
 from gsbench.methods.rt2dgs import surface_light, trace_interface
 from gsbench.raster.types import RasterGaussians
-from tests.method_setup import straight_and_resumed
+from gsbench.training.trainer import Trainer
+from tests.method_setup import setup_method, straight_and_resumed
 
 BALL = 0.5
 WALLS = [((-3, -3, -2), (3, 3, -2)), ((-3, -3, 4), (3, 3, 4)), ((-3, -3, -2), (-3, 3, 4)), ((3, -3, -2), (3, 3, 4)),
@@ -204,3 +205,42 @@ def test_the_light_is_traced_from_trace_from_only(tiny_orb, tmp_path, monkeypatc
         grads[step] = logits.grad
     assert method.tracing() and (grads[5] is None or not bool(grads[5].any()))
     assert grads[6] is not None and bool(grads[6].any())
+
+
+def test_transparency_learns_only_where_the_light_was_traced(tiny_orb, tmp_path, monkeypatch, restore_threads):
+    """L is traced on a sub-grid and copied to the pixels between (docs/methods/rt2dgs.md §4); τ's gradient comes
+    from the traced pixels alone, the colours' and the surfels' from every pixel."""
+    method, scene, cfg = setup_method("rt2dgs", tiny_orb, "train.iterations=4", "threads=1", "method.trace_pixels=64",
+                                      "method.trace_from=0")
+    Trainer(method, scene, cfg, tmp_path / "run").fit()
+    camera = scene.cameras[0]
+    traced_light = method._traced_light
+    seen = {}
+
+    def spy(*args):
+        light, traced = traced_light(*args)
+        seen["traced"] = traced
+        return light, traced
+
+    monkeypatch.setattr(method, "_traced_light", spy)
+    logits = method.gaussians.params["transparency_logits"]
+    means = method.gaussians.params["means"]
+    grads = {}
+    for where in ("untraced", "traced"):
+        torch.manual_seed(0)  # the same sub-grid offset both times
+        logits.grad = means.grad = None
+        rgb = method.render(camera, {"rgb"}).rgb
+        traced = seen["traced"]
+        assert 0 < int(traced.sum()) < traced.numel() // 4
+        rgb[traced if where == "traced" else ~traced].sum().backward()
+        grads[where] = (logits.grad, means.grad)
+    assert grads["untraced"][0] is None or not bool(grads["untraced"][0].any())
+    assert bool(grads["untraced"][1].any())
+    assert grads["traced"][0] is not None and bool(grads["traced"][0].any())
+    # "filled": the copied light's pixels teach τ too, and the image is the same
+    method.params.transparency_gradient = "filled"
+    torch.manual_seed(0)
+    logits.grad = None
+    filled = method.render(camera, {"rgb"}).rgb
+    filled[~seen["traced"]].sum().backward()
+    assert bool(logits.grad.any()) and torch.allclose(filled, rgb, atol=1e-6)
