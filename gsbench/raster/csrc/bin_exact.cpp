@@ -42,6 +42,14 @@ inline double ln_pos(double x) {
     return (double)e * 0.69314718055994531 + p;
 }
 
+// K, padded for fexp, the rounding of o·G and of 1/255, such that a pixel contributes (o·exp(−q/2) >= 1/255) only
+// where q <= K = 2 ln(255 o); negative when nothing can contribute (o below 1/255, with a wide margin).
+inline double alpha_bound(double o) {
+    if (!(o * 255.0 > 0.5)) return -1.0;
+    const double tau2 = 2.0 * ln_pos(255.0 * o);
+    return tau2 + 1e-3 + 1e-4 * std::fabs(tau2);
+}
+
 template <typename T>
 inline void make_ellipse(const T* p, double* e) {
     const double A = (double)p[P_CA], B = (double)p[P_CB], C = (double)p[P_CC], o = (double)p[P_O];
@@ -49,12 +57,7 @@ inline void make_ellipse(const T* p, double* e) {
     const double mx = (double)p[P_MX], my = (double)p[P_MY];
     e[1] = mx;
     e[2] = my;
-    if (!(o * 255.0 > 0.5)) {  // o·G <= o < 1/255 (with a wide margin below 1/255): never contributes
-        e[0] = ELL_EMPTY;
-        return;
-    }
-    const double tau2 = 2.0 * ln_pos(255.0 * o);
-    const double K = tau2 + 1e-3 + 1e-4 * std::fabs(tau2);
+    const double K = alpha_bound(o);
     if (K < 0.0) {
         e[0] = ELL_EMPTY;
         return;
@@ -146,13 +149,7 @@ struct Shape {
 template <typename T>
 inline void make_surfel_ellipse(const T* p, const BinSetup& s, double* e) {
     e[0] = ELL_RECT;
-    const double o = (double)p[P_O];
-    if (!(o * 255.0 > 0.5)) {
-        e[0] = ELL_EMPTY;
-        return;
-    }
-    const double tau2 = 2.0 * ln_pos(255.0 * o);
-    const double K0 = tau2 + 1e-3 + 1e-4 * std::fabs(tau2);
+    const double K0 = alpha_bound((double)p[P_O]);
     if (K0 < 0.0) {
         e[0] = ELL_EMPTY;
         return;
