@@ -28,7 +28,7 @@ from gsbench.config.files import reported_numbers
 from gsbench.errors import GsbenchError
 from gsbench.registry import METHODS
 from gsbench.report.aggregate import natural_key
-from gsbench.report.build import write_report
+from gsbench.report.build import FILE_STEM_MAX, _file_stem, write_report
 from gsbench.report.collect import label_variants, load_runs
 from gsbench.report.pareto import pareto_front
 
@@ -234,3 +234,12 @@ def test_reported_numbers_are_well_formed():
             assert isinstance(entry["mean"], float) and entry["source"], name
             assert all(isinstance(v, float) for v in entry.get("scenes", {}).values()), name
     assert declared >= 6
+
+
+def test_plot_file_names_stay_short_and_distinct():
+    """A row label with many differing keys (SuGaR across code versions) made a surface plot's file name longer
+    than file systems allow; stems are cut with a hash of the whole."""
+    base = "surface-tnt-spot-sugar " + " ".join(f"method.key_{i}=unset" for i in range(20))
+    a, b = _file_stem(base + " method.refinement=short"), _file_stem(base + " method.refinement=none")
+    assert len(a) <= FILE_STEM_MAX and len(b) <= FILE_STEM_MAX and a != b
+    assert _file_stem("surface-dtu-bunny 2dgs") == "surface-dtu-bunny-2dgs"

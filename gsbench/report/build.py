@@ -19,6 +19,7 @@ folder, the warnings and the list of every run.
 
 from __future__ import annotations
 
+import hashlib
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -88,8 +89,16 @@ ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each confi
              "between its runs on one scene (so different configs are never averaged as if they were seeds).")
 
 
-def _slug(text: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-") or "x"
+FILE_STEM_MAX = 100  # characters of a plot's file name stem; a longer one (a row label with many keys) is cut
+
+
+def _file_stem(text: str) -> str:
+    """``text`` as a file name stem: alphanumerics kept, the rest "-"; cut to FILE_STEM_MAX characters with a
+    hash of the whole so that cut names stay distinct (file systems refuse names over 255 bytes)."""
+    stem = "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-") or "x"
+    if len(stem) <= FILE_STEM_MAX:
+        return stem
+    return f"{stem[:FILE_STEM_MAX - 9].rstrip('-')}-{hashlib.sha1(stem.encode()).hexdigest()[:8]}"
 
 
 class _Plots:
@@ -106,7 +115,7 @@ class _Plots:
         if png is None:
             return []
         taken = {p.name for p in self.made}
-        stem, n = _slug(name), 1
+        stem, n = _file_stem(name), 1
         file = f"{stem}.png"
         while file in taken:
             n += 1
