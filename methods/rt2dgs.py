@@ -169,11 +169,11 @@ class RT2DGS(GS2D):
         g = self.raster_input()
         tau = self.transparency
         only_traced = self.params.transparency_gradient == "traced"
-        fixed = tau.detach() if only_traced else tau
+        tau_opaque = tau.detach() if only_traced else tau  # the opaque pass's τ ("traced": no gradient through it)
         colours = self._colours(g, camera)
         settings = self.raster_settings()
         degree0 = lambda c: ((c - 0.5) / SH_C0)[:, None, :]  # noqa: E731  (a colour as a degree-0 SH row)
-        opaque = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0((1 - fixed)[:, None] * colours)),
+        opaque = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0((1 - tau_opaque)[:, None] * colours)),
                            camera, kernel="surfel", outputs=tuple(sorted(outputs | {"median_depth", "normal", "alpha"})),
                            settings=_degree0(settings, settings.background))
         clear = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0(tau[:, None].expand(-1, 3))),

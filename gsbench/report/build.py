@@ -50,6 +50,7 @@ from gsbench.report.views import (
     leaderboard_table,
     paired_table,
     ranks_table,
+    slug,
     speed_table,
 )
 from gsbench.run_folder import RunFolder
@@ -93,9 +94,9 @@ FILE_STEM_MAX = 100  # characters of a plot's file name stem; a longer one (a ro
 
 
 def _file_stem(text: str) -> str:
-    """``text`` as a file name stem: alphanumerics kept, the rest "-"; cut to FILE_STEM_MAX characters with a
+    """``text`` as a file name stem (`slug`), cut to FILE_STEM_MAX characters with a
     hash of the whole so that cut names stay distinct (file systems refuse names over 255 bytes)."""
-    stem = "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-") or "x"
+    stem = slug(text) or "x"
     if len(stem) <= FILE_STEM_MAX:
         return stem
     return f"{stem[:FILE_STEM_MAX - 9].rstrip('-')}-{hashlib.sha1(stem.encode()).hexdigest()[:8]}"

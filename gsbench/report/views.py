@@ -42,7 +42,8 @@ MEMORY_NOTE = ("Memory: the process's peak RSS through training (the record's tr
                "evaluation are left out, they are the same protocol for every method.")
 
 
-def _slug(text: str) -> str:
+def slug(text: str) -> str:
+    """``text`` for an anchor or a file name: alphanumerics kept (lower case), everything else "-"."""
     return "".join(c if c.isalnum() else "-" for c in text.lower()).strip("-")
 
 
@@ -158,7 +159,7 @@ def _rank_text(rank: float | None) -> str:
 
 def _board_anchor(board: Board, kind: str) -> str:
     companion = board.spec.name in COMPANIONS.get(board.dataset, ())
-    return f"{kind}-{_slug(board.dataset)}" + (f"-{_slug(board.spec.name)}" if companion else "")
+    return f"{kind}-{slug(board.dataset)}" + (f"-{slug(board.spec.name)}" if companion else "")
 
 
 def ranks_table(board: Board, tests: dict[tuple[str, str], PairedTest] | None = None) -> Table:
@@ -263,7 +264,7 @@ def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
         first = members[0].claim
         spec = specs.get(first.metric)
         metric = spec.label + f", {spec.direction}" if spec else first.metric
-        anchor = f"claims-{_slug(first.sweep or f'{first.dataset}-{first.metric}')}"
+        anchor = f"claims-{slug(first.sweep or f'{first.dataset}-{first.metric}')}"
         tables.append(Table(anchor, f"{group} ({first.dataset}: {metric})", header, rows, [PAIRS_NOTE]))
     return tables
 
@@ -320,7 +321,7 @@ def speed_table(board: Board) -> Table:
     if cpus:
         notes.append(cpus)
     title = f"{board.dataset}: cost against {board.spec.label}"
-    return Table(f"speed-{_slug(board.dataset)}", title, header, rows, notes)
+    return Table(f"speed-{slug(board.dataset)}", title, header, rows, notes)
 
 
 def _row_speed_cells(row: Row) -> list[TCell]:
@@ -339,7 +340,7 @@ def ablation_table(board: Board) -> Table:
     """A sweep: transposed (``key | v1 | v2 ...``) for a one-key numeric grid, else one row per label
     with the change of the mean against the first label and the paired test against it (over scene ×
     seed; starred when significant)."""
-    anchor = f"sweep-{_slug(board.title)}"
+    anchor = f"sweep-{slug(board.title)}"
     baseline = board.rows[0] if board.rows else None
     notes = [protocol_note(board), INTERVAL_NOTE]
     if baseline is not None and len(board.rows) > 1:
