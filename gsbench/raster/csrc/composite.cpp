@@ -16,6 +16,11 @@
 //
 // Built with -ffinite-math-only: no isnan/isinf here (inputs are validated in Python) and all
 // sentinels are finite.
+//
+// The list prefetch reads a clamped index, not `if (k + PF < end)`: with that branch GCC 12 splits the
+// list loop in two (-fsplit-loops, on at -O3) and its copy for the last PF entries keeps the lane loops
+// scalar. Those are the tile's front-most Gaussians, often the largest on screen, so the scalar copy
+// took about 30% of the backward (docs/measurements.md, "The scalar copy of the list loop").
 
 #include "raster_common.h"
 
@@ -178,9 +183,10 @@ void forward_impl(GsArgs& A) {
             T m0 = T(0);
             if (DIST && end > beg) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
             for (int k = beg; k < end && ndone < TP; ++k) {
-                if (k + PF < end) {
-                    prefetch_gauss<NPK, T>(P, BND, A.tile_list[k + PF]);
-                    if constexpr (PL) __builtin_prefetch(PD + A.tile_list[k + PF], 0, 1);
+                {  // branch-free (clamped) index: a branch on k here lets GCC split the loop (module header)
+                    const int gq = A.tile_list[std::min(k + PF, end - 1)];
+                    prefetch_gauss<NPK, T>(P, BND, gq);
+                    if constexpr (PL) __builtin_prefetch(PD + gq, 0, 1);
                 }
                 const int g = A.tile_list[k];
                 const T* __restrict p = P + (int64_t)g * NPK;
@@ -407,8 +413,8 @@ void backward_impl(GsArgs& A) {
             T m0 = T(0);
             if (DIST) m0 = mapm<T>(DK[A.tile_list[beg]], nearz, farz);
             for (int kk = maxlast - 1; kk >= 0; --kk) {
-                if (kk >= PF) {
-                    const int gq = A.tile_list[beg + kk - PF];
+                {  // branch-free (clamped) index, as in the forward
+                    const int gq = A.tile_list[beg + std::max(kk - PF, 0)];
                     prefetch_gauss<NPK, T>(P, BND, gq);
                     // and its gradient rows (read-modify-write after the lanes; random access into N)
                     const char* q = (const char*)(gp + (int64_t)gq * NPK);
