@@ -39,7 +39,8 @@ def test_quick_run_trains_meshes_evaluates_and_records(method, tiny_spot, tmp_pa
     assert record.status == "ok" and record.method == method and record.run_id == folder.name
     for metric in ("chamfer", "accuracy", "completeness", "normal_consistency"):
         assert math.isfinite(record.metrics[metric]), metric
-    assert set(record.timings) >= {"load", "train", "extract", "evaluate", "total"}
+    assert set(record.timings) >= {"load", "train", "extract", "evaluate", "total", "train_cpu"}
+    assert record.timings["train_cpu"] > 0  # the CPU time of the same steps (docs/design.md §8.1)
     assert set(record.peak_rss_bytes) == {"load", "train", "extract", "evaluate"}
     assert record.num_gaussians > 0 and record.it_per_s > 0
     assert record.densify_budget["max_gaussians"] == 20000 and set(record.densify_budget) == {

@@ -10,7 +10,8 @@ the same config again resumes it; an interrupted training resumes from ``checkpo
 always loaded; the trained model is loaded from the final checkpoint only when a later stage needs it.
 Timings in the record are the stored ones of the invocation that computed each stage (``train``
 counts optimisation steps only, over all resumes; ``extract`` and ``evaluate`` likewise exclude the
-rest); ``total`` is their sum and ``wall_this_invocation`` the wall time of this call. Peak RSS is the
+rest); ``total`` is their sum and ``wall_this_invocation`` the wall time of this call; ``train_cpu`` is
+training's CPU time (`gsbench.training.trainer.TrainResult.cpu_seconds`). Peak RSS is the
 process high-water mark at the end of each stage (``ru_maxrss`` never decreases, so a stage's value
 includes the earlier ones in that process).
 
@@ -179,6 +180,8 @@ def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) 
         record.timings["total"] = sum(record.timings.values())
         record.timings["wall_this_invocation"] = time.perf_counter() - start
         phases = stages.data.get("train", {}).get("phases", {})
+        if "cpu_seconds" in stages.data.get("train", {}):
+            record.timings["train_cpu"] = stages.data["train"]["cpu_seconds"]
         record.timings.update({f"train.{name}": seconds for name, seconds in phases.items()})
         record.peak_rss_bytes = {k: stages.data[k]["peak_rss_bytes"] for k in keys if k in stages.data}
         record.environment["time_end_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
@@ -249,7 +252,8 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     if not final.is_file():
         stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
         result = Trainer(method, scene, cfg, folder).fit()
-        stages.done("train", result.seconds, it_per_s=result.it_per_s, num_gaussians=result.num_gaussians,
+        stages.done("train", result.seconds, cpu_seconds=result.cpu_seconds, it_per_s=result.it_per_s,
+                    num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
     elif not (mesh_path.is_file() and report is not None):
         method.load_state_dict(load_checkpoint(final)["method"])

@@ -40,7 +40,10 @@ end, both written atomically) hold the method state (parameters, Adam moments), 
 the python/numpy/torch RNG states, the camera stack and the step, so a resumed run is bit-identical
 to an uninterrupted one with the same seed and thread count. ``metrics.jsonl`` gets one line every
 ``train.log_every`` steps: step, each term (unweighted), total, num_gaussians, it/s. Training time
-(`TrainResult.seconds`, summed over resumes) counts the steps and logging, not checkpoint writes.
+(`TrainResult.seconds`, summed over resumes) counts the steps and logging, not checkpoint writes;
+`TrainResult.cpu_seconds` is the process's CPU time over the same intervals (`time.process_time`: every
+thread's, so about ``threads`` times the wall time when the cores are free, and at one thread the time a
+quiet core would take when other processes share the cores).
 
 Phases: `Trainer.train_step` times each part of a step with ``time.perf_counter`` and adds it to
 `Trainer.phases` (`STEP_PHASES`): ``render`` (the method's forward render), ``loss`` (`total_loss`),
@@ -236,6 +239,7 @@ class TrainResult:
     steps: int
     seconds: float
     it_per_s: float
+    cpu_seconds: float
     num_gaussians: int
     resumed_from: int = 0
     phases: dict = dataclasses.field(default_factory=dict)
@@ -292,6 +296,7 @@ class Trainer:
         self.images, self.masks = _target_images(scene, cfg, method.background)
         self.step = 0
         self.seconds = 0.0
+        self.cpu_seconds = 0.0
         self.phases = dict.fromkeys(STEP_PHASES, 0.0)
         if progress_interval is not None:
             self.progress_interval = float(progress_interval)
@@ -299,7 +304,8 @@ class Trainer:
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"step": self.step, "seconds": self.seconds, "phases": dict(self.phases),
+        return {"step": self.step, "seconds": self.seconds, "cpu_seconds": self.cpu_seconds,
+                "phases": dict(self.phases),
                 "method": self.method.state_dict(),
                 "strategy": {k: v.clone() for k, v in self.strategy_state.items()},
                 "budget": dataclasses.asdict(self.budget),
@@ -314,6 +320,7 @@ class Trainer:
         self.sampler.load_state_dict(state["sampler"])
         set_rng_state(state["rng"])
         self.step, self.seconds = int(state["step"]), float(state["seconds"])
+        self.cpu_seconds = float(state.get("cpu_seconds", 0.0))  # checkpoints from before it was kept: 0
         self.phases = dict.fromkeys(STEP_PHASES, 0.0)  # checkpoints from before phases existed: zeros
         self.phases.update({k: float(v) for k, v in state.get("phases", {}).items()})
 
@@ -408,7 +415,7 @@ class Trainer:
         window_start, window_steps = time.perf_counter(), 0
         with open(RunFolder(self.run_dir).metrics, "a") as log:
             while self.step < self.iterations:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 values = self.train_step(self.step + 1)
                 self.step += 1
                 window_steps += 1
@@ -422,6 +429,7 @@ class Trainer:
                     bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()} | {"N": n}, refresh=False)
                     window_start, window_steps = time.perf_counter(), 0
                 self.seconds += time.perf_counter() - t0
+                self.cpu_seconds += time.process_time() - c0
                 every = t_cfg.checkpoint_every
                 if self.step < self.iterations and every > 0 and self.step % every == 0:
                     self.check_parameters(self.step)
@@ -434,6 +442,7 @@ class Trainer:
 
     def result(self, resumed_from: int = 0) -> TrainResult:
         return TrainResult(steps=self.step, seconds=self.seconds, it_per_s=self.step / max(self.seconds, 1e-9),
+                           cpu_seconds=self.cpu_seconds,
                            num_gaussians=len(self.method.gaussians), resumed_from=resumed_from,
                            phases=merge_phases(self.phases, self.method.training_phases()),
                            budget=dataclasses.replace(self.budget))
