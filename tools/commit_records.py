@@ -7,7 +7,8 @@ Every ``record.json`` under ``RUNS_DIR`` (only the runs of the given sweep files
 is written to the same relative place under ``RECORDS_DIR`` with one change (docs/results/README.md): the
 runs folder becomes ``.`` (so the run's files are relative to the records folder) and the data cache
 (``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``; every other
-field is as the run wrote it. Unfinished runs (no record) are skipped; records already there are replaced.
+field is as the run wrote it. Unfinished runs (no record, or one with status ``interrupted``: it resumes) are
+skipped; records already there are replaced.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def main() -> None:
     copied = 0
     for path in sorted(args.runs.resolve().rglob("record.json")):
         record = json.loads(path.read_text())
-        if wanted is not None and record.get("run_id") not in wanted:
+        if record.get("status") == "interrupted" or (wanted is not None and record.get("run_id") not in wanted):
             continue
         target = args.records / path.relative_to(runs)
         target.parent.mkdir(parents=True, exist_ok=True)
