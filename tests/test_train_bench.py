@@ -60,3 +60,17 @@ def test_papers_size_workloads_run_at_a_tiny_size(tmp_path, monkeypatch):
     result = bench_workload("radegs-tiny", tiny, steps=1, warmup=1, probe_steps=1, threads=1)
     assert result["resolution"] == [64, 48] and result["gaussians"]["initial"] == 3000
     assert (tmp_path / "bench" / "dtu-bunny-64x48" / "cameras.npz").exists()
+
+
+@pytest.mark.parametrize("method", ["neusg", "rt2dgs"])
+def test_the_hybrid_and_the_glass_method_have_workloads_that_run(method, tmp_path, monkeypatch):
+    """NeuSG's field and rt2dgs's ray tracing are timed like the other methods: at the cpu preset and the papers'
+    size, here shrunk to 64x48 and 3 000 Gaussians."""
+    from gsbench.bench.train import Workload
+
+    assert {method, f"{method}-800x600-300k", f"{method}-800x600-1m"} <= set(WORKLOADS)
+    monkeypatch.setenv("GSBENCH_DATA", str(tmp_path))
+    result = bench_workload(method, Workload(method, resolution=(64, 48), gaussians=3000), steps=1, warmup=1,
+                            probe_steps=1, threads=1)
+    assert result["gaussians"]["initial"] == 3000 and result["step_ms"] > 0
+    assert all(math.isfinite(v) for v in result["phases_ms"].values())

@@ -3,7 +3,8 @@
 Workloads (`WORKLOADS`): each method at the cpu preset on ``synthetic/spot`` (200x150, 49 views,
 initial points in the masks' visual hull), stepped from a quarter of the cpu schedule (step 750 of
 3000, in the densification window) or, when a loss term starts later, from the step after the last
-term starts (GOF / RaDe-GS / IBGS 1501, SuGaR 1801, past the window), so every term is timed; and ``3dgs-random-100k``: 3DGS from 100 000 random points in the scene sphere, stepped from
+term starts (GOF / RaDe-GS / IBGS 1501, SuGaR 1801, NeuSG's SDF terms 1001, past the window), so every term is
+timed (``synthetic/spot`` has no glass: rt2dgs's passes run there at their cost on an opaque object); and ``3dgs-random-100k``: 3DGS from 100 000 random points in the scene sphere, stepped from
 step 1 (what a capture without points and masks costs at the start); ``3dgs-visible-adam``: 3DGS
 with the opt-in visible-only Adam (`gsbench.training.optim`); ``<method>-800x600-300k`` and ``-1m`` (every
 method of `PAPER_METHODS`): the papers' size, ``synthetic/dtu-bunny`` made at 800x600 (DTU's 1600x1200 at
@@ -81,19 +82,12 @@ class Workload:
 
 
 PAPER_SCENE = "synthetic/dtu-bunny"  # scanned, framed as DTU
-PAPER_METHODS = ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs", "pgsr", "gggs")
+PAPER_METHODS = ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs", "pgsr", "gggs", "neusg", "rt2dgs")
 PAPER_SIZES = {"800x600-300k": ((800, 600), 300_000), "800x600-1m": ((800, 600), 1_000_000)}
 
 
 WORKLOADS = {
-    "3dgs": Workload("3dgs"),
-    "2dgs": Workload("2dgs"),
-    "gof": Workload("gof"),
-    "radegs": Workload("radegs"),
-    "ibgs": Workload("ibgs"),
-    "sugar": Workload("sugar"),
-    "pgsr": Workload("pgsr"),
-    "gggs": Workload("gggs"),
+    **{m: Workload(m) for m in PAPER_METHODS},
     "3dgs-random-100k": Workload("3dgs", ("method.random_init_region=sphere",), start=0.0),
     "3dgs-visible-adam": Workload("3dgs", ("train.optimizer=visible_adam",)),
     **{f"{m}-{size}": Workload(m, resolution=res, gaussians=n) for m in PAPER_METHODS
