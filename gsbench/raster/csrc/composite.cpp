@@ -461,7 +461,7 @@ void backward_impl(GsArgs& A) {
                     const T py = T(y) + T(0.5);
                     const T ry = (py - cy) / fy;
                     const int base = (y - y0) * TS;
-                    // one pixel (16-lane loop or one 8-lane chunk, as in the forward); returns v
+                    // one pixel (16-lane loop or one 8-lane chunk, as in the forward); marks `valid`
                     auto lane = [&](const int lx) __attribute__((always_inline)) {
                         const int i = base + lx;
                         const T px = T(x0 + lx) + T(0.5);
