@@ -165,12 +165,14 @@ def test_ray_executor_runs_two_tiny_runs_on_a_local_cluster(tiny_spot, tmp_path,
 
 @pytest.mark.ray
 @pytest.mark.slow
-def test_ray_runs_each_task_in_a_fresh_worker(restore_threads):
-    def pid() -> int:  # local, so Ray pickles it by value (workers cannot import the test module)
-        return os.getpid()
+def test_ray_runs_each_task_in_a_fresh_worker_at_the_drivers_priority(restore_threads):
+    def pid_and_niceness() -> tuple[int, int]:  # local, so Ray pickles it by value (workers cannot import the test module)
+        return os.getpid(), os.nice(0)
 
     executor = make_executor("ray", workers=1, threads=1, echo=lambda *_: None)
     try:
-        assert len({executor.submit(pid).result(timeout=120) for _ in range(3)}) == 3
+        seen = [executor.submit(pid_and_niceness).result(timeout=120) for _ in range(3)]
+        assert len({pid for pid, _ in seen}) == 3
+        assert {niceness for _, niceness in seen} == {os.nice(0)}  # not Ray's default 15: runs are timed
     finally:
         executor.shutdown()
