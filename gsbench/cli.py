@@ -354,6 +354,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--kernels", nargs="+", default=None)
     bench.add_argument("--workloads", nargs="+", default=None,
                        help="e.g. 50k-400x300 200k-800x600 (raster); 3dgs 2dgs gof radegs ibgs sugar 3dgs-random-100k (train)")
+    bench.add_argument("--run", default=None, metavar="RUN_DIR",
+                       help="time a run's own steps from its checkpoint instead of a workload (train)")
     bench.add_argument("--steps", type=int, default=30, help="timed training steps per workload (train)")
     bench.add_argument("--warmup", type=int, default=10, help="untimed training steps before them (train)")
     bench.add_argument("--repeats", type=int, default=5)

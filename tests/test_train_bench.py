@@ -8,8 +8,17 @@ import math
 
 import pytest
 
-from gsbench.bench.train import RASTER_PHASES, WORKLOADS, bench_workload, format_table, run_train_benchmark
+from gsbench.bench.train import (
+    RASTER_PHASES,
+    WORKLOADS,
+    bench_run_folder,
+    bench_workload,
+    format_table,
+    run_train_benchmark,
+)
+from gsbench.cli import main
 from gsbench.errors import ConfigError
+from gsbench.runs.records import RunRecord
 
 
 @pytest.mark.parametrize("name, terms", [("2dgs", {"l1", "dssim", "normal_consistency", "depth_distortion"}),
@@ -74,3 +83,28 @@ def test_the_hybrid_and_the_glass_method_have_workloads_that_run(method, tmp_pat
                             probe_steps=1, threads=1)
     assert result["gaussians"]["initial"] == 3000 and result["step_ms"] > 0
     assert all(math.isfinite(v) for v in result["phases_ms"].values())
+
+
+def test_a_runs_own_steps_are_timed_from_its_checkpoint(tiny_spot, tmp_path, capsys):
+    """`bench train --run RUN_DIR`: the run's config, scene and trained state (not a workload's random Gaussians),
+    stepped on in a temporary folder; the run's folder is left as it was."""
+    out = tmp_path / "runs"
+    sets = ["data.downscale=1", "method.random_init_points=2000", "train.iterations=60", "eval.evaluators=[mesh_stats]"]
+    assert main(["run", "--method", "3dgs", "--scene", str(tiny_spot), "--preset", "quick", "--out", str(out),
+                 *[arg for s in sets for arg in ("--set", s)]]) == 0
+    folder = next(out.rglob("record.json")).parent
+    before = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
+    trained = RunRecord.read(folder / "record.json").num_gaussians
+    assert main(["--threads", "1", "bench", "train", "--run", str(folder), "--steps", "2", "--warmup", "1"]) == 0
+    table = capsys.readouterr().out
+    assert f"run {folder.name}" in table
+    result = bench_run_folder(folder, steps=2, warmup=1, probe_steps=1, threads=1)
+    assert result["checkpoint_step"] == 60 and result["first_timed_step"] == 60 - 2 - 1 + 1
+    assert result["gaussians"]["initial"] == trained and result["resolution"] == [64, 48]
+    assert all(math.isfinite(v) for v in result["phases_ms"].values())
+    assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == before
+
+
+def test_run_and_workloads_together_is_an_error(tmp_path, capsys):
+    assert main(["bench", "train", "--run", str(tmp_path), "--workloads", "3dgs"]) == 2
+    assert "--run" in capsys.readouterr().err

@@ -14,16 +14,24 @@ import torch
 
 from gsbench.bench import ibgs, raster, train
 from gsbench.bench.eval import run_eval_benchmark, run_tnt_benchmark
+from gsbench.errors import ConfigError
 from gsbench.runs.records import capture_environment, write_json_atomic
 
 
 def run_benchmark(args) -> int:
     """Run the benchmark named by ``args.target``, print a table, optionally write JSON."""
     threads = args.threads or torch.get_num_threads()
+    if args.run and (args.target != "train" or args.workloads):
+        raise ConfigError("--run times a run's own training steps: use it with `bench train` and without --workloads; "
+                          "fix: drop --workloads (or --run)")
     if args.target == "raster":
         result = raster.run_raster_benchmark(kernels=args.kernels, workloads=args.workloads, repeats=args.repeats,
                                              threads=threads)
         print(raster.format_table(result))
+    elif args.target == "train" and args.run:
+        result = {"threads": threads, "steps": args.steps, "warmup": args.warmup, "results": [
+            train.bench_run_folder(args.run, steps=args.steps, warmup=args.warmup, threads=threads)]}
+        print(train.format_table(result))
     elif args.target == "train":
         result = train.run_train_benchmark(args.workloads, steps=args.steps, warmup=args.warmup, threads=threads)
         print(train.format_table(result))

@@ -12,7 +12,9 @@ the papers' ``-r 2``) in the IDR layout, from 300 000 or 1 000 000 random Gaussi
 ``3dgs-random-100k`` (the DTU-like and, by count, TnT-like sizes the papers reach; TnT's 980x545 images
 have 11% more pixels), the budget twice that, stepped as the cpu-preset workloads. Each workload runs ``warmup``
 steps, then ``steps`` timed steps of `gsbench.training.trainer.Trainer.train_step` (the real step: schedules,
-render, loss, backward, densification, Adam, checks), seeded, in a temporary run folder.
+render, loss, backward, densification, Adam, checks), seeded, in a temporary run folder. ``--run RUN_DIR``
+(`bench_run_folder`) times a real run's steps instead, from its checkpoint: the state a training reaches, not a
+workload's random Gaussians.
 
 Phases, milliseconds per step (mean over the timed steps):
 
@@ -46,6 +48,7 @@ import statistics
 import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -57,6 +60,8 @@ from gsbench.losses.terms import Batch, active_terms, required_outputs
 from gsbench.raster import profiling
 from gsbench.registry import METHODS
 from gsbench.resources import set_threads
+from gsbench.run_folder import RunFolder
+from gsbench.runs.finished_run import read_run_config
 from gsbench.runs.runner import load_run_scene, resolve_run
 
 WARMUP, STEPS, PROBE_STEPS = 10, 30, 5
@@ -165,33 +170,68 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
     set_threads(threads)
     train.seed_everything(cfg.seed)
     method.setup(scene, cfg)
-    initial = len(method.gaussians)
     with tempfile.TemporaryDirectory() as folder:
         trainer = train.Trainer(method, scene, cfg, folder)
         first = 1 if workload.start == 0 else max(round(workload.start * cfg.train.iterations),
                                                   max(t["start"] for t in trainer.losses.values() if t["weight"] > 0) + 1)
-        for step in range(first, first + warmup):
-            trainer.train_step(step)
-        trainer.phases = dict.fromkeys(trainer.phases, 0.0)
-        clock, original = _TermClock(), train.total_loss
-        profiling.profile, train.total_loss = {}, clock
-        n_start = len(method.gaussians)
-        per_step = []
-        try:
-            for step in range(first + warmup, first + warmup + steps):
-                t0 = time.perf_counter()
-                trainer.train_step(step)
-                per_step.append(time.perf_counter() - t0)
-            prof = dict(profiling.profile)
-        finally:
-            profiling.profile, train.total_loss = None, original
-        n_end = len(method.gaussians)
-        probe = [_term_backward_seconds(trainer, first + warmup + steps + k) for k in range(probe_steps)]
-    result = _phases_ms(name, workload, per_step, trainer.phases, prof, clock.seconds, probe,
-                        {"initial": initial, "timed_start": n_start, "timed_end": n_end}, first + warmup)
+        result = _time_steps(name, workload, trainer, first, steps, warmup, probe_steps)
     result["resolution"] = [scene.cameras[0].width, scene.cameras[0].height]
     result["scene"] = scene_name
     return result
+
+
+def bench_run_folder(folder, *, steps: int = STEPS, warmup: int = WARMUP, probe_steps: int = PROBE_STEPS,
+                     threads: int = 2) -> dict:
+    """Time the steps of a real run (``gsbench bench train --run RUN_DIR``) from its checkpoint: its resolved config,
+    scene and trained state (``checkpoint.pt`` of a run in progress, else ``checkpoint-final.pt``), stepped on from
+    the checkpoint's step (or, from a final checkpoint, over the schedule's last steps) in a temporary folder; the run's
+    own folder is only read. What a step costs at that state: the Gaussians a real training has there, not a
+    workload's."""
+    cfg, checkpoint = read_run_config(folder, "gsbench bench train --run",
+                                      (RunFolder.CHECKPOINT, RunFolder.FINAL_CHECKPOINT))
+    cfg.threads = threads
+    cfg.train.checkpoint_every = 0
+    scene = load_run_scene(cfg)
+    method = METHODS.get(cfg.method["name"])()
+    set_threads(threads)
+    train.seed_everything(cfg.seed)
+    method.setup(scene, cfg)
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = train.Trainer(method, scene, cfg, tmp)
+        trainer.load_state_dict(train.load_checkpoint(checkpoint))
+        saved = trainer.step
+        first = max(1, min(saved + 1, cfg.train.iterations - warmup - steps - probe_steps + 1))
+        result = _time_steps(f"run {Path(folder).name}", Workload(cfg.method["name"]), trainer, first, steps, warmup,
+                             probe_steps)
+    result.update(resolution=[scene.cameras[0].width, scene.cameras[0].height], scene=cfg.scene, run=str(folder),
+                  checkpoint_step=saved, preset=cfg.preset)
+    return result
+
+
+def _time_steps(name: str, workload: Workload, trainer, first: int, steps: int, warmup: int, probe_steps: int) -> dict:
+    """``warmup`` untimed then ``steps`` timed steps of ``trainer`` from ``first``, and the terms' backward probe
+    (module docstring); the result of `_phases_ms`."""
+    method = trainer.method
+    initial = len(method.gaussians)
+    for step in range(first, first + warmup):
+        trainer.train_step(step)
+    trainer.phases = dict.fromkeys(trainer.phases, 0.0)
+    clock, original = _TermClock(), train.total_loss
+    profiling.profile, train.total_loss = {}, clock
+    n_start = len(method.gaussians)
+    per_step = []
+    try:
+        for step in range(first + warmup, first + warmup + steps):
+            t0 = time.perf_counter()
+            trainer.train_step(step)
+            per_step.append(time.perf_counter() - t0)
+        prof = dict(profiling.profile)
+    finally:
+        profiling.profile, train.total_loss = None, original
+    n_end = len(method.gaussians)
+    probe = [_term_backward_seconds(trainer, first + warmup + steps + k) for k in range(probe_steps)]
+    return _phases_ms(name, workload, per_step, trainer.phases, prof, clock.seconds, probe,
+                      {"initial": initial, "timed_start": n_start, "timed_end": n_end}, first + warmup)
 
 
 def _phases_ms(name, workload, per_step, phases, prof, term_fwd, probe, gaussians, first_timed) -> dict:

@@ -1,4 +1,4 @@
-"""A finished run's folder, loaded back: its resolved config, its scene and its trained method.
+"""A run's folder, loaded back: its resolved config and checkpoint, or its scene and its trained method.
 
 The diagnostics that look inside a trained model (`gsbench depth`, `gsbench gaussians`) read the folder
 `gsbench run` wrote (``<out>/<dataset>/<scene>/<method>/<run_id>``): ``config.yaml``, the resolved
@@ -17,22 +17,29 @@ from gsbench.runs.runner import load_run_scene, resolve_run
 from gsbench.training.trainer import load_checkpoint
 
 
+def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFolder.FINAL_CHECKPOINT,)):
+    """``(cfg, checkpoint path)``: the resolved config a run wrote into ``folder`` and the first of ``checkpoints`` (file
+    names, in order of preference) found there; ``command`` names the caller in the errors."""
+    files = RunFolder(folder)
+    found = [files.path / name for name in checkpoints if (files.path / name).is_file()]
+    if not files.config.is_file() or not found:
+        missing = files.config if not files.config.is_file() else files.path / checkpoints[0]
+        raise GsbenchError(f"{missing} not found: `{command}` reads a run's folder (config.yaml and "
+                           f"{' or '.join(checkpoints)}); fix: pass <out>/<dataset>/<scene>/<method>/<run_id> of a run "
+                           "whose training wrote a checkpoint")
+    resolved = yaml.safe_load(files.config.read_text())
+    if not (isinstance(resolved, dict) and isinstance(resolved.get("method"), dict) and "name" in resolved["method"]
+            and "scene" in resolved and "preset" in resolved):
+        raise GsbenchError(f"{files.config}: not a run's resolved config (needs method.name, scene and preset); fix: pass "
+                           "the folder gsbench run wrote, whose config.yaml it wrote itself")
+    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(files.config,))
+    return cfg, found[0]
+
+
 def load_finished_run(folder, command: str, *, load_images: bool = True):
     """``(cfg, scene, method)`` of the finished run in ``folder``, the method set up on the scene and
     loaded from the final checkpoint; ``command`` names the caller in the errors."""
-    files = RunFolder(folder)
-    config, final = files.config, files.final_checkpoint
-    for path in (config, final):
-        if not path.is_file():
-            raise GsbenchError(f"{path} not found: `{command}` reads a finished run's folder (config.yaml and "
-                               f"{RunFolder.FINAL_CHECKPOINT}); fix: pass <out>/<dataset>/<scene>/<method>/<run_id> of a run "
-                               "whose training finished")
-    resolved = yaml.safe_load(config.read_text())
-    if not (isinstance(resolved, dict) and isinstance(resolved.get("method"), dict) and "name" in resolved["method"]
-            and "scene" in resolved and "preset" in resolved):
-        raise GsbenchError(f"{config}: not a run's resolved config (needs method.name, scene and preset); fix: pass the "
-                           "folder gsbench run wrote, whose config.yaml it wrote itself")
-    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(config,))
+    cfg, final = read_run_config(folder, command)
     scene = load_run_scene(cfg, load_images=load_images)
     method = METHODS.get(cfg.method["name"])()
     method.setup(scene, cfg)
