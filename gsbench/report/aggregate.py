@@ -28,6 +28,7 @@ from gsbench.report.stats import t_half_width
 STATUS_ORDER = ("ok", "no metric", "failed", "interrupted", "running", "missing")
 SPEED = {  # key -> how to read it from a run
     "train": lambda r: r.timings.get("train"),
+    "train_cpu": lambda r: r.timings.get("train_cpu"),
     "total": lambda r: r.timings.get("total"),
     "it_per_s": lambda r: r.it_per_s,
     "train_rss": lambda r: r.train_peak_rss_bytes,

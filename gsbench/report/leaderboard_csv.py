@@ -17,7 +17,7 @@ from gsbench.report.stats import (
 
 CSV_COLUMNS = ("dataset", "metric", "unit", "higher_is_better", "method", "variant", "scene", "n_ok", "n_other",
                "n_missing", "mean", "std", "best", "complete", "reported", "iterations", "threads", "train_s",
-               "total_s", "train_peak_rss_mib", "gaussians", "ci95_low", "ci95_high", "rank", "rank_paired")
+               "train_cpu_s", "total_s", "train_peak_rss_mib", "gaussians", "ci95_low", "ci95_high", "rank", "rank_paired")
 
 
 def _csv_number(value) -> str:
@@ -77,5 +77,6 @@ def _csv_speed(runs: list[Run]) -> list[str]:
     means = {key: stat(read(r) for r in ok) for key, read in SPEED.items()}
     rss = means["train_rss"].mean / 2**20 if means["train_rss"] else None
     return [iterations, threads, _csv_number(means["train"].mean if means["train"] else None),
+            _csv_number(means["train_cpu"].mean if means["train_cpu"] else None),
             _csv_number(means["total"].mean if means["total"] else None), _csv_number(rss),
             _csv_number(means["gaussians"].mean if means["gaussians"] else None)]

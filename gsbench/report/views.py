@@ -29,7 +29,9 @@ from gsbench.report.tables import MISSING, Table, TCell, count, join_text, metri
 from gsbench.runs.records import code_version
 
 TIMES_NOTE = ("Times are wall-clock seconds (means over a row's ok runs), comparable only between runs at "
-              "the same thread count on an equally loaded machine of the same kind (see Environment).")
+              "the same thread count on an equally loaded machine of the same kind (see Environment). train CPU: "
+              "the training's process CPU time, every thread's (records from 2026-11-28 on); other processes on "
+              "the machine do not stretch it, so at one thread it compares runs made side by side.")
 INTERVAL_NOTE = ("± h: the 95% Student t-interval of the mean over a cell's ok runs (seeds), mean ± h with "
                  "h = t(0.975, n−1)·s/√n (s the sample standard deviation), for n ≥ 2; a cell of one run shows "
                  "no interval.")
@@ -285,7 +287,8 @@ def fronts(board: Board) -> dict[str, set[str]]:
 
 
 SPEED_COLUMNS = (  # Row.speed key -> format of its mean
-    ("train", lambda v: number(v, 1)), ("total", lambda v: number(v, 1)), ("it_per_s", lambda v: number(v, 2)),
+    ("train", lambda v: number(v, 1)), ("train_cpu", lambda v: number(v, 1)), ("total", lambda v: number(v, 1)),
+    ("it_per_s", lambda v: number(v, 2)),
     ("train_rss", mib), ("gaussians", count),
 )
 
@@ -297,7 +300,8 @@ def _stat_cell(value: Stat | None, show) -> TCell:
 def speed_table(board: Board) -> Table:
     """Per row: iterations, threads, times, memory, size and the Gaussian budget, mean metric, and the
     Pareto fronts it is on."""
-    header = ["method", "iterations", "threads", "train (s)", "total (s)", "it/s", "train peak RSS (MiB)", "Gaussians",
+    header = ["method", "iterations", "threads", "train (s)", "train CPU (s)", "total (s)", "it/s", "train peak RSS (MiB)",
+              "Gaussians",
               "Gaussian budget", f"mean {board.spec.label}", "Pareto front"]
     on = fronts(board)
     rows = []
