@@ -1,0 +1,34 @@
+"""`tools/commit_records.py`: finished runs' records copied into a committed folder with the machine's paths made
+relative; a run that is only interrupted (it resumes) is left out, a failed one is kept."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+TOOL = Path(__file__).resolve().parents[1] / "tools" / "commit_records.py"
+
+
+def _record(folder: Path, status: str, runs: Path, cache: Path) -> None:
+    folder.mkdir(parents=True)
+    record = {"run_id": folder.name, "status": status, "scene": str(cache / "synthetic" / "spot"),
+              "config": {"out": str(runs)}, "mesh": {"path": str(folder / "mesh.ply")}}
+    (folder / "record.json").write_text(json.dumps(record))
+
+
+def test_finished_records_are_copied_with_relative_paths_and_interrupted_ones_left_out(tmp_path):
+    runs, cache, committed = tmp_path / "runs", tmp_path / "cache", tmp_path / "committed"
+    _record(runs / "dtu" / "spot" / "3dgs" / "aaa", "ok", runs, cache)
+    _record(runs / "dtu" / "spot" / "2dgs" / "bbb", "failed", runs, cache)
+    _record(runs / "dtu" / "spot" / "gof" / "ccc", "interrupted", runs, cache)
+    done = subprocess.run([sys.executable, str(TOOL), str(runs), str(committed)], capture_output=True, text=True,
+                          env={**os.environ, "GSBENCH_DATA": str(cache)}, check=True)
+    assert "2 records written" in done.stdout
+    copied = json.loads((committed / "dtu" / "spot" / "3dgs" / "aaa" / "record.json").read_text())
+    assert copied["config"]["out"] == "." and copied["mesh"]["path"] == "dtu/spot/3dgs/aaa/mesh.ply"
+    assert copied["scene"] == "$GSBENCH_DATA/synthetic/spot"
+    assert (committed / "dtu" / "spot" / "2dgs" / "bbb" / "record.json").is_file()
+    assert not (committed / "dtu" / "spot" / "gof").exists()
