@@ -309,3 +309,20 @@ def test_a_suite_as_one_scene_points_to_the_sweep(capsys):
     assert "gsbench sweep FILE --suite dtu-like" in capsys.readouterr().err
     assert main(["run", "--method", "3dgs", "--scene", "suite:nope"]) == 2
     assert "available suites: dtu-framed, dtu-like, glass, tnt-like" in capsys.readouterr().err
+
+
+def test_cpu_time_is_shown_only_when_every_run_of_the_row_recorded_it(tmp_path):
+    """A row whose runs partly predate `timings.train_cpu` shows no CPU mean: it would be over fewer runs than the wall
+    time beside it."""
+    runs = tmp_path / "runs"
+    for seed in (0, 1):
+        write_record(runs, "3dgs", "scan24", seed, {"chamfer": 1.0})
+        write_record(runs, "2dgs", "scan24", seed, {"chamfer": 0.9})
+    for path in runs.rglob("record.json"):
+        record = json.loads(path.read_text())
+        if record["method"] == "2dgs" or record["seed"] == 0:
+            record["timings"]["train_cpu"] = 8.0 + record["seed"]
+            path.write_text(json.dumps(record))
+    speed = {row.name: row.speed for row in board_of(runs).rows}
+    assert speed["2dgs"]["train_cpu"].mean == 8.5 and speed["2dgs"]["train_cpu"].n == 2
+    assert speed["3dgs"]["train_cpu"] is None and speed["3dgs"]["train"].n == 2

@@ -161,9 +161,17 @@ def make_row(name: str, runs: list[Run], metric: str, missing: dict[str, int], m
     for scene, n in missing.items():
         if n:
             cells.setdefault(scene, Cell([], metric)).missing = n
+    return Row(name, sorted({r.method for r in runs} | set(methods)), dict(sorted(cells.items())), speed_stats(runs))
+
+
+def speed_stats(runs: list[Run]) -> dict[str, Stat | None]:
+    """Each `SPEED` figure over ``runs``' ok runs. The CPU time is left out (None) unless every ok run recorded it:
+    a mean over part of a row's runs would sit beside a wall time over all of them."""
     ok = [r for r in runs if r.ok]
     speed = {key: stat(read(r) for r in ok) for key, read in SPEED.items()}
-    return Row(name, sorted({r.method for r in runs} | set(methods)), dict(sorted(cells.items())), speed)
+    if any(SPEED["train_cpu"](r) is None for r in ok):
+        speed["train_cpu"] = None
+    return speed
 
 
 def natural_key(name: str) -> tuple:

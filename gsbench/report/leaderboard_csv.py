@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 import io
 
-from gsbench.report.aggregate import SPEED, Board, Stat, stat
+from gsbench.report.aggregate import Board, Stat, speed_stats
 from gsbench.report.collect import Run
 from gsbench.report.stats import (
     PairedTest,
@@ -71,10 +71,9 @@ def _csv_interval(value: Stat | None) -> list[str]:
 
 
 def _csv_speed(runs: list[Run]) -> list[str]:
-    ok = [r for r in runs if r.ok]
     iterations = ";".join(str(i) for i in sorted({r.iterations for r in runs if r.iterations is not None}))
     threads = ";".join(str(t) for t in sorted({r.threads for r in runs if r.threads is not None}))
-    means = {key: stat(read(r) for r in ok) for key, read in SPEED.items()}
+    means = speed_stats(runs)
     rss = means["train_rss"].mean / 2**20 if means["train_rss"] else None
     return [iterations, threads, _csv_number(means["train"].mean if means["train"] else None),
             _csv_number(means["train_cpu"].mean if means["train_cpu"] else None),
