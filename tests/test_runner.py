@@ -13,7 +13,7 @@ from gsbench.cli import main
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, sha256_file
 from gsbench.runs.runner import resolve_run, run_dir
-from gsbench.training.trainer import Trainer
+from gsbench.training.trainer import Trainer, load_checkpoint, save_atomic
 
 # Idle OpenMP threads must sleep, not spin (see gsbench.training.trainer.set_threads); set at collection, before
 # any test loads the rasterizer extension.
@@ -118,6 +118,31 @@ def test_interrupted_training_resumes_from_its_checkpoint(tiny_spot, tmp_path, m
     assert RunRecord.read(folder / "record.json").status == "ok"
     logged = [json.loads(line)["step"] for line in (folder / RunFolder.METRICS).read_text().splitlines()]
     assert logged == [10, 20, 30, 40, 50, 60]  # the line of step 40 (after the checkpoint at 30) is not repeated
+    assert RunRecord.read(folder / "record.json").timings["train_cpu"] > 0  # carried over the resume
+
+
+def test_resume_from_a_checkpoint_without_cpu_time_records_none(tiny_spot, tmp_path, monkeypatch):
+    """A checkpoint written before `timings.train_cpu` existed: the steps before it have no CPU time, so the record
+    gives none rather than the part after the resume as if it were the whole."""
+    step = Trainer.train_step
+
+    def interrupt_at_45(self, t):
+        if t == 45:
+            raise KeyboardInterrupt
+        return step(self, t)
+
+    monkeypatch.setattr(Trainer, "train_step", interrupt_at_45)
+    gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR, expect=130)
+    monkeypatch.undo()
+    cfg = resolve_run("3dgs", str(tiny_spot), preset="quick", overrides=[*QUICK, ONE_EVALUATOR])
+    cfg.out = str(tmp_path / "runs")
+    checkpoint = run_dir(cfg) / RunFolder.CHECKPOINT
+    state = load_checkpoint(checkpoint)
+    del state["cpu_seconds"]
+    save_atomic(state, checkpoint)
+    gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR)
+    record = RunRecord.read(run_dir(cfg) / "record.json")
+    assert record.status == "ok" and "train_cpu" not in record.timings and record.timings["train"] > 0
 
 
 def test_failure_writes_a_failed_record_and_exits_non_zero(tiny_spot, tmp_path, capsys):

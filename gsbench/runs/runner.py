@@ -180,7 +180,7 @@ def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) 
         record.timings["total"] = sum(record.timings.values())
         record.timings["wall_this_invocation"] = time.perf_counter() - start
         phases = stages.data.get("train", {}).get("phases", {})
-        if "cpu_seconds" in stages.data.get("train", {}):
+        if stages.data.get("train", {}).get("cpu_seconds") is not None:
             record.timings["train_cpu"] = stages.data["train"]["cpu_seconds"]
         record.timings.update({f"train.{name}": seconds for name, seconds in phases.items()})
         record.peak_rss_bytes = {k: stages.data[k]["peak_rss_bytes"] for k in keys if k in stages.data}

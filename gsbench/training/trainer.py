@@ -43,7 +43,8 @@ to an uninterrupted one with the same seed and thread count. ``metrics.jsonl`` g
 (`TrainResult.seconds`, summed over resumes) counts the steps and logging, not checkpoint writes;
 `TrainResult.cpu_seconds` is the process's CPU time over the same intervals (`time.process_time`: every
 thread's, so about ``threads`` times the wall time when the cores are free, and at one thread the time a
-quiet core would take when other processes share the cores).
+quiet core would take when other processes share the cores); None for a run resumed from a checkpoint written
+before it was kept, whose earlier steps' CPU time is unknown.
 
 Phases: `Trainer.train_step` times each part of a step with ``time.perf_counter`` and adds it to
 `Trainer.phases` (`STEP_PHASES`): ``render`` (the method's forward render), ``loss`` (`total_loss`),
@@ -239,7 +240,7 @@ class TrainResult:
     steps: int
     seconds: float
     it_per_s: float
-    cpu_seconds: float
+    cpu_seconds: float | None
     num_gaussians: int
     resumed_from: int = 0
     phases: dict = dataclasses.field(default_factory=dict)
@@ -320,7 +321,8 @@ class Trainer:
         self.sampler.load_state_dict(state["sampler"])
         set_rng_state(state["rng"])
         self.step, self.seconds = int(state["step"]), float(state["seconds"])
-        self.cpu_seconds = float(state.get("cpu_seconds", 0.0))  # checkpoints from before it was kept: 0
+        cpu = state.get("cpu_seconds")  # None in checkpoints from before it was kept: the total stays unknown
+        self.cpu_seconds = None if cpu is None else float(cpu)
         self.phases = dict.fromkeys(STEP_PHASES, 0.0)  # checkpoints from before phases existed: zeros
         self.phases.update({k: float(v) for k, v in state.get("phases", {}).items()})
 
@@ -429,7 +431,8 @@ class Trainer:
                     bar.set_postfix({k: f"{v:.4g}" for k, v in values.items()} | {"N": n}, refresh=False)
                     window_start, window_steps = time.perf_counter(), 0
                 self.seconds += time.perf_counter() - t0
-                self.cpu_seconds += time.process_time() - c0
+                if self.cpu_seconds is not None:
+                    self.cpu_seconds += time.process_time() - c0
                 every = t_cfg.checkpoint_every
                 if self.step < self.iterations and every > 0 and self.step % every == 0:
                     self.check_parameters(self.step)
