@@ -98,7 +98,8 @@ def test_eval_stage_reruns_from_the_final_checkpoint_when_its_output_is_missing(
     assert second.metrics["chamfer"] == pytest.approx(first.metrics["chamfer"], rel=2e-2)
 
 
-def test_interrupted_training_resumes_from_its_checkpoint(tiny_spot, tmp_path, monkeypatch):
+def interrupted_at_step_45(scene, out, monkeypatch):
+    """A quick 3DGS run stopped by Ctrl-C at step 45 (its checkpoint is at 30); returns its resolved config."""
     step = Trainer.train_step
 
     def interrupt_at_45(self, t):
@@ -107,13 +108,18 @@ def test_interrupted_training_resumes_from_its_checkpoint(tiny_spot, tmp_path, m
         return step(self, t)
 
     monkeypatch.setattr(Trainer, "train_step", interrupt_at_45)
-    gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR, expect=130)  # the CLI's Ctrl-C exit code
-    cfg = resolve_run("3dgs", str(tiny_spot), preset="quick", overrides=[*QUICK, ONE_EVALUATOR])
-    cfg.out = str(tmp_path / "runs")
+    gsbench_run("3dgs", scene, out, ONE_EVALUATOR, expect=130)  # the CLI's Ctrl-C exit code
+    monkeypatch.undo()
+    cfg = resolve_run("3dgs", str(scene), preset="quick", overrides=[*QUICK, ONE_EVALUATOR])
+    cfg.out = str(out)
+    return cfg
+
+
+def test_interrupted_training_resumes_from_its_checkpoint(tiny_spot, tmp_path, monkeypatch):
+    cfg = interrupted_at_step_45(tiny_spot, tmp_path / "runs", monkeypatch)
     folder = run_dir(cfg)
     assert RunRecord.read(folder / "record.json").status == "interrupted"  # resumable, not a failure
     assert (folder / RunFolder.CHECKPOINT).is_file()
-    monkeypatch.undo()
     gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR)
     assert RunRecord.read(folder / "record.json").status == "ok"
     logged = [json.loads(line)["step"] for line in (folder / RunFolder.METRICS).read_text().splitlines()]
@@ -124,18 +130,7 @@ def test_interrupted_training_resumes_from_its_checkpoint(tiny_spot, tmp_path, m
 def test_resume_from_a_checkpoint_without_cpu_time_records_none(tiny_spot, tmp_path, monkeypatch):
     """A checkpoint written before `timings.train_cpu` existed: the steps before it have no CPU time, so the record
     gives none rather than the part after the resume as if it were the whole."""
-    step = Trainer.train_step
-
-    def interrupt_at_45(self, t):
-        if t == 45:
-            raise KeyboardInterrupt
-        return step(self, t)
-
-    monkeypatch.setattr(Trainer, "train_step", interrupt_at_45)
-    gsbench_run("3dgs", tiny_spot, tmp_path / "runs", ONE_EVALUATOR, expect=130)
-    monkeypatch.undo()
-    cfg = resolve_run("3dgs", str(tiny_spot), preset="quick", overrides=[*QUICK, ONE_EVALUATOR])
-    cfg.out = str(tmp_path / "runs")
+    cfg = interrupted_at_step_45(tiny_spot, tmp_path / "runs", monkeypatch)
     checkpoint = run_dir(cfg) / RunFolder.CHECKPOINT
     state = load_checkpoint(checkpoint)
     del state["cpu_seconds"]
