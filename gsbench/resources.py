@@ -3,14 +3,20 @@
 `set_threads` is the one place the thread count is set: ``OMP_NUM_THREADS`` (read by torch's and the
 native libraries' OpenMP runtimes when they load) and torch's intra-op threads when torch is loaded, which
 every native call passes on (`gsbench.native.build.omp_threads`). ``OMP_WAIT_POLICY=PASSIVE`` is set when
-gsbench is imported (`gsbench/__init__.py`).
+gsbench is imported (`gsbench/__init__.py`). `keep_freed_memory` is the allocator's policy for training.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 import resource
 import sys
+
+# glibc's mallopt parameters (malloc.h)
+M_TRIM_THRESHOLD = -1
+M_MMAP_MAX = -4
+TRIM_THRESHOLD_BYTES = 2**31 - 1  # mallopt takes an int: free memory at the heap's top beyond 2 GiB is returned
 
 
 def set_threads(threads: int) -> int:
@@ -21,6 +27,25 @@ def set_threads(threads: int) -> int:
     if torch is not None:
         torch.set_num_threads(n)
     return n
+
+
+def keep_freed_memory() -> bool:
+    """Make glibc's malloc keep the memory a process frees for its next allocations: no block is given its own
+    ``mmap`` (``M_MMAP_MAX`` = 0) and the heap's free top is returned to the system only beyond 2 GiB
+    (``M_TRIM_THRESHOLD``). Returns whether the policy is in force (False where the C library is not glibc).
+
+    By default every block over 32 MiB is mapped when allocated and unmapped when freed, so each training step
+    faults in and zeroes its large tensors (images, per-pixel buffers, the Gaussians' gradients) afresh: at the
+    papers' size the kernel's page clearing was a tenth of a step (docs/measurements.md, "Memory the allocator
+    gave back"). Kept memory is reused by the next step, so the peak resident size does not grow.
+    """
+    try:
+        libc = ctypes.CDLL(None)
+        libc.gnu_get_libc_version  # noqa: B018  (glibc only: other C libraries have other mallopt parameters)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
 
 
 def peak_rss_bytes() -> int:

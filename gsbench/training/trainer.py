@@ -90,7 +90,7 @@ from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import CheckpointError, ConfigError, NumericalError, one_line
 from gsbench.losses.terms import Batch, active_terms, required_outputs, total_loss
-from gsbench.resources import set_threads
+from gsbench.resources import keep_freed_memory, set_threads
 from gsbench.run_folder import RunFolder
 from gsbench.training.optim import VisibleAdam
 from gsbench.training.progress import DEFAULT_INTERVAL, ProgressLines
@@ -283,6 +283,7 @@ class Trainer:
     def __init__(self, method, scene: Scene, cfg: RunConfig, run_dir, progress_interval: float | None = None):
         self.method, self.scene, self.cfg = method, scene, cfg
         self.threads = set_threads(cfg.threads)
+        keep_freed_memory()
         self.run_dir = Path(run_dir)
         self.iterations = int(cfg.train.iterations)
         if self.iterations < 1:
