@@ -5,7 +5,8 @@ rendering of a batch of pixel rays.
 **Encoding** (`MultiGrid`, the multi-resolution grid of Instant-NGP that NeuSG's Neuralangelo base
 uses, every level dense, none hashed: docs/methods/neusg.md §5.1): L levels of resolution
 N_l = round(N_min · b^l), b = (N_max / N_min)^(1/(L−1)), F features per grid vertex, trilinear
-interpolation of the cell's 8 vertices (``grid_sample``); the encoding concatenates the levels.
+interpolation of the cell's 8 vertices (`gsbench.methods.neusg_grid.grid_features`: a fused kernel, ``grid_sample`` its
+reference); the encoding concatenates the levels.
 Entries start uniform in ±1e-4 (Instant-NGP).
 
 **SDF** (`SDFField`): f(x) = (|x| − r₀) + g(x/R, enc(x)), g an MLP (one hidden layer of 64, softplus
@@ -41,6 +42,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gsbench.methods.neusg_grid import grid_features
+
 TETRAHEDRON = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
 SOFTPLUS_BETA = 100.0
 UPSAMPLE_S = 64.0  # NeuS's fixed s for the importance-sampling round
@@ -48,7 +51,7 @@ UPSAMPLE_S = 64.0  # NeuS's fixed s for the importance-sampling round
 
 class MultiGrid(torch.nn.Module):
     """Multi-resolution dense feature grids over [0, 1]³ (module docstring), sampled trilinearly by
-    ``torch.nn.functional.grid_sample`` (``align_corners``: grid vertex i at i / N_l)."""
+    `gsbench.methods.neusg_grid.grid_features` (grid vertex i at i / N_l)."""
 
     def __init__(self, levels: int, min_res: int, max_res: int, features: int, seed: int):
         super().__init__()
@@ -71,10 +74,7 @@ class MultiGrid(torch.nn.Module):
 
     def forward(self, unit: torch.Tensor) -> torch.Tensor:
         """(N, L·F) features of points ``unit`` (N,3) in [0, 1]³ (outside: the border value)."""
-        coords = (unit * 2 - 1).reshape(1, -1, 1, 1, 3)
-        out = [F.grid_sample(grid, coords, mode="bilinear", padding_mode="border", align_corners=True)
-               .reshape(self.features, -1).t() for grid in self.grids]
-        return torch.cat(out, dim=-1)
+        return grid_features(self.grids, unit)
 
 
 def _softplus(x: torch.Tensor) -> torch.Tensor:
