@@ -219,3 +219,30 @@ def test_sh_kept_apart_equals_sh_concatenated(kernel, degree):
     assert float(rest.grad.abs().max()) > 0 or degree == 0
     for name in ("means", "quats", "scales", "opacities"):
         assert torch.equal(getattr(whole, name).grad, getattr(apart, name).grad), name
+
+
+@pytest.mark.parametrize("kernel", FUSED_KERNELS)
+def test_gaussians_without_payload_gradient_get_exact_zero_gradients(kernel):
+    """The backward skips a Gaussian whose payload gradient is all zero (csrc/project.cpp): its gradients, SH rows
+    kept apart included, are exactly 0 (the output buffers start uninitialised), and the others still match the
+    PyTorch projection."""
+    cam = make_camera(40, 30)
+    g = random_gaussians(90, kernel, seed=5, camera=cam, dtype=torch.float64, sh_degree=3)
+    settings = RasterSettings(sh_degree=3)
+    ref = with_grad(g)
+    dc = g.sh[:, :1].clone().requires_grad_(True)
+    rest = g.sh[:, 1:].clone().requires_grad_(True)
+    fused = RasterGaussians(*(x.detach().clone().requires_grad_(True) for x in (g.means, g.quats, g.scales,
+                                                                               g.opacities)), dc, sh_rest=rest)
+    pa, pb = projection.project_torch(ref, cam, kernel, settings), project_fused(fused, cam, kernel, settings)
+    w = torch.randn(pa.params.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    skipped = torch.arange(len(g)) % 3 == 0
+    w[skipped] = 0.0
+    (pa.params * w).sum().backward()
+    (pb.params * w).sum().backward()
+    got = {"means": fused.means.grad, "quats": fused.quats.grad, "scales": fused.scales.grad,
+           "opacities": fused.opacities.grad, "sh": torch.cat([dc.grad, rest.grad], dim=1)}
+    for name, grad in got.items():
+        assert float(grad[skipped].abs().max()) == 0.0, name
+        want = getattr(ref, name).grad
+        assert float((grad - want).abs().max()) <= 1e-8 * float(want.abs().max()), name

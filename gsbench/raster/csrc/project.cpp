@@ -6,7 +6,8 @@
 // (raymax, surfel) compare the two in float64 and gradcheck this one). Storage
 // type T is float or double; every per-Gaussian quantity is computed in double (a few hundred flops per
 // Gaussian, so this costs nothing measurable and removes the float32 overflow cases of 1/det for tiny
-// covariances). The backward recomputes the forward intermediates instead of saving them.
+// covariances). The backward recomputes the forward intermediates instead of saving them, and skips a Gaussian
+// whose payload gradient is all zero (its gradients are then 0: they are linear in it).
 //
 // Payload columns: see gsbench/raster/payload.py (common 0-8, ewa 9-12, rade 9-14, raymax 9-23, surfel 9-20).
 // surfel reads only scales[:, :2] (the caller pads a third column, whose gradient is written as 0).
@@ -543,6 +544,25 @@ inline void cross_bwd(const D* a, const D* b, const D* g, D* ga, D* gb) {
     gb[2] += g[0] * a[1] - g[1] * a[0];
 }
 
+// Whether the P payload gradients of a Gaussian are all 0: those of the Gaussians no pixel reached (outside the
+// view, or behind pixels that stopped), 60-66% of them at a trained papers'-size state (docs/measurements.md).
+template <typename T, int P>
+inline bool zero_row(const T* gp) {
+    bool zero = true;
+    for (int k = 0; k < P; ++k) zero &= gp[k] == T(0);
+    return zero;
+}
+
+// The gradients of a Gaussian with zero payload gradients: 0 for every input row, SH rows included.
+template <typename T>
+inline void write_zero_gradients(const ProjArgs& A, int64_t i) {
+    std::fill_n((T*)A.g_means + 3 * i, 3, T(0));
+    std::fill_n((T*)A.g_quats + 4 * i, 4, T(0));
+    std::fill_n((T*)A.g_scales + 3 * i, 3, T(0));
+    ((T*)A.g_opac)[i] = T(0);
+    for (int k = 0; k < A.sh_k + A.sh_rest_k; ++k) std::fill_n(g_sh_row<T>(A, i, k), 3, T(0));
+}
+
 template <typename T, int KER>
 void project_backward(const ProjArgs& A) {
     constexpr int P = nparams<KER>();
@@ -550,9 +570,13 @@ void project_backward(const ProjArgs& A) {
     const D fx = A.fx, fy = A.fy;
 #pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 1024)
     for (int64_t i = 0; i < A.n; ++i) {
+        const T* gp = (const T*)A.g_params + i * P;
+        if (zero_row<T, P>(gp)) {  // every gradient of the Gaussian is 0 (they are linear in g): skip its work
+            write_zero_gradients<T>(A, i);
+            continue;
+        }
         Fw f;
         forward_one<T, KER>(A, i, f);
-        const T* gp = (const T*)A.g_params + i * P;
         D g[P];
         for (int k = 0; k < P; ++k) g[k] = (D)gp[k];
         D gmu[3] = {0, 0, 0}, gRc[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gse[3] = {0, 0, 0}, gm[3] = {0, 0, 0};
