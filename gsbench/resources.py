@@ -34,10 +34,10 @@ def keep_freed_memory() -> bool:
     ``mmap`` (``M_MMAP_MAX`` = 0) and the heap's free top is returned to the system only beyond 2 GiB
     (``M_TRIM_THRESHOLD``). Returns whether the policy is in force (False where the C library is not glibc).
 
-    By default every block over 32 MiB is mapped when allocated and unmapped when freed, so each training step
-    faults in and zeroes its large tensors (images, per-pixel buffers, the Gaussians' gradients) afresh: at the
-    papers' size the kernel's page clearing was a tenth of a step (docs/measurements.md, "Memory the allocator
-    gave back"). Kept memory is reused by the next step, so the peak resident size does not grow.
+    By default glibc gives each large block (above a threshold that grows to at most 32 MiB) its own ``mmap`` and
+    unmaps it when freed, so every training step faults in and zeroes its large tensors (images, per-pixel buffers,
+    the Gaussians' gradients) afresh: at the papers' size that cost 9% of a step (docs/measurements.md, "Memory the
+    allocator gave back"). Kept memory is reused by the next step, so the peak resident size does not grow.
     """
     try:
         libc = ctypes.CDLL(None)
