@@ -23,10 +23,11 @@ import torch
 import gsbench.raster as R
 from gsbench.bench import roofline
 from gsbench.data.camera import Camera
+from gsbench.errors import ConfigError
 from gsbench.raster import profiling, rasterize, reference
 from gsbench.raster.abi import library
 from gsbench.raster.sh import C0 as SH_C0
-from gsbench.raster.types import RasterGaussians, RasterSettings
+from gsbench.raster.types import KERNELS, RasterGaussians, RasterSettings
 
 FLOOR_FWD = 1.45e9  # pairs/s, 2 threads (docs/rasterizer.md §12.1)
 FLOOR_BWD = 0.75e9
@@ -184,9 +185,15 @@ def run_raster_benchmark(
     ``None`` for ``kernels`` or ``workloads`` means all of them (the CLI passes None when a flag is omitted).
     """
     if kernels is None:
-        kernels = ("ewa", "rade", "raymax", "surfel")
+        kernels = KERNELS
     if workloads is None:
         workloads = tuple(STANDARD_WORKLOADS)
+    unknown = [w for w in workloads if isinstance(w, str) and w not in STANDARD_WORKLOADS]
+    if unknown:
+        raise ConfigError(f"unknown raster workload(s) {unknown}; available: {', '.join(STANDARD_WORKLOADS)}")
+    unknown = [k for k in kernels if k not in KERNELS]
+    if unknown:
+        raise ConfigError(f"unknown raster kernel(s) {unknown}; available: {', '.join(KERNELS)}")
 
     library()
     old_threads = torch.get_num_threads()

@@ -4,6 +4,9 @@
 
 - memory bandwidth: the best of 5 STREAM triads a = b + s·c over three 64 MiB float32 arrays, counted as
   STREAM counts it (12 bytes per element: two reads and one write);
+- in-place bandwidth: the best of 5 updates a += s·c over two such arrays (12 bytes per element: a read, a written
+  back, c read), the pattern of an optimizer step. A triad's write to a third array first reads the line it
+  writes (4 transfers for 3 counted), an update does not, so it shows the most a stream can draw;
 - the compute peak: the best of 3 runs of 16 independent 16-wide float32 FMA chains per thread
   (`csrc/roofline.cpp`), in FMA lane
   operations per second (a lane operation: one add, multiply, FMA, compare or select on one float; the
@@ -55,21 +58,27 @@ def _library() -> ctypes.CDLL:
     signatures = {
         "gs_triad_seconds": ([ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int,
                               ctypes.c_int], ctypes.c_double),
+        "gs_update_seconds": ([ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int, ctypes.c_int],
+                              ctypes.c_double),
         "gs_fma_seconds": ([ctypes.c_int64, ctypes.c_int, ctypes.c_void_p], ctypes.c_double),
     }
     return load_library("roofline", [Path(__file__).parent / "csrc" / "roofline.cpp"], signatures)
 
 
 def machine_limits(threads: int, elements: int = TRIAD_ELEMENTS, fma_iters: int = FMA_ITERS) -> dict:
-    """{"bandwidth_gb_s", "peak_lane_ops_s", "peak_gflops", "threads"} measured now (module docstring)."""
+    """{"bandwidth_gb_s", "update_gb_s", "peak_lane_ops_s", "peak_gflops", "threads"} measured now (module
+    docstring)."""
     lib = _library()
     a, b, c = (np.ones(elements, np.float32) for _ in range(3))
     seconds = lib.gs_triad_seconds(a.ctypes.data, b.ctypes.data, c.ctypes.data, elements, 5, threads)
     bandwidth = TRIAD_BYTES_PER_ELEMENT * elements / seconds
+    update = TRIAD_BYTES_PER_ELEMENT * elements / lib.gs_update_seconds(a.ctypes.data, c.ctypes.data, elements, 5,
+                                                                         threads)
     sink = np.zeros(1, np.float32)
     fma = min(lib.gs_fma_seconds(fma_iters, threads, sink.ctypes.data) for _ in range(FMA_REPEATS))
     lane_ops = threads * fma_iters * FMA_LANE_OPS / fma
-    return {"threads": threads, "bandwidth_gb_s": bandwidth / 1e9, "peak_lane_ops_s": lane_ops,
+    return {"threads": threads, "bandwidth_gb_s": bandwidth / 1e9, "update_gb_s": update / 1e9,
+            "peak_lane_ops_s": lane_ops,
             "peak_gflops": 2 * lane_ops / 1e9}
 
 
@@ -98,6 +107,7 @@ def format_roofline(result: dict) -> str:
     """The machine's limits and, per kernel × workload and phase, the fraction of the bound reached."""
     m = result["machine"]
     lines = [f"machine ({m['threads']} threads): memory {m['bandwidth_gb_s']:.1f} GB/s (triad), "
+             f"{m['update_gb_s']:.1f} GB/s (in-place update), "
              f"peak {m['peak_gflops']:.0f} GFLOP/s float32 FMA ({m['peak_lane_ops_s'] / 1e9:.0f} G lane-ops/s)",
              "phase bounds (items/s measured / bound, limit): "]
     for row in result["rows"]:

@@ -22,6 +22,20 @@ double gs_triad_seconds(float* a, const float* b, const float* c, int64_t n, int
     return best;
 }
 
+// Best seconds of `repeats` in-place updates a[i] += s c[i] over n floats: the access pattern of an optimizer
+// step (its arrays read and written back in place, so no write allocates a line it has not read).
+double gs_update_seconds(float* a, const float* c, int64_t n, int repeats, int threads) {
+    double best = 1e30;
+    for (int r = 0; r < repeats; ++r) {
+        const auto t0 = std::chrono::steady_clock::now();
+#pragma omp parallel for num_threads(threads) schedule(static)
+        for (int64_t i = 0; i < n; ++i) a[i] += 1e-7f * c[i];
+        const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        best = std::min(best, s);
+    }
+    return best;
+}
+
 // Seconds of `iters` rounds of 16 independent 16-wide float FMA chains per thread (2 flops per lane per FMA):
 // flops = threads × iters × 16 chains × 16 lanes × 2. The chains' results are returned in `sink`.
 typedef float v16 __attribute__((vector_size(64)));
