@@ -243,3 +243,21 @@ def test_plot_file_names_stay_short_and_distinct():
     a, b = _file_stem(base + " method.refinement=short"), _file_stem(base + " method.refinement=none")
     assert len(a) <= FILE_STEM_MAX and len(b) <= FILE_STEM_MAX and a != b
     assert _file_stem("surface-dtu-bunny 2dgs") == "surface-dtu-bunny-2dgs"
+
+
+def test_keys_a_preset_sets_are_named_by_the_preset_alone(tmp_path):
+    """Runs of one method at two presets differ in the keys the preset sets (iterations, image size): the rows
+    are `[preset=cpu]` and `[preset=bench]`. A key that also varies within one preset stays in the label, so
+    runs of different configs never share a row."""
+    runs = _copy_runs(tmp_path)
+    records = sorted(runs.glob("dtu/*/2dgs/*/record.json"))
+    for i, path in enumerate(records):
+        data = json.loads(path.read_text())
+        bench = i % 2 == 1
+        data["config"].update({"preset": "bench" if bench else "cpu", "train.iterations": 6000 if bench else 3000})
+        if bench and i == 1:
+            data["config"]["method.knn_k"] = 7  # an override within the bench preset
+        path.write_text(json.dumps(data))
+    rows = {r.row for r in label_variants(load_runs(runs)[0]) if (r.dataset, r.method) == ("dtu", "2dgs")}
+    assert rows == {"2dgs [method.knn_k=unset, preset=cpu]", "2dgs [method.knn_k=unset, preset=bench]",
+                    "2dgs [method.knn_k=7, preset=bench]"}

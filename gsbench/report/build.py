@@ -87,7 +87,8 @@ CLAIMS_NOTES = [
     "on a leaderboard is represented by the one with the most runs (named under rows compared).",
 ]
 ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
-             "between its runs on one scene (so different configs are never averaged as if they were seeds).")
+             "between its runs on one scene (so different configs are never averaged as if they were seeds); "
+             "where presets differ, the keys a preset sets (one value per preset) are named by `preset=...` alone.")
 
 
 FILE_STEM_MAX = 100  # characters of a plot's file name stem; a longer one (a row label with many keys) is cut

@@ -8,7 +8,8 @@ record, then the newest, then the first path, and the others are named in a warn
 
 Rows of a leaderboard are configurations, not just methods: `label_variants` names each run by the
 config keys whose values differ between runs of the same method on the same scene (e.g.
-``method.knn_k=5``), so runs of different configs are never averaged together as if they were seeds.
+``method.knn_k=5``), so runs of different configs are never averaged together as if they were seeds; keys that
+follow from the preset are named by ``preset=...`` alone.
 
 A record's ``skipped`` ({evaluator: reason}: the evaluators its scene could not feed, e.g. no ground
 truth) is kept as `Run.skipped`; records written before that field read as none skipped.
@@ -32,6 +33,7 @@ from gsbench.run_folder import RunFolder
 RECORD_NAME = RunFolder.RECORD
 # Identity and execution keys: they never distinguish two configurations of one method.
 NOT_A_VARIANT = ("seed", "scene", "out", "threads")
+PRESET_KEY = "preset"
 REQUIRED = ("run_id", "method", "dataset", "scene")
 
 
@@ -215,7 +217,9 @@ def _show(value) -> str:
 
 def label_variants(runs: list[Run]) -> list[Run]:
     """The runs with ``variant`` set to ``key=value, ...`` over the config keys that take more than one
-    value among the runs of one (dataset, method, scene); empty when a method ran one config only."""
+    value among the runs of one (dataset, method, scene); empty when a method ran one config only. When the
+    preset is among them, a key with one value per preset (what the preset sets: image size, iterations,
+    budget) is left to ``preset=...``; runs of different configs still never share a label."""
     values: dict[tuple, dict[str, set]] = {}
     presence: dict[tuple, dict[str, int]] = {}
     sizes: dict[tuple, int] = {}
@@ -233,12 +237,24 @@ def label_variants(runs: list[Run]) -> list[Run]:
             # a key that some runs of the group lack also varies
             if key not in NOT_A_VARIANT and (len(options) > 1 or presence[group][key] < sizes[group]):
                 keys.add(key)
+    for (dataset, method), keys in varying.items():
+        if PRESET_KEY in keys:
+            ours = [r for r in runs if (r.dataset, r.method) == (dataset, method)]
+            keys -= {k for k in keys - {PRESET_KEY} if _follows_preset(ours, k)}
     labelled = []
     for run in runs:
         keys = sorted(varying[(run.dataset, run.method)])
         variant = ", ".join(f"{k}={_show(run.config.get(k))}" for k in keys)
         labelled.append(dataclasses.replace(run, variant=variant))
     return labelled
+
+
+def _follows_preset(runs: list[Run], key: str) -> bool:
+    """Whether ``key`` takes one value among the runs of each preset: then ``preset=...`` names it."""
+    by_preset: dict[str, set] = {}
+    for run in runs:
+        by_preset.setdefault(_show(run.config.get(PRESET_KEY)), set()).add(_show(run.config.get(key)))
+    return all(len(values) == 1 for values in by_preset.values())
 
 
 def load_manifests(runs_dir: Path) -> tuple[list[Manifest], list[str]]:
