@@ -82,3 +82,24 @@ def test_reset_sets_the_filtered_opacity():
     # o_eff = 0.0625 -> 0.01 -> o = 0.08; o_eff = 0.005 < 0.01 stays; no filter: min(0.5, 0.01)
     assert g.opacities.detach().tolist() == pytest.approx([0.08, 0.04, 0.01], rel=1e-5)
     assert (opt.state[g.params["opacity_logits"]]["exp_avg"] == 0).all()
+
+
+def test_reset_of_a_saturated_strongly_filtered_opacity_stays_finite():
+    """A Gaussian with opacity 1 in float32 (logit 30) and a filter coefficient below the reset value: the
+    public form logit(min(o·c, v) / c) = logit(c / c) is +inf (or NaN). The reset leaves it as it is; a row
+    above the value is lowered to o_eff = v exactly as before, and a row below it keeps its logit bit for bit."""
+    logits = torch.tensor([30.0, 0.0, -3.0])
+    g = Gaussians(means=torch.zeros(3, 3), log_scales=torch.full((3, 3), math.log(0.1)),
+                  quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(3, 1), opacity_logits=logits.clone(),
+                  sh_dc=torch.zeros(3, 1, 3), sh_rest=torch.zeros(3, 0, 3), max_sh_degree=0)
+    opt = torch.optim.Adam([{"params": [p], "name": k, "lr": 0.0} for k, p in g.params.items()])
+    # s² = 0.01: σ_f² = 0.5 gives c = (0.01 / 0.51)^1.5 ≈ 0.0027 < 0.01; 0.03 gives c = 0.125
+    variance = torch.tensor([0.5, 0.03, 0.03])
+    coef = filter_coefficient(g.scales.detach(), variance)
+    assert torch.sigmoid(logits[0]) == 1.0 and coef[0] < 0.01
+    assert not torch.isfinite(torch.logit(torch.clamp(torch.sigmoid(logits) * coef, max=0.01) / coef))[0]
+    reset_opacity(g, opt, 0.01, variance)
+    new = g.params["opacity_logits"].detach()
+    assert torch.isfinite(new).all()
+    assert new[0] == logits[0] and new[2] == logits[2]  # not lowered: the logit itself, no round trip
+    assert (g.opacities.detach()[1] * coef[1]).item() == pytest.approx(0.01, rel=1e-6)

@@ -19,6 +19,7 @@ them — faithful to 3DGS (docs/methods/3dgs.md §5.3).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import torch
@@ -83,14 +84,21 @@ def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value:
 
     With a 3D-filter variance ``filter3d`` (N,) the *filtered* opacity is reset (docs/methods/gof.md §2.5): with
     c = `filter_coefficient`, o_eff = o·c ← min(o_eff, value), stored as o = o_eff / c (<= o).
+
+    Both are o ← min(o, value / c) (c = 1 without the filter), applied to the logit, which is monotonic:
+    logit ← min(logit, logit(value / c)). A row the reset does not lower keeps its logit exactly. The authors'
+    codes go through the opacity and back (logit(min(o·c, value) / c)); for a saturated opacity (o = 1 in
+    float32) with c < value that gives logit(c / c) = logit(1) = +inf, or NaN when the division rounds above 1
+    (docs/methods/gof.md §2.5).
     """
-    o = gaussians.opacities.detach()
+    logits = gaussians.params["opacity_logits"].detach()
     if filter3d is None:
-        o = torch.clamp(o, max=value)
+        ceiling = torch.full_like(logits, value)
     else:
-        coef = filter_coefficient(gaussians.scales.detach(), filter3d.to(o.dtype))
-        o = torch.clamp(o * coef, max=value) / coef
-    _swap(gaussians, optimizer, "opacity_logits", torch.logit(o), torch.zeros_like)
+        ceiling = value / filter_coefficient(gaussians.scales.detach(), filter3d.to(logits.dtype))
+    # value / c at or above 1 (c <= value) lowers nothing: its logit (+inf, or NaN above 1) is replaced by +inf
+    ceiling_logit = torch.where(ceiling < 1, torch.logit(ceiling.clamp(max=1)), torch.full_like(logits, math.inf))
+    _swap(gaussians, optimizer, "opacity_logits", torch.minimum(logits, ceiling_logit), torch.zeros_like)
 
 
 def _sample_offsets(rows: Mapping[str, torch.Tensor], quats: torch.Tensor) -> torch.Tensor:
