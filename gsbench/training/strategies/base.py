@@ -19,7 +19,6 @@ them — faithful to 3DGS (docs/methods/3dgs.md §5.3).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 
 import torch
@@ -96,8 +95,8 @@ def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value:
         ceiling = torch.full_like(logits, value)
     else:
         ceiling = value / filter_coefficient(gaussians.scales.detach(), filter3d.to(logits.dtype))
-    # value / c at or above 1 (c <= value) lowers nothing: its logit (+inf, or NaN above 1) is replaced by +inf
-    ceiling_logit = torch.where(ceiling < 1, torch.logit(ceiling.clamp(max=1)), torch.full_like(logits, math.inf))
+    # value / c at or above 1 (c <= value) lowers nothing: clamped to 1, its logit is +inf
+    ceiling_logit = torch.logit(ceiling.clamp(max=1.0))
     _swap(gaussians, optimizer, "opacity_logits", torch.minimum(logits, ceiling_logit), torch.zeros_like)
 
 
