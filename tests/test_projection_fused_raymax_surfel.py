@@ -26,7 +26,14 @@ from raster_scenes import concat, make_camera, random_gaussians, single_gaussian
 from gsbench.raster import RasterGaussians, RasterSettings, projection, rasterize  # noqa: E402
 from gsbench.raster.payload import NUM_PARAMS
 from gsbench.raster.projection import project_fused, project_torch  # noqa: E402
-from tests.projection_checks import DETACHED, PARAMS, compare_projections, posed_camera  # noqa: E402
+from gsbench.raster.projection_fused import FUSED_KERNELS  # noqa: E402
+from tests.projection_checks import (  # noqa: E402
+    DETACHED,
+    PARAMS,
+    check_lanes_match_one_at_a_time,
+    compare_projections,
+    posed_camera,
+)
 
 KERNELS = ("raymax", "surfel")
 
@@ -259,3 +266,21 @@ def _bench(sizes=(50_000, 200_000), repeats=5, threads=2):
 
 if __name__ == "__main__":
     _bench()
+
+
+@pytest.mark.parametrize("kernel", FUSED_KERNELS)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("filter3d", [None, 1e-3], ids=["nofilter", "filter3d"])
+def test_vector_lanes_match_one_gaussian_at_a_time(kernel, dtype, filter3d):
+    """The hard cases and a random scene, 49 Gaussians: six blocks of 8 lanes (the hard cases among them) and
+    one Gaussian at a time for the last, against each Gaussian projected alone (one at a time)."""
+    cam = posed_camera(40, 30)
+    rand = random_gaussians(29, kernel, seed=11, camera=make_camera(40, 30), dtype=torch.float64, sh_degree=3)
+    g = concat(_hard_scene(kernel), RasterGaussians(rand.means, rand.quats, rand.scales, rand.opacities,
+                                                    rand.sh[:, :16]))
+    if filter3d is not None:
+        g = RasterGaussians(g.means, g.quats, g.scales, g.opacities, g.sh, torch.full((len(g),), filter3d,
+                                                                                       dtype=torch.float64))
+    g = g.map(lambda t: t.to(dtype))
+    for settings in (SETTINGS["sh3-aa-eps-near-nofilter"], SETTINGS["sh2-aa-filter0.5"]):
+        check_lanes_match_one_at_a_time(g, cam, kernel, settings, tol=1e-12 if dtype == torch.float64 else 1e-6)

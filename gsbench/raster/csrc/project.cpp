@@ -6,7 +6,8 @@
 // (raymax, surfel) compare the two in float64 and gradcheck this one). Storage
 // type T is float or double; every per-Gaussian quantity is computed in double (a few hundred flops per
 // Gaussian, so this costs nothing measurable and removes the float32 overflow cases of 1/det for tiny
-// covariances). The backward recomputes the forward intermediates instead of saving them, and skips a Gaussian
+// covariances). The forward runs LANES Gaussians at a time in vector lanes (below, "Lanes"). The backward,
+// one Gaussian at a time, recomputes the forward intermediates instead of saving them, and skips a Gaussian
 // whose payload gradient is all zero (its gradients are then 0: they are linear in it).
 //
 // Payload columns: see gsbench/raster/payload.py (common 0-8, ewa 9-12, rade 9-14, raymax 9-23, surfel 9-20).
@@ -15,6 +16,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
 #include <omp.h>
 
 extern "C" {
@@ -84,32 +86,132 @@ inline T* g_sh_row(const ProjArgs& A, int64_t i, int k) {
 template <int KER>
 constexpr int nparams() { return KER == K_EWA ? 13 : KER == K_RADE ? 15 : KER == K_RAYMAX ? 24 : 21; }
 
+// Lanes. The forward evaluates LANES Gaussians at a time in GCC vector lanes (values V8, masks M8: -1 true, 0
+// false); the same template code instantiated on (double, bool) is the one-Gaussian path, used for the forward's
+// tail and by the backward, which recomputes the forward of one Gaussian. A lane computes both sides of every
+// select and keeps one, so a lane's discarded side may hold inf or NaN; no kept value depends on it.
+constexpr int LANES = 8;
+typedef D V8 __attribute__((vector_size(LANES * sizeof(D))));
+typedef int64_t M8 __attribute__((vector_size(LANES * sizeof(int64_t))));
+
+template <typename V> struct LaneTraits { using M = bool; static constexpr int n = 1; };
+template <> struct LaneTraits<V8> { using M = M8; static constexpr int n = LANES; };
+template <typename V> using MaskOf = typename LaneTraits<V>::M;
+
+template <typename V> inline V splat(D x) {
+    if constexpr (std::is_same_v<V, D>) return x; else return x + V8{};
+}
+inline D lane(D x, int) { return x; }
+inline D lane(V8 x, int l) { return x[l]; }
+inline bool lane(bool m, int) { return m; }
+inline bool lane(M8 m, int l) { return m[l] != 0; }
+inline D sel(bool m, D a, D b) { return m ? a : b; }
+inline V8 sel(M8 m, V8 a, V8 b) { return m ? a : b; }
+inline V8 sel(M8 m, V8 a, D b) { return m ? a : splat<V8>(b); }
+inline V8 sel(M8 m, D a, V8 b) { return m ? splat<V8>(a) : b; }
+inline V8 sel(M8 m, D a, D b) { return m ? splat<V8>(a) : splat<V8>(b); }
+inline bool mand(bool a, bool b) { return a && b; }
+inline M8 mand(M8 a, M8 b) { return a & b; }
+inline bool mnot(bool a) { return !a; }
+inline M8 mnot(M8 a) { return ~a; }
+// std::max / std::min lane by lane (std::max(a, b) is a < b ? b : a; std::min(a, b) is b < a ? b : a)
+template <typename V> inline V vmax(V a, V b) { return sel(a < b, b, a); }
+template <typename V> inline V vmin(V a, V b) { return sel(b < a, b, a); }
+inline V8 vmax(V8 a, D b) { return vmax(a, splat<V8>(b)); }
+inline V8 vmin(V8 a, D b) { return vmin(a, splat<V8>(b)); }
+template <typename V> inline V clampv(V x, D lo, D hi) { return vmin(vmax(x, splat<V>(lo)), splat<V>(hi)); }
+#define GSB_LANEWISE(name, fn)                                            \
+    inline D name(D x) { return fn(x); }                                  \
+    inline V8 name(V8 x) {                                                \
+        V8 r;                                                             \
+        for (int l = 0; l < LANES; ++l) r[l] = fn(x[l]);                  \
+        return r;                                                         \
+    }
+GSB_LANEWISE(vsqrt, std::sqrt)
+GSB_LANEWISE(vlog, std::log)
+GSB_LANEWISE(vfloor, std::floor)
+GSB_LANEWISE(vceil, std::ceil)
+GSB_LANEWISE(vabs, std::abs)
+#undef GSB_LANEWISE
+
+// Element k of row i of a (N, stride) array of storage type T, as V (lanes: rows i .. i + LANES - 1).
+template <typename V, typename T>
+inline V gather(const T* base, int64_t i, int64_t stride, int64_t k) {
+    if constexpr (std::is_same_v<V, D>) {
+        return (D)base[i * stride + k];
+    } else {
+        V8 r;
+        for (int l = 0; l < LANES; ++l) r[l] = (D)base[(i + l) * stride + k];
+        return r;
+    }
+}
+
+template <typename T, typename V>
+inline void scatter(T* base, int64_t i, int64_t stride, int64_t k, V x) {
+    for (int l = 0; l < LaneTraits<V>::n; ++l) base[(i + l) * stride + k] = (T)lane(x, l);
+}
+
+// The raw SH colour Σ_k b_k c_k (k < nb, in order) of each lane: row k of sh for k < sh_k, else row k − sh_k of
+// sh_rest. Each lane reads its own rows, which are contiguous; a gather across the lanes per coefficient made
+// the forward 1.4 times as slow (docs/measurements.md, "The projection in vector lanes"). Explicit fused
+// multiply-adds: the same rounding whichever loop a row falls in (sh kept apart or not, lanes or one Gaussian).
+template <typename V, typename T>
+inline void sh_colour(const ProjArgs& A, int64_t i, int nb, const V* bs, V* raw) {
+    const int k_sh = std::min<int>(nb, (int)A.sh_k);
+    for (int l = 0; l < LaneTraits<V>::n; ++l) {
+        D acc[3] = {0, 0, 0};
+        const T* row = (const T*)A.sh + (i + l) * A.sh_k * 3;
+        for (int k = 0; k < k_sh; ++k)
+            for (int c = 0; c < 3; ++c) acc[c] = std::fma(lane(bs[k], l), (D)row[3 * k + c], acc[c]);
+        if (nb > k_sh) {
+            const T* rest = (const T*)A.sh_rest + (i + l) * A.sh_rest_k * 3;
+            for (int k = k_sh; k < nb; ++k)
+                for (int c = 0; c < 3; ++c) acc[c] = std::fma(lane(bs[k], l), (D)rest[3 * (k - k_sh) + c], acc[c]);
+        }
+        for (int c = 0; c < 3; ++c) {
+            if constexpr (std::is_same_v<V, D>) raw[c] = acc[c]; else raw[c][l] = acc[c];
+        }
+    }
+}
+
+// Whether z <= near in the storage type T, as the PyTorch path compares (z exactly at near).
+template <typename T>
+inline bool le_storage(D z, D near) { return (T)z <= (T)near; }
+template <typename T>
+inline M8 le_storage(V8 z, D near) {
+    M8 m;
+    for (int l = 0; l < LANES; ++l) m[l] = (T)z[l] <= (T)near ? -1 : 0;
+    return m;
+}
+
 // Real SH basis (3DGS convention, sh.py) and optionally its derivative w.r.t. (x, y, z).
-inline void sh_basis(int deg, D x, D y, D z, D* b, D (*db)[3]) {
-    b[0] = SH0;
-    if (db) db[0][0] = db[0][1] = db[0][2] = 0;
+template <typename V>
+inline void sh_basis(int deg, V x, V y, V z, V* b, V (*db)[3]) {
+    b[0] = splat<V>(SH0);
+    if (db) db[0][0] = db[0][1] = db[0][2] = splat<V>(0);
     if (deg < 1) return;
     b[1] = -SH1 * y;
     b[2] = SH1 * z;
     b[3] = -SH1 * x;
     if (db) {
-        db[1][0] = 0, db[1][1] = -SH1, db[1][2] = 0;
-        db[2][0] = 0, db[2][1] = 0, db[2][2] = SH1;
-        db[3][0] = -SH1, db[3][1] = 0, db[3][2] = 0;
+        db[1][0] = db[1][2] = splat<V>(0), db[1][1] = splat<V>(-SH1);
+        db[2][0] = db[2][1] = splat<V>(0), db[2][2] = splat<V>(SH1);
+        db[3][1] = db[3][2] = splat<V>(0), db[3][0] = splat<V>(-SH1);
     }
     if (deg < 2) return;
-    const D xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+    const V xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
     b[4] = SH2[0] * xy;
     b[5] = SH2[1] * yz;
     b[6] = SH2[2] * (2.0 * zz - xx - yy);
     b[7] = SH2[3] * xz;
     b[8] = SH2[4] * (xx - yy);
     if (db) {
-        db[4][0] = SH2[0] * y, db[4][1] = SH2[0] * x, db[4][2] = 0;
-        db[5][0] = 0, db[5][1] = SH2[1] * z, db[5][2] = SH2[1] * y;
+        const V zero = splat<V>(0);
+        db[4][0] = SH2[0] * y, db[4][1] = SH2[0] * x, db[4][2] = zero;
+        db[5][0] = zero, db[5][1] = SH2[1] * z, db[5][2] = SH2[1] * y;
         db[6][0] = -2.0 * SH2[2] * x, db[6][1] = -2.0 * SH2[2] * y, db[6][2] = 4.0 * SH2[2] * z;
-        db[7][0] = SH2[3] * z, db[7][1] = 0, db[7][2] = SH2[3] * x;
-        db[8][0] = 2.0 * SH2[4] * x, db[8][1] = -2.0 * SH2[4] * y, db[8][2] = 0;
+        db[7][0] = SH2[3] * z, db[7][1] = zero, db[7][2] = SH2[3] * x;
+        db[8][0] = 2.0 * SH2[4] * x, db[8][1] = -2.0 * SH2[4] * y, db[8][2] = zero;
     }
     if (deg < 3) return;
     b[9] = SH3[0] * y * (3.0 * xx - yy);
@@ -120,88 +222,89 @@ inline void sh_basis(int deg, D x, D y, D z, D* b, D (*db)[3]) {
     b[14] = SH3[5] * z * (xx - yy);
     b[15] = SH3[6] * x * (xx - 3.0 * yy);
     if (db) {
-        db[9][0] = SH3[0] * 6.0 * xy, db[9][1] = SH3[0] * (3.0 * xx - 3.0 * yy), db[9][2] = 0;
+        const V zero = splat<V>(0);
+        db[9][0] = SH3[0] * 6.0 * xy, db[9][1] = SH3[0] * (3.0 * xx - 3.0 * yy), db[9][2] = zero;
         db[10][0] = SH3[1] * yz, db[10][1] = SH3[1] * xz, db[10][2] = SH3[1] * xy;
         db[11][0] = -2.0 * SH3[2] * xy, db[11][1] = SH3[2] * (4.0 * zz - xx - 3.0 * yy), db[11][2] = 8.0 * SH3[2] * yz;
         db[12][0] = -6.0 * SH3[3] * xz, db[12][1] = -6.0 * SH3[3] * yz,
         db[12][2] = SH3[3] * (6.0 * zz - 3.0 * xx - 3.0 * yy);
         db[13][0] = SH3[4] * (4.0 * zz - 3.0 * xx - yy), db[13][1] = -2.0 * SH3[4] * xy, db[13][2] = 8.0 * SH3[4] * xz;
         db[14][0] = 2.0 * SH3[5] * xz, db[14][1] = -2.0 * SH3[5] * yz, db[14][2] = SH3[5] * (xx - yy);
-        db[15][0] = SH3[6] * (3.0 * xx - 3.0 * yy), db[15][1] = -6.0 * SH3[6] * xy, db[15][2] = 0;
+        db[15][0] = SH3[6] * (3.0 * xx - 3.0 * yy), db[15][1] = -6.0 * SH3[6] * xy, db[15][2] = zero;
     }
 }
 
-// Forward intermediates of one Gaussian.
+// Forward intermediates of one Gaussian (V = D, M = bool) or of LANES of them (V8, M8).
+template <typename V>
 struct Fw {
-    D qr[4], qn, qden, q[4];
-    D s[3], s2[3], s2f[3], se[3], o, o1, fo, o2;
-    D m[3], mu[3], z, zs;
-    bool culled;
-    D qc[4], Rc[9];
-    D dv[3], dn, dden, dir[3], raw[3], rgb[3];
-    D u, v, uc, vc;
-    bool inx, iny;
-    D M[9], r0[3], r1[3], a0, b, c0, cr[3], gdet;
-    D a, c, det, det0, fac;
-    bool okk, ok;
-    D conic[3];
-    // ewa
-    int idx;
-    D sgn;
+    using M = MaskOf<V>;
+    V qr[4], qn, qden, q[4];
+    V s[3], s2[3], s2f[3], se[3], o, o1, fo, o2;
+    V m[3], mu[3], z, zs;
+    M culled;
+    V qc[4], Rc[9];
+    V dv[3], dn, dden, dir[3], raw[3], rgb[3];
+    V u, v, uc, vc;
+    M inx, iny;
+    V M_[9], r0[3], r1[3], a0, b, c0, cr[3], gdet;
+    V a, c, det, det0, fac;
+    M okk, ok;
+    V conic[3];
+    // ewa: the normal is column idx of Rc (idx the smallest scale: 1 if pick1, 2 if pick2, else 0) times sgn
+    M pick1, pick2;
+    V sgn, ncol[3];
     // rade
-    D dc[3], dt[3], dm, h[3], mvec[3], nn2, sq, lc, dms, p0, p1, mut[3], w[3], bvec[3], l, bnorm, bden, nrm[3];
+    V dc[3], dt[3], dm, h[3], mvec[3], nn2, sq, lc, dms, p0, p1, mut[3], w[3], bvec[3], l, bnorm, bden, nrm[3];
     // raymax (mut shared with rade): E = Rc S⁻¹ (rows ẽ_i), S6 = E Eᵀ (00,01,02,11,12,22), braw = E μ̃,
     // cs = μ̃·μ̃ (1 if culled), sq = √cs, muh = μ̃/sq, vx = muh × ẽ_0, vy = muh × ẽ_1, dM = (vx·vx, vx·vy, vy·vy)
-    D E[9], S6[6], braw[3], cs, sqc, muh[3], vx[3], vy[3], dM[3];
+    V E[9], S6[6], braw[3], cs, sqc, muh[3], vx[3], vy[3], dM[3];
     // surfel: X rows (se_u t_u, se_v t_v, μ) per camera axis, cos = −μ·t_w, sign, dd, dds, centre (cnx, cny);
     // crossing: the 3σ disc reaches the camera plane (dd >= 0), so it has no screen box (contract, surfel)
-    D X[9], cosv, sgs, snrm[3], dd, dds, cnx, cny, dpl, au[3], av[3], mau, mav;
-    bool crossing;
+    V X[9], cosv, sgs, snrm[3], dd, dds, cnx, cny, dpl, au[3], av[3], mau, mav;
+    M crossing;
 };
 
-template <typename T, int KER>
-__attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_t i, Fw& f) {
-    const T* means = (const T*)A.means + 3 * i;
-    const T* quats = (const T*)A.quats + 4 * i;
-    const T* scales = (const T*)A.scales + 3 * i;
+template <typename T, int KER, typename V>
+__attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_t i, Fw<V>& f) {
+    const T* means = (const T*)A.means;
     const D fx = A.fx, fy = A.fy;
-    for (int k = 0; k < 4; ++k) f.qr[k] = (D)quats[k];
-    f.qn = std::sqrt(f.qr[0] * f.qr[0] + f.qr[1] * f.qr[1] + f.qr[2] * f.qr[2] + f.qr[3] * f.qr[3]);
-    f.qden = std::max(f.qn, 1e-12);
+    for (int k = 0; k < 4; ++k) f.qr[k] = gather<V>((const T*)A.quats, i, 4, k);
+    f.qn = vsqrt(f.qr[0] * f.qr[0] + f.qr[1] * f.qr[1] + f.qr[2] * f.qr[2] + f.qr[3] * f.qr[3]);
+    f.qden = vmax(f.qn, 1e-12);
     for (int k = 0; k < 4; ++k) f.q[k] = f.qr[k] / f.qden;
     constexpr int NC = KER == K_SURFEL ? 2 : 3;  // scale columns in use
-    for (int k = 0; k < 3; ++k) f.s[k] = (D)scales[k];
-    f.o = (D)((const T*)A.opac)[i];
+    for (int k = 0; k < 3; ++k) f.s[k] = gather<V>((const T*)A.scales, i, 3, k);
+    f.o = gather<V>((const T*)A.opac, i, 1, 0);
     if (A.has_filter) {
-        const D f3 = (D)((const T*)A.filter3d)[i];
-        D ratio = 1.0;
+        const V f3 = gather<V>((const T*)A.filter3d, i, 1, 0);
+        V ratio = splat<V>(1.0);
         f.se[2] = f.s[2];
         for (int k = 0; k < NC; ++k) {
             f.s2[k] = f.s[k] * f.s[k];
             f.s2f[k] = f.s2[k] + f3;
             ratio *= f.s2[k] / f.s2f[k];
-            f.se[k] = std::sqrt(f.s2f[k]);
+            f.se[k] = vsqrt(f.s2f[k]);
         }
-        f.fo = std::sqrt(ratio);
+        f.fo = vsqrt(ratio);
         f.o1 = f.o * f.fo;
     } else {
         for (int k = 0; k < 3; ++k) f.se[k] = f.s[k];
-        f.fo = 1.0;
+        f.fo = splat<V>(1.0);
         f.o1 = f.o;
     }
-    for (int k = 0; k < 3; ++k) f.m[k] = (D)means[k];
+    for (int k = 0; k < 3; ++k) f.m[k] = gather<V>(means, i, 3, k);
     for (int r = 0; r < 3; ++r)
         f.mu[r] = A.R[3 * r] * f.m[0] + A.R[3 * r + 1] * f.m[1] + A.R[3 * r + 2] * f.m[2] + A.t[r];
     f.z = f.mu[2];
-    f.culled = (T)f.z <= (T)A.near_z;  // in the storage type, as the PyTorch path (z exactly at near)
-    f.zs = f.culled ? 1.0 : f.z;
+    f.culled = le_storage<T>(f.z, A.near_z);
+    f.zs = sel(f.culled, splat<V>(1.0), f.z);
     for (int r = 0; r < 4; ++r)
         f.qc[r] = A.L[4 * r] * f.q[0] + A.L[4 * r + 1] * f.q[1] + A.L[4 * r + 2] * f.q[2] + A.L[4 * r + 3] * f.q[3];
     {
-        const D w = f.qc[0], x = f.qc[1], y = f.qc[2], z = f.qc[3];
-        const D xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z, wx = w * x, wy = w * y,
+        const V w = f.qc[0], x = f.qc[1], y = f.qc[2], z = f.qc[3];
+        const V xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z, wx = w * x, wy = w * y,
                 wz = w * z;
-        D* R = f.Rc;
+        V* R = f.Rc;
         R[0] = 1 - 2 * (yy + zz), R[1] = 2 * (xy - wz), R[2] = 2 * (xz + wy);
         R[3] = 2 * (xy + wz), R[4] = 1 - 2 * (xx + zz), R[5] = 2 * (yz - wx);
         R[6] = 2 * (xz - wy), R[7] = 2 * (yz + wx), R[8] = 1 - 2 * (xx + yy);
@@ -209,24 +312,17 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
     // SH colour
     const int deg = (int)A.sh_degree;
     if (deg == 0) {
-        const T* sh = sh_row<T>(A, i, 0);
-        for (int ch = 0; ch < 3; ++ch) f.raw[ch] = SH0 * (D)sh[ch];
+        for (int ch = 0; ch < 3; ++ch) f.raw[ch] = SH0 * gather<V>((const T*)A.sh, i, 3 * A.sh_k, ch);
     } else {
         for (int k = 0; k < 3; ++k) f.dv[k] = f.m[k] - A.C[k];
-        f.dn = std::sqrt(f.dv[0] * f.dv[0] + f.dv[1] * f.dv[1] + f.dv[2] * f.dv[2]);
-        f.dden = std::max(f.dn, 1e-12);
+        f.dn = vsqrt(f.dv[0] * f.dv[0] + f.dv[1] * f.dv[1] + f.dv[2] * f.dv[2]);
+        f.dden = vmax(f.dn, 1e-12);
         for (int k = 0; k < 3; ++k) f.dir[k] = f.dv[k] / f.dden;
-        D bs[16];
-        sh_basis(deg, f.dir[0], f.dir[1], f.dir[2], bs, nullptr);
-        const int nb = (deg + 1) * (deg + 1);
-        D acc[3] = {0, 0, 0};
-        for (int k = 0; k < nb; ++k) {
-            const T* row = sh_row<T>(A, i, k);
-            for (int ch = 0; ch < 3; ++ch) acc[ch] += bs[k] * (D)row[ch];
-        }
-        for (int ch = 0; ch < 3; ++ch) f.raw[ch] = acc[ch];
+        V bs[16];
+        sh_basis<V>(deg, f.dir[0], f.dir[1], f.dir[2], bs, nullptr);
+        sh_colour<V, T>(A, i, (deg + 1) * (deg + 1), bs, f.raw);
     }
-    for (int ch = 0; ch < 3; ++ch) f.rgb[ch] = std::max(f.raw[ch] + 0.5, 0.0);
+    for (int ch = 0; ch < 3; ++ch) f.rgb[ch] = vmax(f.raw[ch] + 0.5, splat<V>(0.0));
 
     f.u = f.mu[0] / f.zs;
     f.v = f.mu[1] / f.zs;
@@ -237,18 +333,18 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
             f.X[3 * r + 2] = f.mu[r];
         }
         f.cosv = -(f.mu[0] * f.Rc[2] + f.mu[1] * f.Rc[5] + f.mu[2] * f.Rc[8]);
-        f.sgs = f.cosv >= 0 ? 1.0 : -1.0;
+        f.sgs = sel(f.cosv >= 0, splat<V>(1.0), splat<V>(-1.0));
         for (int r = 0; r < 3; ++r) f.snrm[r] = f.Rc[3 * r + 2] * f.sgs;
-        const D* X2 = f.X + 6;
+        const V* X2 = f.X + 6;
         f.dd = 9.0 * (X2[0] * X2[0] + X2[1] * X2[1]) - X2[2] * X2[2];
-        f.ok = f.cosv != 0 && !f.culled;
-        f.crossing = f.ok && f.dd >= 0;
-        f.dds = (f.ok && !f.crossing) ? f.dd : -1.0;
-        const D f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
+        f.ok = mand(f.cosv != 0, mnot(f.culled));
+        f.crossing = mand(f.ok, f.dd >= 0);
+        f.dds = sel(mand(f.ok, mnot(f.crossing)), f.dd, splat<V>(-1.0));
+        const V f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
         f.cnx = f0 * (f.X[0] * X2[0]) + f0 * (f.X[1] * X2[1]) + f2 * (f.X[2] * X2[2]);
         f.cny = f0 * (f.X[3] * X2[0]) + f0 * (f.X[4] * X2[1]) + f2 * (f.X[5] * X2[2]);
         f.dpl = f.snrm[0] * f.mu[0] + f.snrm[1] * f.mu[1] + f.snrm[2] * f.mu[2];
-        f.mau = f.mav = 0;
+        f.mau = f.mav = splat<V>(0);
         for (int r = 0; r < 3; ++r) {
             f.au[r] = f.Rc[3 * r] / f.se[0];
             f.av[r] = f.Rc[3 * r + 1] / f.se[1];
@@ -258,16 +354,16 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         f.o2 = f.o1;
         return;
     }
-    f.inx = f.u >= -A.limx && f.u <= A.limx;
-    f.iny = f.v >= -A.limy && f.v <= A.limy;
-    f.uc = std::min(std::max(f.u, -A.limx), A.limx);
-    f.vc = std::min(std::max(f.v, -A.limy), A.limy);
+    f.inx = mand(f.u >= -A.limx, f.u <= A.limx);
+    f.iny = mand(f.v >= -A.limy, f.v <= A.limy);
+    f.uc = vmin(vmax(f.u, splat<V>(-A.limx)), splat<V>(A.limx));
+    f.vc = vmin(vmax(f.v, splat<V>(-A.limy)), splat<V>(A.limy));
     for (int r = 0; r < 3; ++r)
-        for (int j = 0; j < 3; ++j) f.M[3 * r + j] = f.Rc[3 * r + j] * f.se[j];
-    const D ax = fx / f.zs, ay = fy / f.zs;
+        for (int j = 0; j < 3; ++j) f.M_[3 * r + j] = f.Rc[3 * r + j] * f.se[j];
+    const V ax = fx / f.zs, ay = fy / f.zs;
     for (int j = 0; j < 3; ++j) {
-        f.r0[j] = ax * (f.M[j] - f.uc * f.M[6 + j]);
-        f.r1[j] = ay * (f.M[3 + j] - f.vc * f.M[6 + j]);
+        f.r0[j] = ax * (f.M_[j] - f.uc * f.M_[6 + j]);
+        f.r1[j] = ay * (f.M_[3 + j] - f.vc * f.M_[6 + j]);
     }
     f.a0 = f.r0[0] * f.r0[0] + f.r0[1] * f.r0[1] + f.r0[2] * f.r0[2];
     f.b = f.r0[0] * f.r1[0] + f.r0[1] * f.r1[1] + f.r0[2] * f.r1[2];
@@ -281,48 +377,45 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
     f.c = f.c0 + e1;
     f.det = f.gdet + e1 * (f.a0 + f.c0) + e1 * e1;
     f.o2 = f.o1;
-    f.fac = 1.0;
-    f.okk = false;
+    f.fac = splat<V>(1.0);
+    f.okk = f.culled != f.culled;  // false in every lane
     if (kk > 0) {
         f.det0 = f.gdet + eps * (f.a0 + f.c0) + eps * eps;
-        f.okk = f.det > 0 && f.det0 > 0 && !f.culled;
-        f.fac = f.okk ? std::sqrt(f.det0 / f.det) : 0.0;
+        f.okk = mand(mand(f.det > 0, f.det0 > 0), mnot(f.culled));
+        f.fac = sel(f.okk, vsqrt(f.det0 / f.det), splat<V>(0.0));
         f.o2 = f.o1 * f.fac;
     }
-    f.ok = f.det > 0 && !f.culled;
-    if (f.ok) {
-        f.conic[0] = f.c / f.det;
-        f.conic[1] = -f.b / f.det;
-        f.conic[2] = f.a / f.det;
-    } else {  // as the PyTorch path (never read: such Gaussians are not binned)
-        f.conic[0] = f.c;
-        f.conic[1] = -f.b;
-        f.conic[2] = f.a;
-    }
+    f.ok = mand(f.det > 0, mnot(f.culled));
+    // where not ok the PyTorch path's values (never read: such Gaussians are not binned)
+    f.conic[0] = sel(f.ok, f.c / f.det, f.c);
+    f.conic[1] = sel(f.ok, -f.b / f.det, -f.b);
+    f.conic[2] = sel(f.ok, f.a / f.det, f.a);
 
     if constexpr (KER == K_EWA) {
-        int idx = 0;  // argmin, first index on ties
-        if (f.se[1] < f.se[idx]) idx = 1;
-        if (f.se[2] < f.se[idx]) idx = 2;
-        f.idx = idx;
-        const D nd = f.Rc[idx] * f.mu[0] + f.Rc[3 + idx] * f.mu[1] + f.Rc[6 + idx] * f.mu[2];
-        f.sgn = nd > 0 ? -1.0 : 1.0;
+        // argmin of the scales, first index on ties
+        f.pick1 = f.se[1] < f.se[0];
+        f.pick2 = f.se[2] < sel(f.pick1, f.se[1], f.se[0]);
+        V col[3];
+        for (int r = 0; r < 3; ++r) col[r] = sel(f.pick2, f.Rc[3 * r + 2], sel(f.pick1, f.Rc[3 * r + 1], f.Rc[3 * r]));
+        const V nd = col[0] * f.mu[0] + col[1] * f.mu[1] + col[2] * f.mu[2];
+        f.sgn = sel(nd > 0, splat<V>(-1.0), splat<V>(1.0));
+        for (int r = 0; r < 3; ++r) f.ncol[r] = f.sgn * col[r];
     } else if constexpr (KER == K_RAYMAX) {
         for (int j = 0; j < 3; ++j)
             f.mut[j] = (f.mu[0] * f.Rc[j] + f.mu[1] * f.Rc[3 + j] + f.mu[2] * f.Rc[6 + j]) / f.se[j];
         for (int r = 0; r < 3; ++r)
             for (int j = 0; j < 3; ++j) f.E[3 * r + j] = f.Rc[3 * r + j] / f.se[j];
-        const D c_ = f.mut[0] * f.mut[0] + f.mut[1] * f.mut[1] + f.mut[2] * f.mut[2];
-        f.cs = f.culled ? 1.0 : c_;
-        const D* E = f.E;
+        const V c_ = f.mut[0] * f.mut[0] + f.mut[1] * f.mut[1] + f.mut[2] * f.mut[2];
+        f.cs = sel(f.culled, splat<V>(1.0), c_);
+        const V* E = f.E;
         int t = 0;
         for (int a = 0; a < 3; ++a)
             for (int b = a; b < 3; ++b, ++t) f.S6[t] = E[3 * a] * E[3 * b] + E[3 * a + 1] * E[3 * b + 1] + E[3 * a + 2] * E[3 * b + 2];
         for (int a = 0; a < 3; ++a) f.braw[a] = E[3 * a] * f.mut[0] + E[3 * a + 1] * f.mut[1] + E[3 * a + 2] * f.mut[2];
-        f.sqc = std::sqrt(f.cs);
+        f.sqc = vsqrt(f.cs);
         for (int k = 0; k < 3; ++k) f.muh[k] = f.mut[k] / f.sqc;
-        const D* e0 = E;
-        const D* e1 = E + 3;
+        const V* e0 = E;
+        const V* e1 = E + 3;
         f.vx[0] = f.muh[1] * e0[2] - f.muh[2] * e0[1];
         f.vx[1] = f.muh[2] * e0[0] - f.muh[0] * e0[2];
         f.vx[2] = f.muh[0] * e0[1] - f.muh[1] * e0[0];
@@ -333,8 +426,8 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         f.dM[1] = f.vx[0] * f.vy[0] + f.vx[1] * f.vy[1] + f.vx[2] * f.vy[2];
         f.dM[2] = f.vy[0] * f.vy[0] + f.vy[1] * f.vy[1] + f.vy[2] * f.vy[2];
     } else {
-        f.dc[0] = f.uc, f.dc[1] = f.vc, f.dc[2] = 1.0;
-        f.dm = 0;
+        f.dc[0] = f.uc, f.dc[1] = f.vc, f.dc[2] = splat<V>(1.0);
+        f.dm = splat<V>(0);
         for (int j = 0; j < 3; ++j) {
             f.dt[j] = (f.dc[0] * f.Rc[j] + f.dc[1] * f.Rc[3 + j] + f.dc[2] * f.Rc[6 + j]) / f.se[j];
             f.dm += f.dt[j] * f.dt[j];
@@ -342,9 +435,9 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         }
         for (int r = 0; r < 3; ++r) f.mvec[r] = f.Rc[3 * r] * f.h[0] + f.Rc[3 * r + 1] * f.h[1] + f.Rc[3 * r + 2] * f.h[2];
         f.nn2 = f.uc * f.uc + f.vc * f.vc + 1.0;
-        f.sq = std::sqrt(f.nn2);
+        f.sq = vsqrt(f.nn2);
         f.lc = f.zs * f.sq;
-        f.dms = f.culled ? 1.0 : f.dm;
+        f.dms = sel(f.culled, splat<V>(1.0), f.dm);
         f.p0 = -f.lc * (f.mvec[0] / f.dms - f.uc / f.nn2);
         f.p1 = -f.lc * (f.mvec[1] / f.dms - f.vc / f.nn2);
         for (int j = 0; j < 3; ++j) {
@@ -352,186 +445,183 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
             f.w[j] = f.mut[j] / f.se[j];
         }
         for (int r = 0; r < 3; ++r) f.bvec[r] = f.Rc[3 * r] * f.w[0] + f.Rc[3 * r + 1] * f.w[1] + f.Rc[3 * r + 2] * f.w[2];
-        f.l = std::sqrt(f.mu[0] * f.mu[0] + f.mu[1] * f.mu[1] + f.mu[2] * f.mu[2]);
-        f.bnorm = std::sqrt(f.bvec[0] * f.bvec[0] + f.bvec[1] * f.bvec[1] + f.bvec[2] * f.bvec[2]);
-        f.bden = std::max(f.bnorm, 1e-12);
+        f.l = vsqrt(f.mu[0] * f.mu[0] + f.mu[1] * f.mu[1] + f.mu[2] * f.mu[2]);
+        f.bnorm = vsqrt(f.bvec[0] * f.bvec[0] + f.bvec[1] * f.bvec[1] + f.bvec[2] * f.bvec[2]);
+        f.bden = vmax(f.bnorm, 1e-12);
         for (int r = 0; r < 3; ++r) f.nrm[r] = -f.bvec[r] / f.bden;
     }
 }
 
-inline D clampd(D x, D lo, D hi) { return std::min(std::max(x, lo), hi); }
-
 // _raymax_bounds (projection_torch.py): pixel box of the rays within Mahalanobis² k = 2τ of μ (τ > 0 checked by the caller).
-inline void raymax_bounds(const ProjArgs& A, const Fw& f, D tau, D* bnd) {
-    const D k = std::max(2.0 * tau, 0.0);
-    D S[9];
+template <typename V>
+inline void raymax_bounds(const ProjArgs& A, const Fw<V>& f, V tau, V* bnd) {
+    const V k = vmax(2.0 * tau, splat<V>(0.0));
+    V S[9];
     for (int r = 0; r < 3; ++r)
         for (int c = 0; c < 3; ++c)
-            S[3 * r + c] = f.M[3 * r] * f.M[3 * c] + f.M[3 * r + 1] * f.M[3 * c + 1] + f.M[3 * r + 2] * f.M[3 * c + 2];
-    const D mz = f.mu[2];
+            S[3 * r + c] = f.M_[3 * r] * f.M_[3 * c] + f.M_[3 * r + 1] * f.M_[3 * c + 1] + f.M_[3 * r + 2] * f.M_[3 * c + 2];
+    const V mz = f.mu[2];
     for (int axis = 0; axis < 2; ++axis) {
         const D fl = axis == 0 ? A.fx : A.fy, c0 = axis == 0 ? A.cx : A.cy;
-        const D ma = f.mu[axis];
-        const D Saa = S[4 * axis], Sa2 = S[3 * axis + 2], S22 = S[8];
-        const D a2 = mz * mz - k * S22;
-        const D bq = ma * mz - k * Sa2;
-        const D disc = k * (mz * mz * Saa - 2 * ma * mz * Sa2 + ma * ma * S22) - k * k * (Saa * S22 - Sa2 * Sa2);
-        const D sq = std::sqrt(std::max(disc, 0.0));
-        const bool ok = a2 > 1e-12 * mz * mz;
-        const D a2s = ok ? a2 : 1.0;
-        const D lo_p = fl * ((bq - sq) / a2s) + c0, hi_p = fl * ((bq + sq) / a2s) + c0;
-        const D pad = 1e-3 * std::abs(hi_p - lo_p) + 0.01;
-        bnd[2 * axis] = ok ? lo_p - pad : -BIGV;
-        bnd[2 * axis + 1] = ok ? hi_p + pad : BIGV;
+        const V ma = f.mu[axis];
+        const V Saa = S[4 * axis], Sa2 = S[3 * axis + 2], S22 = S[8];
+        const V a2 = mz * mz - k * S22;
+        const V bq = ma * mz - k * Sa2;
+        const V disc = k * (mz * mz * Saa - 2 * ma * mz * Sa2 + ma * ma * S22) - k * k * (Saa * S22 - Sa2 * Sa2);
+        const V sq = vsqrt(vmax(disc, splat<V>(0.0)));
+        const auto ok = a2 > 1e-12 * mz * mz;
+        const V a2s = sel(ok, a2, splat<V>(1.0));
+        const V lo_p = fl * ((bq - sq) / a2s) + c0, hi_p = fl * ((bq + sq) / a2s) + c0;
+        const V pad = 1e-3 * vabs(hi_p - lo_p) + 0.01;
+        bnd[2 * axis] = sel(ok, lo_p - pad, splat<V>(-BIGV));
+        bnd[2 * axis + 1] = sel(ok, hi_p + pad, splat<V>(BIGV));
     }
 }
 
 // _surfel_bounds (projection_torch.py): the exact box of u²+v² <= 2τ ∪ the low-pass disc k|Δ|² <= 2τ.
-inline void surfel_bounds(const ProjArgs& A, const Fw& f, D tau, D mx, D my, D* bnd) {
-    const D k = std::max(2.0 * tau, 0.0);
-    const D* X2 = f.X + 6;
-    const D dd = k * (X2[0] * X2[0] + X2[1] * X2[1]) - X2[2] * X2[2];
-    const bool ok = dd < -1e-12 * (X2[2] * X2[2]);
-    const D dds = ok ? dd : -1.0;
-    const D f0 = k / dds, f2 = -1.0 / dds;
+template <typename V>
+inline void surfel_bounds(const ProjArgs& A, const Fw<V>& f, V tau, V mx, V my, V* bnd) {
+    const V k = vmax(2.0 * tau, splat<V>(0.0));
+    const V* X2 = f.X + 6;
+    const V dd = k * (X2[0] * X2[0] + X2[1] * X2[1]) - X2[2] * X2[2];
+    const auto ok = dd < -1e-12 * (X2[2] * X2[2]);
+    const V dds = sel(ok, dd, splat<V>(-1.0));
+    const V f0 = k / dds, f2 = -1.0 / dds;
     for (int axis = 0; axis < 2; ++axis) {
-        const D* Xa = f.X + 3 * axis;
+        const V* Xa = f.X + 3 * axis;
         const D fl = axis == 0 ? A.fx : A.fy, c0 = axis == 0 ? A.cx : A.cy;
-        const D cn = f0 * (Xa[0] * X2[0]) + f0 * (Xa[1] * X2[1]) + f2 * (Xa[2] * X2[2]);
-        const D h = cn * cn - (f0 * (Xa[0] * Xa[0]) + f0 * (Xa[1] * Xa[1]) + f2 * (Xa[2] * Xa[2]));
-        const D ext = std::sqrt(std::max(h, 0.0));
-        const D lo = fl * (cn - ext) + c0, hi = fl * (cn + ext) + c0;
-        const D pad = 1e-3 * std::abs(hi - lo) + 0.01;
-        bnd[2 * axis] = ok ? lo - pad : -BIGV;
-        bnd[2 * axis + 1] = ok ? hi + pad : BIGV;
+        const V cn = f0 * (Xa[0] * X2[0]) + f0 * (Xa[1] * X2[1]) + f2 * (Xa[2] * X2[2]);
+        const V h = cn * cn - (f0 * (Xa[0] * Xa[0]) + f0 * (Xa[1] * Xa[1]) + f2 * (Xa[2] * Xa[2]));
+        const V ext = vsqrt(vmax(h, splat<V>(0.0)));
+        const V lo = fl * (cn - ext) + c0, hi = fl * (cn + ext) + c0;
+        const V pad = 1e-3 * vabs(hi - lo) + 0.01;
+        bnd[2 * axis] = sel(ok, lo - pad, splat<V>(-BIGV));
+        bnd[2 * axis + 1] = sel(ok, hi + pad, splat<V>(BIGV));
     }
     const D fk = A.surfel_k;
     if (fk <= 0) return;
-    const D r = std::sqrt(std::max(2.0 * tau / fk, 0.0)) * 1.001 + 0.01;
-    bnd[0] = std::min(bnd[0], mx - r);
-    bnd[1] = std::max(bnd[1], mx + r);
-    bnd[2] = std::min(bnd[2], my - r);
-    bnd[3] = std::max(bnd[3], my + r);
+    const V r = vsqrt(vmax(2.0 * tau / fk, splat<V>(0.0))) * 1.001 + 0.01;
+    bnd[0] = vmin(bnd[0], mx - r);
+    bnd[1] = vmax(bnd[1], mx + r);
+    bnd[2] = vmin(bnd[2], my - r);
+    bnd[3] = vmax(bnd[3], my + r);
+}
+
+// The forward of Gaussian i (V = D) or of Gaussians i .. i + LANES - 1 (V8): payload, radius, boxes, rectangles.
+template <typename T, int KER, typename V>
+__attribute__((always_inline)) inline void forward_store(const ProjArgs& A, int64_t i) {
+    using M = MaskOf<V>;
+    constexpr int P = nparams<KER>();
+    const D ts = (D)A.tile, gx = (D)A.gx, gy = (D)A.gy;
+    Fw<V> f;
+    forward_one<T, KER, V>(A, i, f);
+    T* p = (T*)A.params;
+    const V zero = splat<V>(0.0);
+    V mx, my;
+    if constexpr (KER == K_SURFEL) {
+        // a crossing disc: the projected centre, and in the payload a centre SURFEL_OFF px away, so the
+        // low-pass term (k|centre − p|²) never applies to it (contract)
+        mx = A.fx * sel(f.crossing, f.u, f.cnx) + A.cx;
+        my = A.fy * sel(f.crossing, f.v, f.cny) + A.cy;
+        for (int k = 2; k < 5; ++k) scatter(p, i, P, k, zero);
+        scatter(p, i, P, 0, sel(f.crossing, mx + SURFEL_OFF, mx));
+    } else {
+        mx = A.fx * f.u + A.cx;
+        my = A.fy * f.v + A.cy;
+        for (int k = 0; k < 3; ++k) scatter(p, i, P, 2 + k, f.conic[k]);
+        scatter(p, i, P, 0, mx);
+    }
+    scatter(p, i, P, 1, my);
+    scatter(p, i, P, 5, sel(f.ok, f.o2, zero));
+    for (int ch = 0; ch < 3; ++ch) scatter(p, i, P, 6 + ch, f.rgb[ch]);
+    if constexpr (KER == K_EWA) {
+        scatter(p, i, P, 9, f.z);
+        for (int r = 0; r < 3; ++r) scatter(p, i, P, 10 + r, f.ncol[r]);
+    } else if constexpr (KER == K_RADE) {
+        scatter(p, i, P, 9, f.l);
+        scatter(p, i, P, 10, f.p0 / A.fx);
+        scatter(p, i, P, 11, f.p1 / A.fy);
+        for (int r = 0; r < 3; ++r) scatter(p, i, P, 12 + r, f.nrm[r]);
+    } else if constexpr (KER == K_RAYMAX) {
+        for (int t = 0; t < 6; ++t) scatter(p, i, P, 9 + t, f.S6[t] / f.cs);
+        for (int a = 0; a < 3; ++a) scatter(p, i, P, 15 + a, f.braw[a] / f.cs);
+        for (int a = 0; a < 3; ++a) scatter(p, i, P, 18 + a, f.dM[a] / f.cs);
+        scatter(p, i, P, 21, f.cs);
+        scatter(p, i, P, 22, f.u);
+        scatter(p, i, P, 23, f.v);
+    } else {
+        for (int r = 0; r < 3; ++r) scatter(p, i, P, 9 + r, f.snrm[r]);
+        scatter(p, i, P, 12, f.dpl);
+        for (int r = 0; r < 3; ++r) scatter(p, i, P, 13 + r, f.au[r]);
+        scatter(p, i, P, 16, f.mau);
+        for (int r = 0; r < 3; ++r) scatter(p, i, P, 17 + r, f.av[r]);
+        scatter(p, i, P, 20, f.mav);
+    }
+    // radius, alpha-support box, tile rectangles (no gradient)
+    const V tau = vlog(vmax(255.0 * f.o1, splat<V>(1e-30)));
+    V radius, bnd[4];
+    if constexpr (KER == K_SURFEL) {
+        const V f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
+        const V hnx = f.cnx * f.cnx - (f0 * (f.X[0] * f.X[0]) + f0 * (f.X[1] * f.X[1]) + f2 * (f.X[2] * f.X[2]));
+        const V hny = f.cny * f.cny - (f0 * (f.X[3] * f.X[3]) + f0 * (f.X[4] * f.X[4]) + f2 * (f.X[5] * f.X[5]));
+        const V ext_x = vsqrt(vmax(A.fx * A.fx * hnx, splat<V>(1e-4)));
+        const V ext_y = vsqrt(vmax(A.fy * A.fy * hny, splat<V>(1e-4)));
+        const D fl = A.surfel_k > 0 ? 3.0 / std::sqrt(A.surfel_k) : 0.0;
+        radius = sel(f.ok, vceil(vmax(vmax(ext_x, ext_y), splat<V>(fl))), zero);
+        // a crossing disc: a radius that reaches every image corner, so the tile rectangle is the whole image
+        const V dx = vmax(vabs(mx), vabs(mx - (D)A.width));
+        const V dy = vmax(vabs(my), vabs(my - (D)A.height));
+        radius = sel(f.crossing, vceil(vsqrt(dx * dx + dy * dy)) + 1.0, radius);
+        surfel_bounds(A, f, tau, mx, my, bnd);
+    } else {
+        const V mid = 0.5 * (f.a + f.c);
+        const V lam = mid + vsqrt(vmax(mid * mid - f.det, splat<V>(0.1)));
+        radius = sel(f.ok, vceil(3.0 * vsqrt(vmax(lam, zero))), zero);
+        if constexpr (KER == K_RAYMAX) {
+            raymax_bounds(A, f, tau, bnd);
+        } else {
+            const V t2 = 2.0 * tau;
+            const V hx = vsqrt(t2 * f.a) * 1.001 + 0.01, hy = vsqrt(t2 * f.c) * 1.001 + 0.01;
+            bnd[0] = mx - hx, bnd[1] = mx + hx, bnd[2] = my - hy, bnd[3] = my + hy;
+        }
+        const M has_support = tau > 0;  // else an empty box
+        for (int k = 0; k < 4; ++k) bnd[k] = sel(has_support, bnd[k], splat<V>(k % 2 == 0 ? BIGV : -BIGV));
+    }
+    for (int k = 0; k < 4; ++k) bnd[k] = clampv(bnd[k], -BIGV, BIGV);
+    const V rr[4] = {
+        clampv(vfloor((mx - radius) / ts), 0, gx), clampv(vfloor((mx + radius + ts - 1) / ts), 0, gx),
+        clampv(vfloor((my - radius) / ts), 0, gy), clampv(vfloor((my + radius + ts - 1) / ts), 0, gy)};
+    const V rb[4] = {
+        clampv(vfloor((bnd[0] - 0.5) / ts), 0, gx), clampv(vfloor((bnd[1] - 0.5) / ts) + 1, 0, gx),
+        clampv(vfloor((bnd[2] - 0.5) / ts), 0, gy), clampv(vfloor((bnd[3] - 0.5) / ts) + 1, 0, gy)};
+    const M vis = mand(mand(f.ok, radius > 0), (rr[1] - rr[0]) * (rr[3] - rr[2]) > 0);
+    V rc[4] = {vmax(rr[0], rb[0]), vmin(rr[1], rb[1]), vmax(rr[2], rb[2]), vmin(rr[3], rb[3])};
+    rc[1] = vmax(rc[1], rc[0]);
+    rc[3] = vmax(rc[3], rc[2]);
+    for (int l = 0; l < LaneTraits<V>::n; ++l) {
+        const int64_t g = i + l;
+        const bool vl = lane(vis, l), okl = lane(f.ok, l);
+        for (int k = 0; k < 4; ++k) {
+            A.rect[4 * g + k] = vl ? (int32_t)lane(rc[k], l) : 0;
+            A.rect_radius[4 * g + k] = vl ? (int32_t)lane(rr[k], l) : 0;
+        }
+        A.radii[g] = vl ? (int64_t)lane(radius, l) : 0;
+        A.visible[g] = vl ? 1 : 0;
+        T* m2 = (T*)A.means2d + 2 * g;
+        m2[0] = okl ? (T)lane(mx, l) : T(0);
+        m2[1] = okl ? (T)lane(my, l) : T(0);
+        ((T*)A.depth)[g] = (T)lane(f.z, l);
+        T* bo = (T*)A.bounds + 4 * g;
+        for (int k = 0; k < 4; ++k) bo[k] = (T)lane(bnd[k], l);
+    }
 }
 
 template <typename T, int KER>
 void project_forward(const ProjArgs& A) {
-    constexpr int P = nparams<KER>();
-    const D ts = (D)A.tile, gx = (D)A.gx, gy = (D)A.gy;
-#pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 1024)
-    for (int64_t i = 0; i < A.n; ++i) {
-        Fw f;
-        forward_one<T, KER>(A, i, f);
-        T* p = (T*)A.params + i * P;
-        D mx, my;
-        if constexpr (KER == K_SURFEL) {
-            // a crossing disc: the projected centre, and in the payload a centre SURFEL_OFF px away, so the
-            // low-pass term (k|centre − p|²) never applies to it (contract)
-            mx = A.fx * (f.crossing ? f.u : f.cnx) + A.cx;
-            my = A.fy * (f.crossing ? f.v : f.cny) + A.cy;
-            p[2] = p[3] = p[4] = T(0);
-        } else {
-            mx = A.fx * f.u + A.cx;
-            my = A.fy * f.v + A.cy;
-            p[2] = (T)f.conic[0];
-            p[3] = (T)f.conic[1];
-            p[4] = (T)f.conic[2];
-        }
-        p[0] = (T)mx;
-        p[1] = (T)my;
-        if constexpr (KER == K_SURFEL) {
-            if (f.crossing) p[0] = (T)(mx + SURFEL_OFF);
-        }
-        p[5] = (T)(f.ok ? f.o2 : 0.0);
-        p[6] = (T)f.rgb[0];
-        p[7] = (T)f.rgb[1];
-        p[8] = (T)f.rgb[2];
-        if constexpr (KER == K_EWA) {
-            p[9] = (T)f.z;
-            p[10] = (T)(f.sgn * f.Rc[f.idx]);
-            p[11] = (T)(f.sgn * f.Rc[3 + f.idx]);
-            p[12] = (T)(f.sgn * f.Rc[6 + f.idx]);
-        } else if constexpr (KER == K_RADE) {
-            p[9] = (T)f.l;
-            p[10] = (T)(f.p0 / A.fx);
-            p[11] = (T)(f.p1 / A.fy);
-            p[12] = (T)f.nrm[0];
-            p[13] = (T)f.nrm[1];
-            p[14] = (T)f.nrm[2];
-        } else if constexpr (KER == K_RAYMAX) {
-            for (int t = 0; t < 6; ++t) p[9 + t] = (T)(f.S6[t] / f.cs);
-            for (int a = 0; a < 3; ++a) p[15 + a] = (T)(f.braw[a] / f.cs);
-            for (int a = 0; a < 3; ++a) p[18 + a] = (T)(f.dM[a] / f.cs);
-            p[21] = (T)f.cs;
-            p[22] = (T)f.u;
-            p[23] = (T)f.v;
-        } else {
-            for (int r = 0; r < 3; ++r) p[9 + r] = (T)f.snrm[r];
-            p[12] = (T)f.dpl;
-            for (int r = 0; r < 3; ++r) p[13 + r] = (T)f.au[r];
-            p[16] = (T)f.mau;
-            for (int r = 0; r < 3; ++r) p[17 + r] = (T)f.av[r];
-            p[20] = (T)f.mav;
-        }
-        // radius, alpha-support box, tile rectangles (no gradient)
-        const D tau = std::log(std::max(255.0 * f.o1, 1e-30));
-        D radius, bnd[4];
-        if constexpr (KER == K_SURFEL) {
-            const D f0 = 9.0 / f.dds, f2 = -1.0 / f.dds;
-            const D hnx = f.cnx * f.cnx - (f0 * (f.X[0] * f.X[0]) + f0 * (f.X[1] * f.X[1]) + f2 * (f.X[2] * f.X[2]));
-            const D hny = f.cny * f.cny - (f0 * (f.X[3] * f.X[3]) + f0 * (f.X[4] * f.X[4]) + f2 * (f.X[5] * f.X[5]));
-            const D ext_x = std::sqrt(std::max(A.fx * A.fx * hnx, 1e-4));
-            const D ext_y = std::sqrt(std::max(A.fy * A.fy * hny, 1e-4));
-            const D fl = A.surfel_k > 0 ? 3.0 / std::sqrt(A.surfel_k) : 0.0;
-            radius = f.ok ? std::ceil(std::max(std::max(ext_x, ext_y), fl)) : 0.0;
-            if (f.crossing) {  // a radius that reaches every image corner: the tile rectangle is the whole image
-                const D dx = std::max(std::abs(mx), std::abs(mx - (D)A.width));
-                const D dy = std::max(std::abs(my), std::abs(my - (D)A.height));
-                radius = std::ceil(std::sqrt(dx * dx + dy * dy)) + 1.0;
-            }
-            surfel_bounds(A, f, tau, mx, my, bnd);
-        } else {
-            const D mid = 0.5 * (f.a + f.c);
-            const D lam = mid + std::sqrt(std::max(mid * mid - f.det, 0.1));
-            radius = f.ok ? std::ceil(3.0 * std::sqrt(std::max(lam, 0.0))) : 0.0;
-            if (tau > 0) {
-                if constexpr (KER == K_RAYMAX) {
-                    raymax_bounds(A, f, tau, bnd);
-                } else {
-                    const D t2 = 2.0 * tau;
-                    const D hx = std::sqrt(t2 * f.a) * 1.001 + 0.01, hy = std::sqrt(t2 * f.c) * 1.001 + 0.01;
-                    bnd[0] = mx - hx, bnd[1] = mx + hx, bnd[2] = my - hy, bnd[3] = my + hy;
-                }
-            } else {
-                bnd[0] = BIGV, bnd[1] = -BIGV, bnd[2] = BIGV, bnd[3] = -BIGV;
-            }
-        }
-        for (int k = 0; k < 4; ++k) bnd[k] = clampd(bnd[k], -BIGV, BIGV);
-        const D rr[4] = {
-            clampd(std::floor((mx - radius) / ts), 0, gx), clampd(std::floor((mx + radius + ts - 1) / ts), 0, gx),
-            clampd(std::floor((my - radius) / ts), 0, gy), clampd(std::floor((my + radius + ts - 1) / ts), 0, gy)};
-        const D rb[4] = {
-            clampd(std::floor((bnd[0] - 0.5) / ts), 0, gx), clampd(std::floor((bnd[1] - 0.5) / ts) + 1, 0, gx),
-            clampd(std::floor((bnd[2] - 0.5) / ts), 0, gy), clampd(std::floor((bnd[3] - 0.5) / ts) + 1, 0, gy)};
-        const bool vis = f.ok && radius > 0 && (rr[1] - rr[0]) * (rr[3] - rr[2]) > 0;
-        D rc[4] = {std::max(rr[0], rb[0]), std::min(rr[1], rb[1]), std::max(rr[2], rb[2]), std::min(rr[3], rb[3])};
-        rc[1] = std::max(rc[1], rc[0]);
-        rc[3] = std::max(rc[3], rc[2]);
-        int32_t* rect = A.rect + 4 * i;
-        int32_t* rrad = A.rect_radius + 4 * i;
-        for (int k = 0; k < 4; ++k) {
-            rect[k] = vis ? (int32_t)rc[k] : 0;
-            rrad[k] = vis ? (int32_t)rr[k] : 0;
-        }
-        A.radii[i] = vis ? (int64_t)radius : 0;
-        A.visible[i] = vis ? 1 : 0;
-        T* m2 = (T*)A.means2d + 2 * i;
-        m2[0] = f.ok ? (T)mx : T(0);
-        m2[1] = f.ok ? (T)my : T(0);
-        ((T*)A.depth)[i] = (T)f.z;
-        T* bo = (T*)A.bounds + 4 * i;
-        for (int k = 0; k < 4; ++k) bo[k] = (T)bnd[k];
-    }
+    const int64_t blocks = A.n / LANES;
+#pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 128)
+    for (int64_t b = 0; b < blocks; ++b) forward_store<T, KER, V8>(A, b * LANES);
+    for (int64_t i = blocks * LANES; i < A.n; ++i) forward_store<T, KER, D>(A, i);
 }
 
 // c = a × b: accumulate dL/da += b × g, dL/db += g × a.
@@ -575,8 +665,8 @@ void project_backward(const ProjArgs& A) {
             write_zero_gradients<T>(A, i);
             continue;
         }
-        Fw f;
-        forward_one<T, KER>(A, i, f);
+        Fw<D> f;
+        forward_one<T, KER, D>(A, i, f);
         D g[P];
         for (int k = 0; k < P; ++k) g[k] = (D)gp[k];
         D gmu[3] = {0, 0, 0}, gRc[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gse[3] = {0, 0, 0}, gm[3] = {0, 0, 0};
@@ -669,9 +759,10 @@ void project_backward(const ProjArgs& A) {
             // kernel extras
             if constexpr (KER == K_EWA) {
                 gmu[2] += g[9];
-                gRc[f.idx] += f.sgn * g[10];
-                gRc[3 + f.idx] += f.sgn * g[11];
-                gRc[6 + f.idx] += f.sgn * g[12];
+                const int idx = f.pick2 ? 2 : f.pick1 ? 1 : 0;
+                gRc[idx] += f.sgn * g[10];
+                gRc[3 + idx] += f.sgn * g[11];
+                gRc[6 + idx] += f.sgn * g[12];
             } else if constexpr (KER == K_RAYMAX) {
                 const D inv = 1.0 / f.cs;
                 const D* E = f.E;
@@ -853,8 +944,8 @@ void project_backward(const ProjArgs& A) {
                     gM[j] = ax * gr0[j];
                     gM[3 + j] = ay * gr1[j];
                     gM[6 + j] = -ax * f.uc * gr0[j] - ay * f.vc * gr1[j];
-                    s0 += f.M[6 + j] * gr0[j];
-                    s1 += f.M[6 + j] * gr1[j];
+                    s0 += f.M_[6 + j] * gr0[j];
+                    s1 += f.M_[6 + j] * gr1[j];
                     sr0 += f.r0[j] * gr0[j];
                     sr1 += f.r1[j] * gr1[j];
                 }
