@@ -272,8 +272,8 @@ if __name__ == "__main__":
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("filter3d", [None, 1e-3], ids=["nofilter", "filter3d"])
 def test_vector_lanes_match_one_gaussian_at_a_time(kernel, dtype, filter3d):
-    """The hard cases and a random scene, 49 Gaussians: six blocks of 8 lanes (the hard cases among them) and
-    one Gaussian at a time for the last, against each Gaussian projected alone (one at a time)."""
+    """The hard cases and a random scene, 49 Gaussians, forward and backward in lanes (the hard cases among them)
+    and one at a time, against each Gaussian projected alone (one at a time)."""
     cam = posed_camera(40, 30)
     rand = random_gaussians(29, kernel, seed=11, camera=make_camera(40, 30), dtype=torch.float64, sh_degree=3)
     g = concat(_hard_scene(kernel), RasterGaussians(rand.means, rand.quats, rand.scales, rand.opacities,

@@ -99,10 +99,14 @@ def test_hard_cases_float32_finite_and_close(kernel):
     assert float(rel.max()) < 1e-5
 
 
-@pytest.mark.parametrize("kernel", FUSED_KERNELS)  # one float64 gradcheck for every fused projection
-def test_gradcheck_fused_projection(kernel):
+@pytest.mark.parametrize("kernel", FUSED_KERNELS)  # float64 gradchecks for every fused projection
+@pytest.mark.parametrize("n, fast_mode", [(5, False), (17, True)], ids=["one-at-a-time", "lanes"])
+def test_gradcheck_fused_projection(kernel, n, fast_mode):
+    """The full Jacobian of 5 Gaussians, whose backward runs one at a time (each column's payload gradient is one
+    Gaussian's: csrc/project.cpp lists only those with one), and gradcheck's fast mode (a random projection of
+    the Jacobian, so every Gaussian has a payload gradient) on 17: 16 in vector lanes, forward and backward."""
     cam = posed_camera(20, 16)
-    g = random_gaussians(5, kernel, seed=2, camera=make_camera(20, 16), dtype=torch.float64, sh_degree=2,
+    g = random_gaussians(n, kernel, seed=2, camera=make_camera(20, 16), dtype=torch.float64, sh_degree=2,
                          scale_range=(0.1, 0.4), filter3d=1e-3)
     settings = RasterSettings(sh_degree=2, antialias2d=0.2)
 
@@ -111,7 +115,7 @@ def test_gradcheck_fused_projection(kernel):
         return project_fused(gg, cam, kernel, settings).params
 
     inputs = tuple(getattr(g, p).clone().requires_grad_(True) for p in PARAMS)
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=fast_mode)
 
 
 def test_selection_switch(monkeypatch):

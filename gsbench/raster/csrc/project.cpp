@@ -6,9 +6,9 @@
 // (raymax, surfel) compare the two in float64 and gradcheck this one). Storage
 // type T is float or double; every per-Gaussian quantity is computed in double (a few hundred flops per
 // Gaussian, so this costs nothing measurable and removes the float32 overflow cases of 1/det for tiny
-// covariances). The forward runs LANES Gaussians at a time in vector lanes (below, "Lanes"). The backward,
-// one Gaussian at a time, recomputes the forward intermediates instead of saving them, and skips a Gaussian
-// whose payload gradient is all zero (its gradients are then 0: they are linear in it).
+// covariances). Both passes run LANES Gaussians at a time in vector lanes (below, "Lanes"). The backward
+// recomputes the forward intermediates instead of saving them, and skips a Gaussian whose payload gradient is
+// all zero (its gradients are then 0: they are linear in it).
 //
 // Payload columns: see gsbench/raster/payload.py (common 0-8, ewa 9-12, rade 9-14, raymax 9-23, surfel 9-20).
 // surfel reads only scales[:, :2] (the caller pads a third column, whose gradient is written as 0).
@@ -86,10 +86,10 @@ inline T* g_sh_row(const ProjArgs& A, int64_t i, int k) {
 template <int KER>
 constexpr int nparams() { return KER == K_EWA ? 13 : KER == K_RADE ? 15 : KER == K_RAYMAX ? 24 : 21; }
 
-// Lanes. The forward evaluates LANES Gaussians at a time in GCC vector lanes (values V8, masks M8: -1 true, 0
-// false); the same template code instantiated on (double, bool) is the one-Gaussian path, used for the forward's
-// tail and by the backward, which recomputes the forward of one Gaussian. A lane computes both sides of every
-// select and keeps one, so a lane's discarded side may hold inf or NaN; no kept value depends on it.
+// Lanes. The forward and the backward evaluate LANES Gaussians at a time in GCC vector lanes (values V8, masks
+// M8: -1 true, 0 false); the same template code instantiated on (double, bool) is the one-Gaussian path, for
+// the Gaussians left over. A lane computes both sides of every select and keeps one, so a lane's discarded side
+// may hold inf or NaN; no kept value depends on it.
 constexpr int LANES = 8;
 typedef D V8 __attribute__((vector_size(LANES * sizeof(D))));
 typedef int64_t M8 __attribute__((vector_size(LANES * sizeof(int64_t))));
@@ -134,21 +134,21 @@ GSB_LANEWISE(vceil, std::ceil)
 GSB_LANEWISE(vabs, std::abs)
 #undef GSB_LANEWISE
 
-// Element k of row i of a (N, stride) array of storage type T, as V (lanes: rows i .. i + LANES - 1).
+// Element k of the rows of a (N, stride) array of storage type T that the lanes hold (rows[l] in lane l), as V.
 template <typename V, typename T>
-inline V gather(const T* base, int64_t i, int64_t stride, int64_t k) {
+inline V gather(const T* base, const int64_t* rows, int64_t stride, int64_t k) {
     if constexpr (std::is_same_v<V, D>) {
-        return (D)base[i * stride + k];
+        return (D)base[rows[0] * stride + k];
     } else {
         V8 r;
-        for (int l = 0; l < LANES; ++l) r[l] = (D)base[(i + l) * stride + k];
+        for (int l = 0; l < LANES; ++l) r[l] = (D)base[rows[l] * stride + k];
         return r;
     }
 }
 
 template <typename T, typename V>
-inline void scatter(T* base, int64_t i, int64_t stride, int64_t k, V x) {
-    for (int l = 0; l < LaneTraits<V>::n; ++l) base[(i + l) * stride + k] = (T)lane(x, l);
+inline void scatter(T* base, const int64_t* rows, int64_t stride, int64_t k, V x) {
+    for (int l = 0; l < LaneTraits<V>::n; ++l) base[rows[l] * stride + k] = (T)lane(x, l);
 }
 
 // The raw SH colour Σ_k b_k c_k (k < nb, in order) of each lane: row k of sh for k < sh_k, else row k − sh_k of
@@ -156,15 +156,15 @@ inline void scatter(T* base, int64_t i, int64_t stride, int64_t k, V x) {
 // the forward 1.4 times as slow (docs/measurements.md, "The projection in vector lanes"). Explicit fused
 // multiply-adds: the same rounding whichever loop a row falls in (sh kept apart or not, lanes or one Gaussian).
 template <typename V, typename T>
-inline void sh_colour(const ProjArgs& A, int64_t i, int nb, const V* bs, V* raw) {
+inline void sh_colour(const ProjArgs& A, const int64_t* rows, int nb, const V* bs, V* raw) {
     const int k_sh = std::min<int>(nb, (int)A.sh_k);
     for (int l = 0; l < LaneTraits<V>::n; ++l) {
         D acc[3] = {0, 0, 0};
-        const T* row = (const T*)A.sh + (i + l) * A.sh_k * 3;
+        const T* row = (const T*)A.sh + rows[l] * A.sh_k * 3;
         for (int k = 0; k < k_sh; ++k)
             for (int c = 0; c < 3; ++c) acc[c] = std::fma(lane(bs[k], l), (D)row[3 * k + c], acc[c]);
         if (nb > k_sh) {
-            const T* rest = (const T*)A.sh_rest + (i + l) * A.sh_rest_k * 3;
+            const T* rest = (const T*)A.sh_rest + rows[l] * A.sh_rest_k * 3;
             for (int k = k_sh; k < nb; ++k)
                 for (int c = 0; c < 3; ++c) acc[c] = std::fma(lane(bs[k], l), (D)rest[3 * (k - k_sh) + c], acc[c]);
         }
@@ -265,18 +265,18 @@ struct Fw {
 };
 
 template <typename T, int KER, typename V>
-__attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_t i, Fw<V>& f) {
+__attribute__((always_inline)) inline void forward_one(const ProjArgs& A, const int64_t* rows, Fw<V>& f) {
     const T* means = (const T*)A.means;
     const D fx = A.fx, fy = A.fy;
-    for (int k = 0; k < 4; ++k) f.qr[k] = gather<V>((const T*)A.quats, i, 4, k);
+    for (int k = 0; k < 4; ++k) f.qr[k] = gather<V>((const T*)A.quats, rows, 4, k);
     f.qn = vsqrt(f.qr[0] * f.qr[0] + f.qr[1] * f.qr[1] + f.qr[2] * f.qr[2] + f.qr[3] * f.qr[3]);
     f.qden = vmax(f.qn, 1e-12);
     for (int k = 0; k < 4; ++k) f.q[k] = f.qr[k] / f.qden;
     constexpr int NC = KER == K_SURFEL ? 2 : 3;  // scale columns in use
-    for (int k = 0; k < 3; ++k) f.s[k] = gather<V>((const T*)A.scales, i, 3, k);
-    f.o = gather<V>((const T*)A.opac, i, 1, 0);
+    for (int k = 0; k < 3; ++k) f.s[k] = gather<V>((const T*)A.scales, rows, 3, k);
+    f.o = gather<V>((const T*)A.opac, rows, 1, 0);
     if (A.has_filter) {
-        const V f3 = gather<V>((const T*)A.filter3d, i, 1, 0);
+        const V f3 = gather<V>((const T*)A.filter3d, rows, 1, 0);
         V ratio = splat<V>(1.0);
         f.se[2] = f.s[2];
         for (int k = 0; k < NC; ++k) {
@@ -292,7 +292,7 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         f.fo = splat<V>(1.0);
         f.o1 = f.o;
     }
-    for (int k = 0; k < 3; ++k) f.m[k] = gather<V>(means, i, 3, k);
+    for (int k = 0; k < 3; ++k) f.m[k] = gather<V>(means, rows, 3, k);
     for (int r = 0; r < 3; ++r)
         f.mu[r] = A.R[3 * r] * f.m[0] + A.R[3 * r + 1] * f.m[1] + A.R[3 * r + 2] * f.m[2] + A.t[r];
     f.z = f.mu[2];
@@ -312,7 +312,7 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
     // SH colour
     const int deg = (int)A.sh_degree;
     if (deg == 0) {
-        for (int ch = 0; ch < 3; ++ch) f.raw[ch] = SH0 * gather<V>((const T*)A.sh, i, 3 * A.sh_k, ch);
+        for (int ch = 0; ch < 3; ++ch) f.raw[ch] = SH0 * gather<V>((const T*)A.sh, rows, 3 * A.sh_k, ch);
     } else {
         for (int k = 0; k < 3; ++k) f.dv[k] = f.m[k] - A.C[k];
         f.dn = vsqrt(f.dv[0] * f.dv[0] + f.dv[1] * f.dv[1] + f.dv[2] * f.dv[2]);
@@ -320,7 +320,7 @@ __attribute__((always_inline)) inline void forward_one(const ProjArgs& A, int64_
         for (int k = 0; k < 3; ++k) f.dir[k] = f.dv[k] / f.dden;
         V bs[16];
         sh_basis<V>(deg, f.dir[0], f.dir[1], f.dir[2], bs, nullptr);
-        sh_colour<V, T>(A, i, (deg + 1) * (deg + 1), bs, f.raw);
+        sh_colour<V, T>(A, rows, (deg + 1) * (deg + 1), bs, f.raw);
     }
     for (int ch = 0; ch < 3; ++ch) f.rgb[ch] = vmax(f.raw[ch] + 0.5, splat<V>(0.0));
 
@@ -513,8 +513,10 @@ __attribute__((always_inline)) inline void forward_store(const ProjArgs& A, int6
     using M = MaskOf<V>;
     constexpr int P = nparams<KER>();
     const D ts = (D)A.tile, gx = (D)A.gx, gy = (D)A.gy;
+    int64_t rows[LaneTraits<V>::n];
+    for (int l = 0; l < LaneTraits<V>::n; ++l) rows[l] = i + l;
     Fw<V> f;
-    forward_one<T, KER, V>(A, i, f);
+    forward_one<T, KER, V>(A, rows, f);
     T* p = (T*)A.params;
     const V zero = splat<V>(0.0);
     V mx, my;
@@ -523,39 +525,39 @@ __attribute__((always_inline)) inline void forward_store(const ProjArgs& A, int6
         // low-pass term (k|centre − p|²) never applies to it (contract)
         mx = A.fx * sel(f.crossing, f.u, f.cnx) + A.cx;
         my = A.fy * sel(f.crossing, f.v, f.cny) + A.cy;
-        for (int k = 2; k < 5; ++k) scatter(p, i, P, k, zero);
-        scatter(p, i, P, 0, sel(f.crossing, mx + SURFEL_OFF, mx));
+        for (int k = 2; k < 5; ++k) scatter(p, rows, P, k, zero);
+        scatter(p, rows, P, 0, sel(f.crossing, mx + SURFEL_OFF, mx));
     } else {
         mx = A.fx * f.u + A.cx;
         my = A.fy * f.v + A.cy;
-        for (int k = 0; k < 3; ++k) scatter(p, i, P, 2 + k, f.conic[k]);
-        scatter(p, i, P, 0, mx);
+        for (int k = 0; k < 3; ++k) scatter(p, rows, P, 2 + k, f.conic[k]);
+        scatter(p, rows, P, 0, mx);
     }
-    scatter(p, i, P, 1, my);
-    scatter(p, i, P, 5, sel(f.ok, f.o2, zero));
-    for (int ch = 0; ch < 3; ++ch) scatter(p, i, P, 6 + ch, f.rgb[ch]);
+    scatter(p, rows, P, 1, my);
+    scatter(p, rows, P, 5, sel(f.ok, f.o2, zero));
+    for (int ch = 0; ch < 3; ++ch) scatter(p, rows, P, 6 + ch, f.rgb[ch]);
     if constexpr (KER == K_EWA) {
-        scatter(p, i, P, 9, f.z);
-        for (int r = 0; r < 3; ++r) scatter(p, i, P, 10 + r, f.ncol[r]);
+        scatter(p, rows, P, 9, f.z);
+        for (int r = 0; r < 3; ++r) scatter(p, rows, P, 10 + r, f.ncol[r]);
     } else if constexpr (KER == K_RADE) {
-        scatter(p, i, P, 9, f.l);
-        scatter(p, i, P, 10, f.p0 / A.fx);
-        scatter(p, i, P, 11, f.p1 / A.fy);
-        for (int r = 0; r < 3; ++r) scatter(p, i, P, 12 + r, f.nrm[r]);
+        scatter(p, rows, P, 9, f.l);
+        scatter(p, rows, P, 10, f.p0 / A.fx);
+        scatter(p, rows, P, 11, f.p1 / A.fy);
+        for (int r = 0; r < 3; ++r) scatter(p, rows, P, 12 + r, f.nrm[r]);
     } else if constexpr (KER == K_RAYMAX) {
-        for (int t = 0; t < 6; ++t) scatter(p, i, P, 9 + t, f.S6[t] / f.cs);
-        for (int a = 0; a < 3; ++a) scatter(p, i, P, 15 + a, f.braw[a] / f.cs);
-        for (int a = 0; a < 3; ++a) scatter(p, i, P, 18 + a, f.dM[a] / f.cs);
-        scatter(p, i, P, 21, f.cs);
-        scatter(p, i, P, 22, f.u);
-        scatter(p, i, P, 23, f.v);
+        for (int t = 0; t < 6; ++t) scatter(p, rows, P, 9 + t, f.S6[t] / f.cs);
+        for (int a = 0; a < 3; ++a) scatter(p, rows, P, 15 + a, f.braw[a] / f.cs);
+        for (int a = 0; a < 3; ++a) scatter(p, rows, P, 18 + a, f.dM[a] / f.cs);
+        scatter(p, rows, P, 21, f.cs);
+        scatter(p, rows, P, 22, f.u);
+        scatter(p, rows, P, 23, f.v);
     } else {
-        for (int r = 0; r < 3; ++r) scatter(p, i, P, 9 + r, f.snrm[r]);
-        scatter(p, i, P, 12, f.dpl);
-        for (int r = 0; r < 3; ++r) scatter(p, i, P, 13 + r, f.au[r]);
-        scatter(p, i, P, 16, f.mau);
-        for (int r = 0; r < 3; ++r) scatter(p, i, P, 17 + r, f.av[r]);
-        scatter(p, i, P, 20, f.mav);
+        for (int r = 0; r < 3; ++r) scatter(p, rows, P, 9 + r, f.snrm[r]);
+        scatter(p, rows, P, 12, f.dpl);
+        for (int r = 0; r < 3; ++r) scatter(p, rows, P, 13 + r, f.au[r]);
+        scatter(p, rows, P, 16, f.mau);
+        for (int r = 0; r < 3; ++r) scatter(p, rows, P, 17 + r, f.av[r]);
+        scatter(p, rows, P, 20, f.mav);
     }
     // radius, alpha-support box, tile rectangles (no gradient)
     const V tau = vlog(vmax(255.0 * f.o1, splat<V>(1e-30)));
@@ -625,7 +627,8 @@ void project_forward(const ProjArgs& A) {
 }
 
 // c = a × b: accumulate dL/da += b × g, dL/db += g × a.
-inline void cross_bwd(const D* a, const D* b, const D* g, D* ga, D* gb) {
+template <typename V>
+inline void cross_bwd(const V* a, const V* b, const V* g, V* ga, V* gb) {
     ga[0] += b[1] * g[2] - b[2] * g[1];
     ga[1] += b[2] * g[0] - b[0] * g[2];
     ga[2] += b[0] * g[1] - b[1] * g[0];
@@ -653,358 +656,380 @@ inline void write_zero_gradients(const ProjArgs& A, int64_t i) {
     for (int k = 0; k < A.sh_k + A.sh_rest_k; ++k) std::fill_n(g_sh_row<T>(A, i, k), 3, T(0));
 }
 
+template <typename V>
+inline void set_lane(V& x, int l, D value) {
+    if constexpr (std::is_same_v<V, D>) x = value; else x[l] = value;
+}
+
+// The SH colour's backward, lane by lane (each lane's rows are contiguous, as in sh_colour): dL/dc_k = b_k dL/draw
+// for every active row k (written; the rows past the active degree get 0), and dL/ddir = Σ_k (∂b_k/∂dir)(c_k ·
+// dL/draw).
+template <typename V, typename T>
+inline void sh_colour_backward(const ProjArgs& A, const int64_t* rows, int nb, const V* bs, const V (*db)[3],
+                               const V* graw, V* gdir) {
+    for (int l = 0; l < LaneTraits<V>::n; ++l) {
+        const D gr[3] = {lane(graw[0], l), lane(graw[1], l), lane(graw[2], l)};
+        D gd[3] = {0, 0, 0};
+        for (int k = 0; k < nb; ++k) {
+            const T* row = sh_row<T>(A, rows[l], k);
+            T* grow = g_sh_row<T>(A, rows[l], k);
+            D s = 0;
+            for (int ch = 0; ch < 3; ++ch) {
+                grow[ch] = (T)(lane(bs[k], l) * gr[ch]);
+                s += (D)row[ch] * gr[ch];
+            }
+            for (int d = 0; d < 3; ++d) gd[d] += lane(db[k][d], l) * s;
+        }
+        for (int d = 0; d < 3; ++d) set_lane(gdir[d], l, gd[d]);
+        for (int k = nb; k < A.sh_k + A.sh_rest_k; ++k) std::fill_n(g_sh_row<T>(A, rows[l], k), 3, T(0));
+    }
+}
+
+// The backward of the Gaussians the lanes hold (rows[l] in lane l), each with a non-zero payload gradient: the
+// forward recomputed, then every input's gradient written. Branches of the one-Gaussian code are selects, as in
+// the forward; an `if (c) x += y` is x += (c ? y : 0), the same sum.
+template <typename T, int KER, typename V>
+__attribute__((always_inline)) inline void backward_rows(const ProjArgs& A, const int64_t* rows) {
+    using M = MaskOf<V>;
+    constexpr int P = nparams<KER>();
+    constexpr int NC = KER == K_SURFEL ? 2 : 3;
+    constexpr int NL = LaneTraits<V>::n;
+    const D fx = A.fx, fy = A.fy;
+    const V zero = splat<V>(0.0);
+    Fw<V> f;
+    forward_one<T, KER, V>(A, rows, f);
+    V g[P];
+    for (int k = 0; k < P; ++k) g[k] = gather<V>((const T*)A.g_params, rows, P, k);
+    V gmu[3], gRc[9], gse[3], gm[3];
+    for (V* a : {gmu, gse, gm}) a[0] = a[1] = a[2] = zero;
+    for (V& x : gRc) x = zero;
+    V guc = zero, gvc = zero, gu = zero, gv = zero, gzs = zero, go1 = zero;
+
+    // SH colour
+    const int deg = (int)A.sh_degree;
+    const int nb = (deg + 1) * (deg + 1);
+    V graw[3];
+    for (int ch = 0; ch < 3; ++ch) graw[ch] = sel(f.raw[ch] + 0.5 >= 0.0, g[6 + ch], zero);
+    if (deg == 0) {
+        for (int l = 0; l < NL; ++l) {
+            T* gsh = g_sh_row<T>(A, rows[l], 0);
+            for (int ch = 0; ch < 3; ++ch) gsh[ch] = (T)(SH0 * lane(graw[ch], l));
+            for (int k = 1; k < A.sh_k + A.sh_rest_k; ++k) std::fill_n(g_sh_row<T>(A, rows[l], k), 3, T(0));
+        }
+    } else {
+        V bs[16], db[16][3];
+        sh_basis<V>(deg, f.dir[0], f.dir[1], f.dir[2], bs, db);
+        V gdir[3];
+        sh_colour_backward<V, T>(A, rows, nb, bs, db, graw, gdir);
+        const M dir_ok = f.dn >= 1e-12;
+        const V pr = f.dir[0] * gdir[0] + f.dir[1] * gdir[1] + f.dir[2] * gdir[2];
+        for (int k = 0; k < 3; ++k) gm[k] += sel(dir_ok, (gdir[k] - f.dir[k] * pr) / f.dden, gdir[k] / f.dden);
+    }
+
+    if constexpr (KER == K_SURFEL) {
+        go1 += sel(f.ok, g[5], zero);
+        // extras: n = t_w·sign (sign constant), d = n·μ, a_u = t_u/se_u, μ·a_u, a_v = t_v/se_v, μ·a_v
+        for (int r = 0; r < 3; ++r) {
+            gRc[3 * r + 2] += f.sgs * (g[9 + r] + g[12] * f.mu[r]);
+            gmu[r] += g[12] * f.snrm[r] + g[16] * f.au[r] + g[20] * f.av[r];
+            const V gau = g[13 + r] + g[16] * f.mu[r], gav = g[17 + r] + g[20] * f.mu[r];
+            gRc[3 * r] += gau / f.se[0];
+            gRc[3 * r + 1] += gav / f.se[1];
+            gse[0] -= gau * f.au[r] / f.se[0];
+            gse[1] -= gav * f.av[r] / f.se[1];
+        }
+        // centre: cn_a = (9 Xa0 X20 + 9 Xa1 X21 − Xa2 X22)/dds, dds = dd (ok) = 9(X20² + X21²) − X22²
+        V gX[9];
+        for (V& x : gX) x = zero;
+        const V keep = sel(f.crossing, zero, splat<V>(1.0));  // a crossing disc's payload centre is a constant
+        const V gcn[2] = {keep * fx * g[0], keep * fy * g[1]};
+        const V cn[2] = {f.cnx, f.cny};
+        V gdds = zero;
+        const V* X = f.X;
+        for (int a = 0; a < 2; ++a) {
+            const V gN = gcn[a] / f.dds;
+            gdds -= gcn[a] * cn[a] / f.dds;
+            gX[3 * a] += 9.0 * X[6] * gN;
+            gX[6] += 9.0 * X[3 * a] * gN;
+            gX[3 * a + 1] += 9.0 * X[7] * gN;
+            gX[7] += 9.0 * X[3 * a + 1] * gN;
+            gX[3 * a + 2] -= X[8] * gN;
+            gX[8] -= X[3 * a + 2] * gN;
+        }
+        gX[6] += sel(f.ok, 18.0 * X[6] * gdds, zero);
+        gX[7] += sel(f.ok, 18.0 * X[7] * gdds, zero);
+        gX[8] -= sel(f.ok, 2.0 * X[8] * gdds, zero);
+        // X rows: (se_u Rc_r0, se_v Rc_r1, μ_r)
+        for (int r = 0; r < 3; ++r) {
+            gRc[3 * r] += f.se[0] * gX[3 * r];
+            gse[0] += f.Rc[3 * r] * gX[3 * r];
+            gRc[3 * r + 1] += f.se[1] * gX[3 * r + 1];
+            gse[1] += f.Rc[3 * r + 1] * gX[3 * r + 1];
+            gmu[r] += gX[3 * r + 2];
+        }
+    } else {
+        // means2d = (fx u + cx, fy v + cy)
+        gu += fx * g[0];
+        gv += fy * g[1];
+
+        // kernel extras
+        if constexpr (KER == K_EWA) {
+            gmu[2] += g[9];
+            // the normal is sgn × column idx of Rc
+            const M in_col[3] = {mand(mnot(f.pick1), mnot(f.pick2)), mand(f.pick1, mnot(f.pick2)), f.pick2};
+            for (int r = 0; r < 3; ++r)
+                for (int j = 0; j < 3; ++j) gRc[3 * r + j] += sel(in_col[j], f.sgn * g[10 + r], zero);
+        } else if constexpr (KER == K_RAYMAX) {
+            const V inv = 1.0 / f.cs;
+            const V* E = f.E;
+            V gE[9], gmut[3] = {zero, zero, zero};
+            for (V& x : gE) x = zero;
+            V ginv = zero, gcs = g[21];
+            // A' = E Eᵀ / cs
+            int t = 0;
+            for (int a = 0; a < 3; ++a)
+                for (int b = a; b < 3; ++b, ++t) {
+                    const V ga = g[9 + t];
+                    ginv += ga * f.S6[t];
+                    for (int j = 0; j < 3; ++j) {
+                        gE[3 * a + j] += ga * inv * E[3 * b + j];
+                        gE[3 * b + j] += ga * inv * E[3 * a + j];
+                    }
+                }
+            // b' = E μ̃ / cs
+            for (int a = 0; a < 3; ++a) {
+                const V gb = g[15 + a];
+                ginv += gb * f.braw[a];
+                for (int j = 0; j < 3; ++j) {
+                    gE[3 * a + j] += gb * inv * f.mut[j];
+                    gmut[j] += gb * inv * E[3 * a + j];
+                }
+            }
+            // M' = (vx·vx, vx·vy, vy·vy) / cs, vx = muh × ẽ_0, vy = muh × ẽ_1, muh = μ̃/√cs
+            ginv += g[18] * f.dM[0] + g[19] * f.dM[1] + g[20] * f.dM[2];
+            V gvx[3], gvy[3], gmuh[3] = {zero, zero, zero};
+            for (int k = 0; k < 3; ++k) {
+                gvx[k] = inv * (2.0 * g[18] * f.vx[k] + g[19] * f.vy[k]);
+                gvy[k] = inv * (g[19] * f.vx[k] + 2.0 * g[20] * f.vy[k]);
+            }
+            cross_bwd(f.muh, E, gvx, gmuh, gE);
+            cross_bwd(f.muh, E + 3, gvy, gmuh, gE + 3);
+            V gsq = zero;
+            for (int k = 0; k < 3; ++k) {
+                gmut[k] += gmuh[k] / f.sqc;
+                gsq -= gmuh[k] * f.muh[k] / f.sqc;
+            }
+            gcs += gsq / (2.0 * f.sqc) - ginv * inv * inv;
+            for (int k = 0; k < 3; ++k) gmut[k] += sel(f.culled, zero, 2.0 * f.mut[k] * gcs);
+            // μ̃_j = (Σ_r μ_r Rc_rj)/se_j, E_rj = Rc_rj/se_j
+            for (int j = 0; j < 3; ++j) {
+                const V gy = gmut[j] / f.se[j];
+                gse[j] -= gmut[j] * f.mut[j] / f.se[j];
+                for (int r = 0; r < 3; ++r) {
+                    gmu[r] += f.Rc[3 * r + j] * gy;
+                    gRc[3 * r + j] += f.mu[r] * gy + gE[3 * r + j] / f.se[j];
+                    gse[j] -= gE[3 * r + j] * E[3 * r + j] / f.se[j];
+                }
+            }
+            // (μx/μz, μy/μz) unclamped
+            gu += g[22];
+            gv += g[23];
+        } else {
+            // l = |mu|
+            for (int k = 0; k < 3; ++k) gmu[k] += sel(f.l > 0, g[9] * f.mu[k] / f.l, zero);
+            // nrm = -normalize(bvec)
+            V gbv[3];
+            {
+                const V gbh[3] = {-g[12], -g[13], -g[14]};
+                const M b_ok = f.bnorm >= 1e-12;
+                const V bh[3] = {f.bvec[0] / f.bden, f.bvec[1] / f.bden, f.bvec[2] / f.bden};
+                const V pr = bh[0] * gbh[0] + bh[1] * gbh[1] + bh[2] * gbh[2];
+                for (int k = 0; k < 3; ++k) gbv[k] = sel(b_ok, (gbh[k] - bh[k] * pr) / f.bden, gbh[k] / f.bden);
+            }
+            // bvec_r = Σ_j Rc_rj w_j, w_j = mut_j / se_j, mut_j = (Σ_r mu_r Rc_rj) / se_j
+            for (int j = 0; j < 3; ++j) {
+                V gw = zero;
+                for (int r = 0; r < 3; ++r) {
+                    gRc[3 * r + j] += gbv[r] * f.w[j];
+                    gw += f.Rc[3 * r + j] * gbv[r];
+                }
+                const V gmut = gw / f.se[j];
+                gse[j] -= gw * f.w[j] / f.se[j];
+                const V gy = gmut / f.se[j];
+                gse[j] -= gmut * f.mut[j] / f.se[j];
+                for (int r = 0; r < 3; ++r) {
+                    gmu[r] += f.Rc[3 * r + j] * gy;
+                    gRc[3 * r + j] += f.mu[r] * gy;
+                }
+            }
+            // p0 = -lc (mvec0/dms - uc/nn2), p1 likewise; payload p/f
+            const V gp0 = g[10] / fx, gp1 = g[11] / fy;
+            const V e0 = f.mvec[0] / f.dms - f.uc / f.nn2, e1 = f.mvec[1] / f.dms - f.vc / f.nn2;
+            const V glc = -e0 * gp0 - e1 * gp1;
+            const V gmv[3] = {-f.lc / f.dms * gp0, -f.lc / f.dms * gp1, zero};
+            const V gdms = f.lc * (f.mvec[0] * gp0 + f.mvec[1] * gp1) / (f.dms * f.dms);
+            guc += f.lc / f.nn2 * gp0;
+            gvc += f.lc / f.nn2 * gp1;
+            V gnn2 = -f.lc * (f.uc * gp0 + f.vc * gp1) / (f.nn2 * f.nn2);
+            // lc = zs sqrt(nn2)
+            gzs += glc * f.sq;
+            gnn2 += glc * f.zs / (2.0 * f.sq);
+            guc += 2.0 * f.uc * gnn2;
+            gvc += 2.0 * f.vc * gnn2;
+            const V gdm = sel(f.culled, zero, gdms);
+            // mvec_r = Σ_j Rc_rj h_j, h_j = dt_j/se_j; dm = Σ dt_j², dt_j = (Σ_r dc_r Rc_rj)/se_j
+            V gdc[3] = {zero, zero, zero};
+            for (int j = 0; j < 3; ++j) {
+                V gh = zero;
+                for (int r = 0; r < 3; ++r) {
+                    gRc[3 * r + j] += gmv[r] * f.h[j];
+                    gh += f.Rc[3 * r + j] * gmv[r];
+                }
+                V gdt = gh / f.se[j] + 2.0 * f.dt[j] * gdm;
+                gse[j] -= gh * f.h[j] / f.se[j];
+                const V ge = gdt / f.se[j];
+                gse[j] -= gdt * f.dt[j] / f.se[j];
+                for (int r = 0; r < 3; ++r) {
+                    gRc[3 * r + j] += f.dc[r] * ge;
+                    gdc[r] += f.Rc[3 * r + j] * ge;
+                }
+            }
+            guc += gdc[0];
+            gvc += gdc[1];
+        }
+
+        // conic and opacity
+        const D eps = A.eps2d, kk = A.aa, e1 = eps + kk;
+        V ga = zero, gb = zero, gc = zero, gdet = zero, gdet0 = zero;
+        const V go2 = sel(f.ok, g[5], zero);
+        if (kk > 0) {
+            go1 += go2 * f.fac;
+            const V gfac = go2 * f.o1;
+            gdet0 += sel(f.okk, gfac * f.fac / (2.0 * f.det0), zero);
+            gdet -= sel(f.okk, gfac * f.fac / (2.0 * f.det), zero);
+        } else {
+            go1 += go2;
+        }
+        {
+            // ok: X = S⁻¹ = [[A, B], [B, C]]; dL/dS = -X G X with G = [[gA, gB/2], [gB/2, gC]]
+            const V XA = f.conic[0], XB = f.conic[1], XC = f.conic[2];
+            const V GA = g[2], GB = 0.5 * g[3], GC = g[4];
+            // XG
+            const V t00 = XA * GA + XB * GB, t01 = XA * GB + XB * GC;
+            const V t10 = XB * GA + XC * GB, t11 = XB * GB + XC * GC;
+            const V y00 = t00 * XA + t01 * XB, y01 = t00 * XB + t01 * XC, y11 = t10 * XB + t11 * XC;
+            // not ok: the payload holds (c, -b, a)
+            ga = sel(f.ok, ga - y00, ga + g[4]);
+            gc = sel(f.ok, gc - y11, gc + g[2]);
+            gb = sel(f.ok, gb - 2.0 * y01, gb - g[3]);
+        }
+        // a = a0 + e1, c = c0 + e1, det = gdet + e1 (a0 + c0) + e1², det0 = gdet + eps (a0 + c0) + eps²
+        const V ga0 = ga + gdet * e1 + gdet0 * eps;
+        const V gc0 = gc + gdet * e1 + gdet0 * eps;
+        const V ggd = gdet + gdet0;
+        V gr0[3], gr1[3];
+        {
+            const V gcr[3] = {2.0 * ggd * f.cr[0], 2.0 * ggd * f.cr[1], 2.0 * ggd * f.cr[2]};
+            // cr = r0 × r1: g_r0 = r1 × gcr, g_r1 = gcr × r0
+            gr0[0] = f.r1[1] * gcr[2] - f.r1[2] * gcr[1];
+            gr0[1] = f.r1[2] * gcr[0] - f.r1[0] * gcr[2];
+            gr0[2] = f.r1[0] * gcr[1] - f.r1[1] * gcr[0];
+            gr1[0] = gcr[1] * f.r0[2] - gcr[2] * f.r0[1];
+            gr1[1] = gcr[2] * f.r0[0] - gcr[0] * f.r0[2];
+            gr1[2] = gcr[0] * f.r0[1] - gcr[1] * f.r0[0];
+            for (int j = 0; j < 3; ++j) {
+                gr0[j] += 2.0 * ga0 * f.r0[j] + gb * f.r1[j];
+                gr1[j] += 2.0 * gc0 * f.r1[j] + gb * f.r0[j];
+            }
+        }
+        // r0_j = (fx/zs)(M0j - uc M2j), r1_j = (fy/zs)(M1j - vc M2j)
+        V gM[9];
+        {
+            const V ax = fx / f.zs, ay = fy / f.zs;
+            V s0 = zero, s1 = zero, sr0 = zero, sr1 = zero;
+            for (int j = 0; j < 3; ++j) {
+                gM[j] = ax * gr0[j];
+                gM[3 + j] = ay * gr1[j];
+                gM[6 + j] = -ax * f.uc * gr0[j] - ay * f.vc * gr1[j];
+                s0 += f.M_[6 + j] * gr0[j];
+                s1 += f.M_[6 + j] * gr1[j];
+                sr0 += f.r0[j] * gr0[j];
+                sr1 += f.r1[j] * gr1[j];
+            }
+            guc -= ax * s0;
+            gvc -= ay * s1;
+            gzs -= (sr0 + sr1) / f.zs;
+        }
+        // clamp, u = mu0/zs, v = mu1/zs
+        gu += sel(f.inx, guc, zero);
+        gv += sel(f.iny, gvc, zero);
+        gmu[0] += gu / f.zs;
+        gmu[1] += gv / f.zs;
+        gzs -= (f.u * gu + f.v * gv) / f.zs;
+        gmu[2] += sel(f.culled, zero, gzs);
+        // M = Rc diag(se)
+        for (int r = 0; r < 3; ++r)
+            for (int j = 0; j < 3; ++j) {
+                gRc[3 * r + j] += gM[3 * r + j] * f.se[j];
+                gse[j] += gM[3 * r + j] * f.Rc[3 * r + j];
+            }
+    }
+    // Rc = rotmat(qc)
+    V gqc[4];
+    {
+        const V w = f.qc[0], x = f.qc[1], y = f.qc[2], z = f.qc[3];
+        const V* G = gRc;
+        gqc[0] = 2.0 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
+        gqc[1] = 2.0 * (-2.0 * x * G[4] - 2.0 * x * G[8] + y * G[1] + z * G[2] + y * G[3] - w * G[5] + z * G[6] + w * G[7]);
+        gqc[2] = 2.0 * (-2.0 * y * G[0] - 2.0 * y * G[8] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7]);
+        gqc[3] = 2.0 * (-2.0 * z * G[0] - 2.0 * z * G[4] - w * G[1] + x * G[2] + w * G[3] + y * G[5] + x * G[6] + y * G[7]);
+    }
+    // qc = L q; q = qr / max(|qr|, 1e-12)
+    V gq[4];
+    for (int k = 0; k < 4; ++k) gq[k] = A.L[k] * gqc[0] + A.L[4 + k] * gqc[1] + A.L[8 + k] * gqc[2] + A.L[12 + k] * gqc[3];
+    {
+        const M q_ok = f.qn >= 1e-12;
+        const V pr = f.q[0] * gq[0] + f.q[1] * gq[1] + f.q[2] * gq[2] + f.q[3] * gq[3];
+        for (int k = 0; k < 4; ++k)
+            scatter((T*)A.g_quats, rows, 4, k, sel(q_ok, (gq[k] - f.q[k] * pr) / f.qden, gq[k] / f.qden));
+    }
+    // mu = R m + t
+    for (int k = 0; k < 3; ++k) gm[k] += A.R[k] * gmu[0] + A.R[3 + k] * gmu[1] + A.R[6 + k] * gmu[2];
+    for (int k = 0; k < 3; ++k) scatter((T*)A.g_means, rows, 3, k, gm[k]);
+    // 3D filter: se = sqrt(s² + f3), o1 = o sqrt(Π s²/(s² + f3)) over the NC scale columns in use
+    if (A.has_filter) {
+        const V gfo = go1 * f.o;
+        for (int k = 0; k < NC; ++k) {
+            const V gs2f = gse[k] / (2.0 * f.se[k]) - gfo * f.fo / (2.0 * f.s2f[k]);
+            scatter((T*)A.g_scales, rows, 3, k, 2.0 * f.s[k] * gs2f + gfo * f.fo / f.s[k]);
+        }
+        if (NC == 2) scatter((T*)A.g_scales, rows, 3, 2, zero);
+        scatter((T*)A.g_opac, rows, 1, 0, go1 * f.fo);
+    } else {
+        for (int k = 0; k < 3; ++k) scatter((T*)A.g_scales, rows, 3, k, k < NC ? gse[k] : zero);
+        scatter((T*)A.g_opac, rows, 1, 0, go1);
+    }
+}
+
+// One OpenMP loop over chunks of Gaussians: a Gaussian whose payload gradient is all zero gets zero gradients
+// (they are linear in it); the others are listed and go through the backward LANES at a time, the chunk's last
+// ones one at a time.
 template <typename T, int KER>
 void project_backward(const ProjArgs& A) {
     constexpr int P = nparams<KER>();
-    constexpr int NC = KER == K_SURFEL ? 2 : 3;
-    const D fx = A.fx, fy = A.fy;
-#pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 1024)
-    for (int64_t i = 0; i < A.n; ++i) {
-        const T* gp = (const T*)A.g_params + i * P;
-        if (zero_row<T, P>(gp)) {  // every gradient of the Gaussian is 0 (they are linear in g): skip its work
-            write_zero_gradients<T>(A, i);
-            continue;
+    constexpr int64_t CHUNK = 1024;
+    const int64_t chunks = (A.n + CHUNK - 1) / CHUNK;
+#pragma omp parallel for num_threads((int)A.nthreads) schedule(static, 1)
+    for (int64_t c = 0; c < chunks; ++c) {
+        int64_t rows[CHUNK];
+        int64_t m = 0;
+        for (int64_t i = c * CHUNK; i < std::min(A.n, (c + 1) * CHUNK); ++i) {
+            if (zero_row<T, P>((const T*)A.g_params + i * P)) write_zero_gradients<T>(A, i);
+            else rows[m++] = i;
         }
-        Fw<D> f;
-        forward_one<T, KER, D>(A, i, f);
-        D g[P];
-        for (int k = 0; k < P; ++k) g[k] = (D)gp[k];
-        D gmu[3] = {0, 0, 0}, gRc[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gse[3] = {0, 0, 0}, gm[3] = {0, 0, 0};
-        D guc = 0, gvc = 0, gu = 0, gv = 0, gzs = 0, go1 = 0;
-
-        // SH colour
-        const int deg = (int)A.sh_degree;
-        D graw[3];
-        for (int ch = 0; ch < 3; ++ch) graw[ch] = (f.raw[ch] + 0.5 >= 0.0) ? g[6 + ch] : 0.0;
-        // the rows past the active degree get no gradient (written here: the caller does not zero the buffers)
-        for (int k = (deg + 1) * (deg + 1); k < A.sh_k + A.sh_rest_k; ++k) {
-            T* grow = g_sh_row<T>(A, i, k);
-            grow[0] = grow[1] = grow[2] = T(0);
-        }
-        if (deg == 0) {
-            T* gsh = g_sh_row<T>(A, i, 0);
-            for (int ch = 0; ch < 3; ++ch) gsh[ch] = (T)(SH0 * graw[ch]);
-        } else {
-            D bs[16], db[16][3];
-            sh_basis(deg, f.dir[0], f.dir[1], f.dir[2], bs, db);
-            const int nb = (deg + 1) * (deg + 1);
-            D gdir[3] = {0, 0, 0};
-            for (int k = 0; k < nb; ++k) {
-                const T* row = sh_row<T>(A, i, k);
-                T* grow = g_sh_row<T>(A, i, k);
-                D s = 0;
-                for (int ch = 0; ch < 3; ++ch) {
-                    grow[ch] = (T)(bs[k] * graw[ch]);
-                    s += (D)row[ch] * graw[ch];
-                }
-                gdir[0] += db[k][0] * s;
-                gdir[1] += db[k][1] * s;
-                gdir[2] += db[k][2] * s;
-            }
-            if (f.dn >= 1e-12) {
-                const D pr = f.dir[0] * gdir[0] + f.dir[1] * gdir[1] + f.dir[2] * gdir[2];
-                for (int k = 0; k < 3; ++k) gm[k] += (gdir[k] - f.dir[k] * pr) / f.dden;
-            } else {
-                for (int k = 0; k < 3; ++k) gm[k] += gdir[k] / f.dden;
-            }
-        }
-
-        if constexpr (KER == K_SURFEL) {
-            go1 += f.ok ? g[5] : 0.0;
-            // extras: n = t_w·sign (sign constant), d = n·μ, a_u = t_u/se_u, μ·a_u, a_v = t_v/se_v, μ·a_v
-            for (int r = 0; r < 3; ++r) {
-                gRc[3 * r + 2] += f.sgs * (g[9 + r] + g[12] * f.mu[r]);
-                gmu[r] += g[12] * f.snrm[r] + g[16] * f.au[r] + g[20] * f.av[r];
-                const D gau = g[13 + r] + g[16] * f.mu[r], gav = g[17 + r] + g[20] * f.mu[r];
-                gRc[3 * r] += gau / f.se[0];
-                gRc[3 * r + 1] += gav / f.se[1];
-                gse[0] -= gau * f.au[r] / f.se[0];
-                gse[1] -= gav * f.av[r] / f.se[1];
-            }
-            // centre: cn_a = (9 Xa0 X20 + 9 Xa1 X21 − Xa2 X22)/dds, dds = dd (ok) = 9(X20² + X21²) − X22²
-            D gX[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0};
-            const D keep = f.crossing ? 0.0 : 1.0;  // a crossing disc's payload centre is a constant (forward)
-            const D gcn[2] = {keep * fx * g[0], keep * fy * g[1]};
-            const D cn[2] = {f.cnx, f.cny};
-            D gdds = 0;
-            const D* X = f.X;
-            for (int a = 0; a < 2; ++a) {
-                const D gN = gcn[a] / f.dds;
-                gdds -= gcn[a] * cn[a] / f.dds;
-                gX[3 * a] += 9.0 * X[6] * gN;
-                gX[6] += 9.0 * X[3 * a] * gN;
-                gX[3 * a + 1] += 9.0 * X[7] * gN;
-                gX[7] += 9.0 * X[3 * a + 1] * gN;
-                gX[3 * a + 2] -= X[8] * gN;
-                gX[8] -= X[3 * a + 2] * gN;
-            }
-            if (f.ok) {
-                gX[6] += 18.0 * X[6] * gdds;
-                gX[7] += 18.0 * X[7] * gdds;
-                gX[8] -= 2.0 * X[8] * gdds;
-            }
-            // X rows: (se_u Rc_r0, se_v Rc_r1, μ_r)
-            for (int r = 0; r < 3; ++r) {
-                gRc[3 * r] += f.se[0] * gX[3 * r];
-                gse[0] += f.Rc[3 * r] * gX[3 * r];
-                gRc[3 * r + 1] += f.se[1] * gX[3 * r + 1];
-                gse[1] += f.Rc[3 * r + 1] * gX[3 * r + 1];
-                gmu[r] += gX[3 * r + 2];
-            }
-        } else {
-            // means2d = (fx u + cx, fy v + cy)
-            gu += fx * g[0];
-            gv += fy * g[1];
-
-            // kernel extras
-            if constexpr (KER == K_EWA) {
-                gmu[2] += g[9];
-                const int idx = f.pick2 ? 2 : f.pick1 ? 1 : 0;
-                gRc[idx] += f.sgn * g[10];
-                gRc[3 + idx] += f.sgn * g[11];
-                gRc[6 + idx] += f.sgn * g[12];
-            } else if constexpr (KER == K_RAYMAX) {
-                const D inv = 1.0 / f.cs;
-                const D* E = f.E;
-                D gE[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gmut[3] = {0, 0, 0};
-                D ginv = 0, gcs = g[21];
-                // A' = E Eᵀ / cs
-                int t = 0;
-                for (int a = 0; a < 3; ++a)
-                    for (int b = a; b < 3; ++b, ++t) {
-                        const D ga = g[9 + t];
-                        ginv += ga * f.S6[t];
-                        for (int j = 0; j < 3; ++j) {
-                            gE[3 * a + j] += ga * inv * E[3 * b + j];
-                            gE[3 * b + j] += ga * inv * E[3 * a + j];
-                        }
-                    }
-                // b' = E μ̃ / cs
-                for (int a = 0; a < 3; ++a) {
-                    const D gb = g[15 + a];
-                    ginv += gb * f.braw[a];
-                    for (int j = 0; j < 3; ++j) {
-                        gE[3 * a + j] += gb * inv * f.mut[j];
-                        gmut[j] += gb * inv * E[3 * a + j];
-                    }
-                }
-                // M' = (vx·vx, vx·vy, vy·vy) / cs, vx = muh × ẽ_0, vy = muh × ẽ_1, muh = μ̃/√cs
-                ginv += g[18] * f.dM[0] + g[19] * f.dM[1] + g[20] * f.dM[2];
-                D gvx[3], gvy[3], gmuh[3] = {0, 0, 0};
-                for (int k = 0; k < 3; ++k) {
-                    gvx[k] = inv * (2.0 * g[18] * f.vx[k] + g[19] * f.vy[k]);
-                    gvy[k] = inv * (g[19] * f.vx[k] + 2.0 * g[20] * f.vy[k]);
-                }
-                cross_bwd(f.muh, E, gvx, gmuh, gE);
-                cross_bwd(f.muh, E + 3, gvy, gmuh, gE + 3);
-                D gsq = 0;
-                for (int k = 0; k < 3; ++k) {
-                    gmut[k] += gmuh[k] / f.sqc;
-                    gsq -= gmuh[k] * f.muh[k] / f.sqc;
-                }
-                gcs += gsq / (2.0 * f.sqc) - ginv * inv * inv;
-                if (!f.culled)
-                    for (int k = 0; k < 3; ++k) gmut[k] += 2.0 * f.mut[k] * gcs;
-                // μ̃_j = (Σ_r μ_r Rc_rj)/se_j, E_rj = Rc_rj/se_j
-                for (int j = 0; j < 3; ++j) {
-                    const D gy = gmut[j] / f.se[j];
-                    gse[j] -= gmut[j] * f.mut[j] / f.se[j];
-                    for (int r = 0; r < 3; ++r) {
-                        gmu[r] += f.Rc[3 * r + j] * gy;
-                        gRc[3 * r + j] += f.mu[r] * gy + gE[3 * r + j] / f.se[j];
-                        gse[j] -= gE[3 * r + j] * E[3 * r + j] / f.se[j];
-                    }
-                }
-                // (μx/μz, μy/μz) unclamped
-                gu += g[22];
-                gv += g[23];
-            } else {
-                // l = |mu|
-                if (f.l > 0)
-                    for (int k = 0; k < 3; ++k) gmu[k] += g[9] * f.mu[k] / f.l;
-                // nrm = -normalize(bvec)
-                D gbv[3];
-                {
-                    const D gbh[3] = {-g[12], -g[13], -g[14]};
-                    if (f.bnorm >= 1e-12) {
-                        const D bh[3] = {f.bvec[0] / f.bden, f.bvec[1] / f.bden, f.bvec[2] / f.bden};
-                        const D pr = bh[0] * gbh[0] + bh[1] * gbh[1] + bh[2] * gbh[2];
-                        for (int k = 0; k < 3; ++k) gbv[k] = (gbh[k] - bh[k] * pr) / f.bden;
-                    } else {
-                        for (int k = 0; k < 3; ++k) gbv[k] = gbh[k] / f.bden;
-                    }
-                }
-                // bvec_r = Σ_j Rc_rj w_j, w_j = mut_j / se_j, mut_j = (Σ_r mu_r Rc_rj) / se_j
-                for (int j = 0; j < 3; ++j) {
-                    D gw = 0;
-                    for (int r = 0; r < 3; ++r) {
-                        gRc[3 * r + j] += gbv[r] * f.w[j];
-                        gw += f.Rc[3 * r + j] * gbv[r];
-                    }
-                    const D gmut = gw / f.se[j];
-                    gse[j] -= gw * f.w[j] / f.se[j];
-                    const D gy = gmut / f.se[j];
-                    gse[j] -= gmut * f.mut[j] / f.se[j];
-                    for (int r = 0; r < 3; ++r) {
-                        gmu[r] += f.Rc[3 * r + j] * gy;
-                        gRc[3 * r + j] += f.mu[r] * gy;
-                    }
-                }
-                // p0 = -lc (mvec0/dms - uc/nn2), p1 likewise; payload p/f
-                const D gp0 = g[10] / fx, gp1 = g[11] / fy;
-                const D e0 = f.mvec[0] / f.dms - f.uc / f.nn2, e1 = f.mvec[1] / f.dms - f.vc / f.nn2;
-                const D glc = -e0 * gp0 - e1 * gp1;
-                const D gmv[3] = {-f.lc / f.dms * gp0, -f.lc / f.dms * gp1, 0.0};
-                const D gdms = f.lc * (f.mvec[0] * gp0 + f.mvec[1] * gp1) / (f.dms * f.dms);
-                guc += f.lc / f.nn2 * gp0;
-                gvc += f.lc / f.nn2 * gp1;
-                D gnn2 = -f.lc * (f.uc * gp0 + f.vc * gp1) / (f.nn2 * f.nn2);
-                // lc = zs sqrt(nn2)
-                gzs += glc * f.sq;
-                gnn2 += glc * f.zs / (2.0 * f.sq);
-                guc += 2.0 * f.uc * gnn2;
-                gvc += 2.0 * f.vc * gnn2;
-                const D gdm = f.culled ? 0.0 : gdms;
-                // mvec_r = Σ_j Rc_rj h_j, h_j = dt_j/se_j; dm = Σ dt_j², dt_j = (Σ_r dc_r Rc_rj)/se_j
-                D gdc[3] = {0, 0, 0};
-                for (int j = 0; j < 3; ++j) {
-                    D gh = 0;
-                    for (int r = 0; r < 3; ++r) {
-                        gRc[3 * r + j] += gmv[r] * f.h[j];
-                        gh += f.Rc[3 * r + j] * gmv[r];
-                    }
-                    D gdt = gh / f.se[j] + 2.0 * f.dt[j] * gdm;
-                    gse[j] -= gh * f.h[j] / f.se[j];
-                    const D ge = gdt / f.se[j];
-                    gse[j] -= gdt * f.dt[j] / f.se[j];
-                    for (int r = 0; r < 3; ++r) {
-                        gRc[3 * r + j] += f.dc[r] * ge;
-                        gdc[r] += f.Rc[3 * r + j] * ge;
-                    }
-                }
-                guc += gdc[0];
-                gvc += gdc[1];
-            }
-
-            // conic and opacity
-            const D eps = A.eps2d, kk = A.aa, e1 = eps + kk;
-            D ga = 0, gb = 0, gc = 0, gdet = 0, gdet0 = 0;
-            const D go2 = f.ok ? g[5] : 0.0;
-            if (kk > 0) {
-                go1 += go2 * f.fac;
-                if (f.okk) {
-                    const D gfac = go2 * f.o1;
-                    gdet0 += gfac * f.fac / (2.0 * f.det0);
-                    gdet -= gfac * f.fac / (2.0 * f.det);
-                }
-            } else {
-                go1 += go2;
-            }
-            if (f.ok) {
-                // X = S⁻¹ = [[A, B], [B, C]]; dL/dS = -X G X with G = [[gA, gB/2], [gB/2, gC]]
-                const D XA = f.conic[0], XB = f.conic[1], XC = f.conic[2];
-                const D GA = g[2], GB = 0.5 * g[3], GC = g[4];
-                // XG
-                const D t00 = XA * GA + XB * GB, t01 = XA * GB + XB * GC;
-                const D t10 = XB * GA + XC * GB, t11 = XB * GB + XC * GC;
-                const D y00 = t00 * XA + t01 * XB, y01 = t00 * XB + t01 * XC, y11 = t10 * XB + t11 * XC;
-                ga -= y00;
-                gc -= y11;
-                gb -= 2.0 * y01;
-            } else {
-                ga += g[4];
-                gb -= g[3];
-                gc += g[2];
-            }
-            // a = a0 + e1, c = c0 + e1, det = gdet + e1 (a0 + c0) + e1², det0 = gdet + eps (a0 + c0) + eps²
-            const D ga0 = ga + gdet * e1 + gdet0 * eps;
-            const D gc0 = gc + gdet * e1 + gdet0 * eps;
-            const D ggd = gdet + gdet0;
-            D gr0[3], gr1[3];
-            {
-                const D gcr[3] = {2.0 * ggd * f.cr[0], 2.0 * ggd * f.cr[1], 2.0 * ggd * f.cr[2]};
-                // cr = r0 × r1: g_r0 = r1 × gcr, g_r1 = gcr × r0
-                gr0[0] = f.r1[1] * gcr[2] - f.r1[2] * gcr[1];
-                gr0[1] = f.r1[2] * gcr[0] - f.r1[0] * gcr[2];
-                gr0[2] = f.r1[0] * gcr[1] - f.r1[1] * gcr[0];
-                gr1[0] = gcr[1] * f.r0[2] - gcr[2] * f.r0[1];
-                gr1[1] = gcr[2] * f.r0[0] - gcr[0] * f.r0[2];
-                gr1[2] = gcr[0] * f.r0[1] - gcr[1] * f.r0[0];
-                for (int j = 0; j < 3; ++j) {
-                    gr0[j] += 2.0 * ga0 * f.r0[j] + gb * f.r1[j];
-                    gr1[j] += 2.0 * gc0 * f.r1[j] + gb * f.r0[j];
-                }
-            }
-            // r0_j = (fx/zs)(M0j - uc M2j), r1_j = (fy/zs)(M1j - vc M2j)
-            D gM[9];
-            {
-                const D ax = fx / f.zs, ay = fy / f.zs;
-                D s0 = 0, s1 = 0, sr0 = 0, sr1 = 0;
-                for (int j = 0; j < 3; ++j) {
-                    gM[j] = ax * gr0[j];
-                    gM[3 + j] = ay * gr1[j];
-                    gM[6 + j] = -ax * f.uc * gr0[j] - ay * f.vc * gr1[j];
-                    s0 += f.M_[6 + j] * gr0[j];
-                    s1 += f.M_[6 + j] * gr1[j];
-                    sr0 += f.r0[j] * gr0[j];
-                    sr1 += f.r1[j] * gr1[j];
-                }
-                guc -= ax * s0;
-                gvc -= ay * s1;
-                gzs -= (sr0 + sr1) / f.zs;
-            }
-            // clamp, u = mu0/zs, v = mu1/zs
-            if (f.inx) gu += guc;
-            if (f.iny) gv += gvc;
-            gmu[0] += gu / f.zs;
-            gmu[1] += gv / f.zs;
-            gzs -= (f.u * gu + f.v * gv) / f.zs;
-            if (!f.culled) gmu[2] += gzs;
-            // M = Rc diag(se)
-            for (int r = 0; r < 3; ++r)
-                for (int j = 0; j < 3; ++j) {
-                    gRc[3 * r + j] += gM[3 * r + j] * f.se[j];
-                    gse[j] += gM[3 * r + j] * f.Rc[3 * r + j];
-                }
-        }
-        // Rc = rotmat(qc)
-        D gqc[4];
-        {
-            const D w = f.qc[0], x = f.qc[1], y = f.qc[2], z = f.qc[3];
-            const D* G = gRc;
-            gqc[0] = 2.0 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]);
-            gqc[1] = 2.0 * (-2.0 * x * G[4] - 2.0 * x * G[8] + y * G[1] + z * G[2] + y * G[3] - w * G[5] + z * G[6] + w * G[7]);
-            gqc[2] = 2.0 * (-2.0 * y * G[0] - 2.0 * y * G[8] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7]);
-            gqc[3] = 2.0 * (-2.0 * z * G[0] - 2.0 * z * G[4] - w * G[1] + x * G[2] + w * G[3] + y * G[5] + x * G[6] + y * G[7]);
-        }
-        // qc = L q; q = qr / max(|qr|, 1e-12)
-        D gq[4];
-        for (int k = 0; k < 4; ++k) gq[k] = A.L[k] * gqc[0] + A.L[4 + k] * gqc[1] + A.L[8 + k] * gqc[2] + A.L[12 + k] * gqc[3];
-        T* gQ = (T*)A.g_quats + 4 * i;
-        if (f.qn >= 1e-12) {
-            const D pr = f.q[0] * gq[0] + f.q[1] * gq[1] + f.q[2] * gq[2] + f.q[3] * gq[3];
-            for (int k = 0; k < 4; ++k) gQ[k] = (T)((gq[k] - f.q[k] * pr) / f.qden);
-        } else {
-            for (int k = 0; k < 4; ++k) gQ[k] = (T)(gq[k] / f.qden);
-        }
-        // mu = R m + t
-        for (int k = 0; k < 3; ++k) gm[k] += A.R[k] * gmu[0] + A.R[3 + k] * gmu[1] + A.R[6 + k] * gmu[2];
-        T* gM_out = (T*)A.g_means + 3 * i;
-        for (int k = 0; k < 3; ++k) gM_out[k] = (T)gm[k];
-        // 3D filter: se = sqrt(s² + f3), o1 = o sqrt(Π s²/(s² + f3)) over the NC scale columns in use
-        T* gS = (T*)A.g_scales + 3 * i;
-        if (A.has_filter) {
-            const D gfo = go1 * f.o;
-            for (int k = 0; k < NC; ++k) {
-                const D gs2f = gse[k] / (2.0 * f.se[k]) - gfo * f.fo / (2.0 * f.s2f[k]);
-                gS[k] = (T)(2.0 * f.s[k] * gs2f + gfo * f.fo / f.s[k]);
-            }
-            if (NC == 2) gS[2] = T(0);
-            ((T*)A.g_opac)[i] = (T)(go1 * f.fo);
-        } else {
-            for (int k = 0; k < 3; ++k) gS[k] = (T)(k < NC ? gse[k] : 0.0);
-            ((T*)A.g_opac)[i] = (T)go1;
-        }
+        int64_t j = 0;
+        for (; j + LANES <= m; j += LANES) backward_rows<T, KER, V8>(A, rows + j);
+        for (; j < m; ++j) backward_rows<T, KER, D>(A, rows + j);
     }
 }
 
