@@ -107,9 +107,6 @@ inline bool lane(bool m, int) { return m; }
 inline bool lane(M8 m, int l) { return m[l] != 0; }
 inline D sel(bool m, D a, D b) { return m ? a : b; }
 inline V8 sel(M8 m, V8 a, V8 b) { return m ? a : b; }
-inline V8 sel(M8 m, V8 a, D b) { return m ? a : splat<V8>(b); }
-inline V8 sel(M8 m, D a, V8 b) { return m ? splat<V8>(a) : b; }
-inline V8 sel(M8 m, D a, D b) { return m ? splat<V8>(a) : splat<V8>(b); }
 inline bool mand(bool a, bool b) { return a && b; }
 inline M8 mand(M8 a, M8 b) { return a & b; }
 inline bool mnot(bool a) { return !a; }
@@ -118,7 +115,6 @@ inline M8 mnot(M8 a) { return ~a; }
 template <typename V> inline V vmax(V a, V b) { return sel(a < b, b, a); }
 template <typename V> inline V vmin(V a, V b) { return sel(b < a, b, a); }
 inline V8 vmax(V8 a, D b) { return vmax(a, splat<V8>(b)); }
-inline V8 vmin(V8 a, D b) { return vmin(a, splat<V8>(b)); }
 template <typename V> inline V clampv(V x, D lo, D hi) { return vmin(vmax(x, splat<V>(lo)), splat<V>(hi)); }
 #define GSB_LANEWISE(name, fn)                                            \
     inline D name(D x) { return fn(x); }                                  \
