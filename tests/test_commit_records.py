@@ -1,5 +1,6 @@
 """`tools/commit_records.py`: finished runs' records copied into a committed folder with the machine's paths made
-relative; a run that is only interrupted (it resumes) is left out, a failed one is kept."""
+relative; a run that is only interrupted (it resumes) is left out, a failed one is kept; the sweeps' manifests
+go with them."""
 
 from __future__ import annotations
 
@@ -24,9 +25,13 @@ def test_finished_records_are_copied_with_relative_paths_and_interrupted_ones_le
     _record(runs / "dtu" / "spot" / "3dgs" / "aaa", "ok", runs, cache)
     _record(runs / "dtu" / "spot" / "2dgs" / "bbb", "failed", runs, cache)
     _record(runs / "dtu" / "spot" / "gof" / "ccc", "interrupted", runs, cache)
+    manifest = {"name": "abl", "runs": [{"run_id": "aaa", "label": "base", "dir": "dtu/spot/3dgs/aaa"}]}
+    (runs / "sweeps").mkdir()
+    (runs / "sweeps" / "abl.json").write_text(json.dumps(manifest))
     done = subprocess.run([sys.executable, str(TOOL), str(runs), str(committed)], capture_output=True, text=True,
                           env={**os.environ, "GSBENCH_DATA": str(cache)}, check=True)
-    assert "2 records written" in done.stdout
+    assert "2 records and 1 sweep manifests written" in done.stdout
+    assert json.loads((committed / "sweeps" / "abl.json").read_text()) == manifest
     copied = json.loads((committed / "dtu" / "spot" / "3dgs" / "aaa" / "record.json").read_text())
     assert copied["config"]["out"] == "." and copied["mesh"]["path"] == "dtu/spot/3dgs/aaa/mesh.ply"
     assert copied["scene"] == "$GSBENCH_DATA/synthetic/spot"

@@ -8,7 +8,9 @@ is written to the same relative place under ``RECORDS_DIR`` with one change (doc
 runs folder becomes ``.`` (so the run's files are relative to the records folder) and the data cache
 (``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``; every other
 field is as the run wrote it. Unfinished runs (no record, or one with status ``interrupted``: it resumes) are
-skipped; records already there are replaced.
+skipped; records already there are replaced. The sweeps' manifests (``RUNS_DIR/sweeps/<name>.json``: of the given
+sweep files, else all) go to ``RECORDS_DIR/sweeps`` the same way: `gsbench report` finds a sweep's rows (its
+ablation tables and claims) through them.
 """
 
 from __future__ import annotations
@@ -63,7 +65,16 @@ def main() -> None:
         with atomic_path(target) as tmp:
             tmp.write_text(json.dumps(relative(record, runs, cache), indent=2, sort_keys=True) + "\n")
         copied += 1
-    print(f"{copied} records written under {args.records}")
+    names = [load_sweep(file)["name"] for file in args.sweep]
+    manifests = [args.runs / "sweeps" / f"{name}.json" for name in names] if names else \
+        sorted((args.runs / "sweeps").glob("*.json"))
+    manifests = [path for path in manifests if path.is_file()]
+    for path in manifests:
+        target = args.records / "sweeps" / path.name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(target) as tmp:
+            tmp.write_text(json.dumps(relative(json.loads(path.read_text()), runs, cache), indent=2) + "\n")
+    print(f"{copied} records and {len(manifests)} sweep manifests written under {args.records}")
 
 
 if __name__ == "__main__":
