@@ -24,6 +24,10 @@ def test_finished_records_are_copied_with_relative_paths_and_interrupted_ones_le
     runs, cache, committed = tmp_path / "runs", tmp_path / "cache", tmp_path / "committed"
     _record(runs / "dtu" / "spot" / "3dgs" / "aaa", "ok", runs, cache)
     _record(runs / "dtu" / "spot" / "2dgs" / "bbb", "failed", runs, cache)
+    failed = json.loads((runs / "dtu" / "spot" / "2dgs" / "bbb" / "record.json").read_text())
+    failed["error_tail"] = ('  File "/home/me/wt3/gsbench/mesh/tsdf.py", line 9, in fuse\n'
+                            '  File "/usr/lib/python3/site-packages/torch/nn.py", line 2, in f\n')
+    (runs / "dtu" / "spot" / "2dgs" / "bbb" / "record.json").write_text(json.dumps(failed))
     _record(runs / "dtu" / "spot" / "gof" / "ccc", "interrupted", runs, cache)
     manifest = {"name": "abl", "runs": [{"run_id": "aaa", "label": "base", "dir": "dtu/spot/3dgs/aaa"}]}
     (runs / "sweeps").mkdir()
@@ -35,5 +39,7 @@ def test_finished_records_are_copied_with_relative_paths_and_interrupted_ones_le
     copied = json.loads((committed / "dtu" / "spot" / "3dgs" / "aaa" / "record.json").read_text())
     assert copied["config"]["out"] == "." and copied["mesh"]["path"] == "dtu/spot/3dgs/aaa/mesh.ply"
     assert copied["scene"] == "$GSBENCH_DATA/synthetic/spot"
-    assert (committed / "dtu" / "spot" / "2dgs" / "bbb" / "record.json").is_file()
+    tail = json.loads((committed / "dtu" / "spot" / "2dgs" / "bbb" / "record.json").read_text())["error_tail"]
+    assert tail == ('  File "gsbench/mesh/tsdf.py", line 9, in fuse\n'
+                    '  File "site-packages/torch/nn.py", line 2, in f\n')
     assert not (committed / "dtu" / "spot" / "gof").exists()

@@ -6,8 +6,9 @@ Every ``record.json`` under ``RUNS_DIR`` (only the runs of the given sweep files
 ``gsbench sweep FILE --dry-run [--suite NAME] [--seeds SEED ...]`` lists them, when ``--sweep`` is given)
 is written to the same relative place under ``RECORDS_DIR`` with one change (docs/results/README.md): the
 runs folder becomes ``.`` (so the run's files are relative to the records folder) and the data cache
-(``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``; every other
-field is as the run wrote it. Unfinished runs (no record, or one with status ``interrupted``: it resumes) are
+(``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``, and a failed run's
+traceback names its files from the checkout (``gsbench/...``) or the installed packages (``site-packages/...``)
+instead of the machine's folders; every other field is as the run wrote it. Unfinished runs (no record, or one with status ``interrupted``: it resumes) are
 skipped; records already there are replaced. The sweeps' manifests (``RUNS_DIR/sweeps/<name>.json``: of the given
 sweep files, else all) go to ``RECORDS_DIR/sweeps`` the same way: `gsbench report` finds a sweep's rows (its
 ablation tables and claims) through them.
@@ -17,11 +18,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 from gsbench.atomic import atomic_path
 from gsbench.data.cache import cache_dir
 from gsbench.runs.sweep import expand, load_sweep, with_suite
+
+TRACEBACK_FOLDER = re.compile(r'File "[^"]*?/(gsbench|site-packages)/')  # the machine's part of a traceback's path
 
 
 def relative(value, runs: str, cache: str):
@@ -33,7 +37,7 @@ def relative(value, runs: str, cache: str):
     if isinstance(value, str):
         if value == runs:
             return "."
-        return value.replace(runs + "/", "").replace(cache, "$GSBENCH_DATA")
+        return TRACEBACK_FOLDER.sub(r'File "\1/', value.replace(runs + "/", "").replace(cache, "$GSBENCH_DATA"))
     return value
 
 
