@@ -264,10 +264,6 @@ def _bench(sizes=(50_000, 200_000), repeats=5, threads=2):
                   f"fused fwd {bf:6.1f} bwd {bb:6.1f} total {bf + bb:6.1f} | speed-up {(af + ab) / (bf + bb):5.1f}x")
 
 
-if __name__ == "__main__":
-    _bench()
-
-
 @pytest.mark.parametrize("kernel", FUSED_KERNELS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("filter3d", [None, 1e-3], ids=["nofilter", "filter3d"])
@@ -276,11 +272,15 @@ def test_vector_lanes_match_one_gaussian_at_a_time(kernel, dtype, filter3d):
     and one at a time, against each Gaussian projected alone (one at a time)."""
     cam = posed_camera(40, 30)
     rand = random_gaussians(29, kernel, seed=11, camera=make_camera(40, 30), dtype=torch.float64, sh_degree=3)
-    g = concat(_hard_scene(kernel), RasterGaussians(rand.means, rand.quats, rand.scales, rand.opacities,
-                                                    rand.sh[:, :16]))
+    g = concat(_hard_scene(kernel), rand)
     if filter3d is not None:
         g = RasterGaussians(g.means, g.quats, g.scales, g.opacities, g.sh, torch.full((len(g),), filter3d,
                                                                                        dtype=torch.float64))
     g = g.map(lambda t: t.to(dtype))
     for settings in (SETTINGS["sh3-aa-eps-near-nofilter"], SETTINGS["sh2-aa-filter0.5"]):
         check_lanes_match_one_at_a_time(g, cam, kernel, settings, tol=1e-12 if dtype == torch.float64 else 1e-6)
+
+
+if __name__ == "__main__":
+    _bench()
+

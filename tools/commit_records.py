@@ -8,10 +8,10 @@ is written to the same relative place under ``RECORDS_DIR`` with one change (doc
 runs folder becomes ``.`` (so the run's files are relative to the records folder) and the data cache
 (``$GSBENCH_DATA``, default ``~/.cache/gsbench/scenes``) becomes the text ``$GSBENCH_DATA``, and a failed run's
 traceback names its files from the checkout (``gsbench/...``) or the installed packages (``site-packages/...``)
-instead of the machine's folders; every other field is as the run wrote it. Unfinished runs (no record, or one with status ``interrupted``: it resumes) are
-skipped; records already there are replaced. The sweeps' manifests (``RUNS_DIR/sweeps/<name>.json``: of the given
-sweep files, else all) go to ``RECORDS_DIR/sweeps`` the same way: `gsbench report` finds a sweep's rows (its
-ablation tables and claims) through them.
+instead of the machine's folders; every other field is as the run wrote it. Unfinished runs (no record, or one
+with status ``interrupted``: it resumes) are skipped; records already there are replaced. The sweeps' manifests
+(``RUNS_DIR/sweeps/<name>.json``: of the given sweep files, else all) go to ``RECORDS_DIR/sweeps`` the same way:
+`gsbench report` finds a sweep's rows (its ablation tables and claims) through them.
 """
 
 from __future__ import annotations

@@ -4,10 +4,11 @@
 
 Each round, a few seconds apart: `gsbench.bench.roofline.machine_limits` at 1 and 2 threads (the STREAM triad
 and the in-place update a += s·c, GB/s) and `gsbench.training.optim.FusedAdam`'s step (torch's fused kernel)
-over six parameter groups of a 3DGS model with ``--gaussians`` Gaussians (positions 3, SH degree 0 3 and rest 45, opacity 1, scales 3, rotations 4 floats each), best of 5
-steps, at 1 and 2 threads. Adam reads θ, g, m, v and writes θ, m, v: 28 bytes per parameter. A row per round,
-so a bandwidth that changes with the host over minutes shows as it changes (docs/measurements.md, "Adam and
-the memory at two threads"). Run it with nothing else on the cores.
+over six parameter groups of a 3DGS model with ``--gaussians`` Gaussians (positions 3, SH degree 0 3 and rest
+45, opacity 1, scales 3, rotations 4 floats each), best of 5 steps, at 1 and 2 threads. Adam reads θ, g, m, v
+and writes θ, m, v: 28 bytes per parameter. A row per round, so a bandwidth that changes with the host over
+minutes shows as it changes (docs/measurements.md, "Adam and the memory at two threads"). Run it with nothing
+else on the cores.
 """
 
 from __future__ import annotations
