@@ -2,9 +2,9 @@
 ``plots/*.png`` in the output folder (``gsbench report RUNS_DIR --out DIR``).
 
 Sections: the leaderboards (cells: mean ± 95% t-interval over seeds); ranks and paired comparisons per
-leaderboard (`gsbench.report.stats`); the papers' orderings tested (`gsbench.report.claims`); speed
-against error; captures without ground truth; sweeps (ablations, with paired tests against the first
-row); failed runs; protocols; environment.
+leaderboard (`gsbench.report.stats`); the papers' orderings tested (`gsbench.report.claims`); twin scenes
+(what one factor of a scene costs each method, `gsbench.report.twins`); speed against error; captures without
+ground truth; sweeps (ablations, with paired tests against the first row); failed runs; protocols; environment.
 
 Runs with measures that need no ground truth (held-out PSNR/SSIM, mask IoU, the surface outside the
 masks' visual hull, mesh statistics) or with skipped evaluators get the section "Captures without
@@ -43,6 +43,7 @@ from gsbench.report.run_tables import (
 from gsbench.report.stats import comparisons
 from gsbench.report.surfaces import ERROR_SCALE_MM, surface_picture
 from gsbench.report.tables import Plot, Section, document_markdown
+from gsbench.report.twins import twin_tables
 from gsbench.report.views import (
     PAIRED_NOTE,
     ablation_table,
@@ -86,6 +87,10 @@ CLAIMS_NOTES = [
     "pair). Not separable with few pairs is no evidence of equality. A method with several configurations "
     "on a leaderboard is represented by the one with the most runs (named under rows compared).",
 ]
+TWINS_NOTE = ("Scenes made from another scene with one factor changed (the glass scenes from their opaque twins, a "
+              "scene framed smaller, its relief smoothed off): per method, each metric on the twin and on the changed "
+              "scene and the paired change over seeds, so what the factor costs each method, and whether a method "
+              "made for it recovers it, can be read side by side (`gsbench.report.twins`).")
 ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
              "between its runs on one scene (so different configs are never averaged as if they were seeds); "
              "where presets differ, the keys a preset sets (one value per preset) are named by `preset=...` alone.")
@@ -273,8 +278,10 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
     claims = Section("papers-orderings", "The papers' orderings, tested", [*CLAIMS_NOTES, PAIRED_NOTE],
                      claims_tables(evaluate_claims(runs, manifests, specs), specs))
     surfaces = _surfaces(runs_dir, boards, made, warnings)
+    twins = twin_tables(runs, specs)
     sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked),
                 *([surfaces] if surfaces else []), significance, claims,
+                *([Section("twins", "Twin scenes: what one factor costs", [TWINS_NOTE], twins)] if twins else []),
                 speed, *([without_gt] if without_gt else []), sweeps,
                 Section("failed", "Failed and unfinished runs", [],
                         [failed_table(runs), *([unfinished_table(unfinished)] if unfinished else [])]),
