@@ -14,7 +14,7 @@ from gsbench.report.build import write_report
 from gsbench.report.claims import CLAIMS, evaluate_claims
 from gsbench.report.collect import Run, label_variants
 from gsbench.report.metrics import metric_specs
-from gsbench.report.twins import TWIN_METRICS, twin_pairs, twin_tables
+from gsbench.report.twins import twin_pairs, twin_tables
 
 
 def _run(method: str, scene: str, seed: int, chamfer: float | None, *, status: str = "ok", psnr: float = 30.0,
@@ -65,23 +65,22 @@ def test_the_cost_of_a_factor_is_the_paired_change_over_matched_seeds():
     chamfer = header.index("Chamfer, official script (mm): twin")
     every = lines[("2dgs", "all (2 pairs)")]
     assert every[chamfer:chamfer + 2] == ["0.610", "1.610"]
-    assert every[chamfer + 2] == "+1.000* (p 0.031, 6)"  # six matches all worse: Wilcoxon's smallest p
+    assert every[chamfer + 2] == "+1.000 * (p 0.031, 6)"  # six matches all worse: Wilcoxon's smallest p
     assert every[header.index("train (s): changed")] == "130.0"
     assert lines[("rt2dgs", "dtu-glass-orb / dtu-glass-orb-opaque")][chamfer + 2] == "-0.100 (p 0.250, 3)"
     assert lines[("rt2dgs", "all (2 pairs)")][chamfer + 2].startswith("+0.000 ")
     completeness = header.index("Δ completeness (mm)")
-    assert every[completeness] == "+2.000* (p 0.031, 6)"
+    assert every[completeness] == "+2.000 * (p 0.031, 6)"
     significant = next(row for row in table.rows if row[0].text == "2dgs" and row[1].text.startswith("all"))
     assert significant[chamfer + 2].style == "bad"  # lower is better: the glass side is significantly worse
 
 
-def test_rows_without_a_metric_on_both_sides_leave_it_empty_and_tnt_uses_its_own_metrics():
+def test_rows_without_a_metric_on_both_sides_leave_it_empty():
     runs = [_run("2dgs", "dtu-glass-orb-opaque", 0, None, psnr=30.0), _run("2dgs", "dtu-glass-orb", 0, None, psnr=24.5)]
     (table,) = twin_tables(runs, metric_specs())
     (line,) = _lines(table).values()
     assert line[table.header.index("Δ Chamfer, official script (mm)")] == "–"
     assert line[table.header.index("Δ PSNR (dB)")] == "-5.50 (p 1.000, 1)"
-    assert TWIN_METRICS["tnt"][0] == "f1"
     assert twin_tables([_run("2dgs", "dtu-spot", 0, 1.0)], metric_specs()) == []  # its twin never ran
 
 

@@ -28,7 +28,7 @@ from gsbench.report.collect import Run
 from gsbench.report.metrics import MetricSpec
 from gsbench.report.stats import ALPHA, PairedTest, paired_test
 from gsbench.report.tables import MISSING, Table, TCell, number, plain
-from gsbench.report.views import TIMES_NOTE, p_text, slug
+from gsbench.report.views import TIMES_NOTE, p_text, slug, star
 
 TWIN_METRICS = {"dtu": ("chamfer", "completeness", "psnr"), "tnt": ("f1", "recall", "psnr")}
 ALL_PAIRS = "all"
@@ -84,8 +84,7 @@ def _sides(matches: list[tuple[float, float]], digits: int) -> list[TCell]:
 def _delta_cell(test: PairedTest, digits: int) -> TCell:
     if test.mean_diff is None:
         return TCell(MISSING)
-    star = "*" if test.significant else ""
-    return TCell(f"{test.mean_diff:+.{digits}f}{star} (p {p_text(test.p)}, {test.n})", test.mean_diff,
+    return TCell(f"{test.mean_diff:+.{digits}f}{star(test)} (p {p_text(test.p)}, {test.n})", test.mean_diff,
                  "bad" if test.b_better else "")
 
 
@@ -111,9 +110,10 @@ def _factor_table(dataset: str, factor: str, pairs: list[TwinPair], runs: list[R
     for spec in specs:
         header += [f"{spec.label}: twin", f"{spec.label}: changed", f"Δ {spec.label}"]
     header += ["train (s): twin", "train (s): changed"]
+    scenes = {scene for pair in pairs for scene in (pair.changed, pair.twin)}
     rows_of: dict[str, list[Run]] = {}
     for run in runs:
-        if run.scene in {s for p in pairs for s in (p.changed, p.twin)}:
+        if run.scene in scenes:
             rows_of.setdefault(run.row, []).append(run)
     lines = []
     for name in sorted(rows_of, key=natural_key):

@@ -150,7 +150,7 @@ def p_text(p: float) -> str:
     return "<0.001" if p < 0.001 else f"{p:.3f}"
 
 
-def _star(test: PairedTest | None) -> str:
+def star(test: PairedTest | None) -> str:
     """`` *`` after a significant paired test's text, else nothing."""
     return " *" if test is not None and test.significant else ""
 
@@ -215,7 +215,7 @@ def paired_table(board: Board, tests: dict[tuple[str, str], PairedTest] | None =
             if test.p is None:
                 cells.append(TCell("no pairs"))
                 continue
-            text = f"{test.mean_diff:+.3f}, {test.wins}/{test.n} better, p={p_text(test.p)}{_star(test)}"
+            text = f"{test.mean_diff:+.3f}, {test.wins}/{test.n} better, p={p_text(test.p)}{star(test)}"
             cells.append(TCell(text, test.mean_diff, "best" if test.a_better else ("bad" if test.b_better else "")))
         rows.append(cells)
     notes = [
@@ -337,7 +337,7 @@ def _paired_text(test: PairedTest) -> TCell:
     """``p (n pairs)``, starred when significant; ``–`` without pairs."""
     if test.p is None:
         return TCell(MISSING)
-    return TCell(f"{p_text(test.p)} ({test.n}){_star(test)}", test.p, "best" if test.a_better else "")
+    return TCell(f"{p_text(test.p)} ({test.n}){star(test)}", test.p, "best" if test.a_better else "")
 
 
 def ablation_table(board: Board) -> Table:
@@ -370,7 +370,7 @@ def ablation_table(board: Board) -> Table:
                                "best" if row.name in best["mean"] else ""))
         delta = value - first if complete and first_complete and value is not None and first is not None else None
         test = compare_rows(board, row, baseline) if row is not baseline else None
-        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}{_star(test)}", delta))
+        cells.append(TCell(MISSING if delta is None else f"{delta:+.3f}{star(test)}", delta))
         cells.append(_paired_text(test) if test is not None else TCell(MISSING))
         cells += _row_speed_cells(row)
         cells.append(plain(status_text(row.counts)))
@@ -400,7 +400,7 @@ def _grid_table(board: Board, anchor: str, notes: list[str]) -> Table:
         tests = [compare_rows(board, row, baseline) for row in board.rows[1:]]
         rows.append([plain(f"paired vs {_value_text(board.grid_values[0])}: Δ, p (pairs)")] + [TCell(MISSING)] +
                     [TCell(MISSING if t.p is None else
-                           f"{t.mean_diff:+.3f}, {p_text(t.p)} ({t.n}){_star(t)}",
+                           f"{t.mean_diff:+.3f}, {p_text(t.p)} ({t.n}){star(t)}",
                            t.p, "best" if t.a_better else "") for t in tests])
     speed = [_row_speed_cells(row) for row in board.rows]
     rows.append([plain("train (s)")] + [cells[0] for cells in speed])
