@@ -5,7 +5,9 @@ The first test in a fresh cache compiles the extension (~30 s on 2 cores).
 
 from __future__ import annotations
 
+import gc
 import sys
+import weakref
 from pathlib import Path
 
 import pytest
@@ -16,6 +18,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from raster_scenes import make_camera, random_gaussians, with_grad  # noqa: E402
 
 from gsbench.raster import OUTPUTS, RasterGaussians, RasterSettings, rasterize, reference  # noqa: E402
+from gsbench.raster.types import KERNEL_OUTPUTS  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 KERNELS = ("ewa", "rade", "raymax", "surfel")
@@ -422,3 +425,24 @@ def test_fast_matches_reference_on_hard_geometry(kernel, case):
     for o in outs:
         scale = 1.0 if o != "depth" else float(ref.depth.abs().max()) + 1.0
         assert float((getattr(out, o) - getattr(ref, o)).abs().max()) <= 1e-9 * scale, (kernel, case, o)
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_the_graph_is_freed_with_the_render(kernel):
+    """Dropping a render frees its graph and the compositing state behind it at once, not at Python's next full
+    garbage collection, with every output the kernel has: an output kept on an autograd context is a reference
+    cycle. The solid depth's was one, and a GGGS training (98 000 Gaussians, 200x150) grew by about 9 MB a step, to
+    3.9 GB of resident memory against PGSR's 1.0 (docs/methods/gggs.md §7)."""
+    cam = make_camera(40, 32)
+    g = with_grad(random_gaussians(40, kernel, seed=5))
+    outs = OUTPUTS + KERNEL_OUTPUTS.get(kernel, ())
+    gc.collect()
+    gc.disable()
+    try:
+        out = rasterize(g, cam, kernel=kernel, outputs=outs, settings=RasterSettings(solid_search_range=1.0))
+        state = weakref.ref(out.extras["state"])
+        sum((getattr(out, o) * w).sum() for o, w in _weights(out, outs).items()).backward()
+        del out
+        assert state() is None
+    finally:
+        gc.enable()

@@ -64,13 +64,15 @@ class SolidFn(torch.autograd.Function):
         profiling.record("solid_fwd", time.perf_counter() - t0)
         if rc != 0:
             raise RuntimeError(f"gsbench solid-depth forward failed (code {rc}); solid_rounds must be >= 1")
-        ctx.solid = (a, state, params_c, isg, out_t)
+        ctx.save_for_backward(out_t)  # the output kept on ctx itself would be a reference cycle through the graph
+        ctx.solid = (a, state, params_c, isg)
         ctx.set_materialize_grads(False)
         return out_t
 
     @staticmethod
     def backward(ctx, g_t):
-        a, state, params_c, isg, out_t = ctx.solid
+        a, state, params_c, isg = ctx.solid
+        (out_t,) = ctx.saved_tensors
         if g_t is None:
             return None, None, None, None
         dt = state.dtype
