@@ -199,8 +199,8 @@ def _measure(claim: Claim, board: Board | None, better: Row | None, worse: Row |
         why = f"no runs of {' and '.join(missing) if missing else 'either side'} with {claim.metric} in {where}"
         return Outcome(claim, better.name if better else "", worse.name if worse else "", None, "not measured", why)
     if claim.factor:
-        kind = changed_scenes(claim.factor)
-        board = replace(board, scenes=[s for s in board.scenes if s in kind])
+        changed = changed_scenes(claim.factor)
+        board = replace(board, scenes=[s for s in board.scenes if s in changed])
     test = compare_rows(board, better, worse)
     why = "" if test.p is not None else "no (scene, seed) pair in common"
     if claim.factor and test.p is None:
