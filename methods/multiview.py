@@ -145,8 +145,13 @@ class NeighbourViews:
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {**super().state_dict(), "exposure": self.exposure.detach().clone()}
+        """The exposure and the neighbour work's seconds (so a resumed run's ``multiview`` covers all its steps,
+        as the Trainer's phases do)."""
+        return {**super().state_dict(), "exposure": self.exposure.detach().clone(),
+                "multiview_seconds": self.multiview_seconds}
 
     def load_state_dict(self, state: dict) -> None:
         self.exposure = torch.nn.Parameter(state["exposure"].clone())
+        # checkpoints written before the seconds were kept resume from zero, as the Trainer's phases do
+        self.multiview_seconds = float(state.get("multiview_seconds", 0.0))
         super().load_state_dict(state)

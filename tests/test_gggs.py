@@ -17,8 +17,9 @@ from gsbench.methods.gggs import solid_planes
 from gsbench.methods.gggs_terms import depth_validity, gggs_normal_term
 from gsbench.raster.types import RenderOutput
 from gsbench.registry import METHODS
+from gsbench.run_folder import RunFolder
 from gsbench.runs.runner import resolve_run
-from gsbench.training.trainer import Trainer
+from gsbench.training.trainer import Trainer, load_checkpoint
 from tests.method_setup import interrupt_at
 from tests.raster_scenes import make_camera
 
@@ -48,7 +49,7 @@ def _trainer(tiny_spot, run_dir):
 
 def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threads):
     """12 steps straight vs 6 + crash + resume + 6, the multi-view terms active from step 0: the Gaussians and
-    the per-image exposure equal."""
+    the per-image exposure equal, and the ``multiview`` seconds include the steps before the resume."""
     straight, _ = _trainer(tiny_spot, tmp_path / "a")
     straight.fit()
     interrupted, _ = _trainer(tiny_spot, tmp_path / "b")
@@ -56,11 +57,15 @@ def test_resume_is_bit_identical(tiny_spot, tmp_path, monkeypatch, restore_threa
     with pytest.raises(KeyboardInterrupt):
         interrupted.fit()
     monkeypatch.undo()
+    saved = load_checkpoint(tmp_path / "b" / RunFolder.CHECKPOINT)["method"]["multiview_seconds"]
     resumed, _ = _trainer(tiny_spot, tmp_path / "b")
-    assert resumed.fit().resumed_from == 6
+    result = resumed.fit()
+    assert result.resumed_from == 6
     for name, param in straight.method.gaussians.params.items():
         assert torch.equal(param, resumed.method.gaussians.params[name]), name
     assert torch.equal(straight.method.exposure, resumed.method.exposure)
+    # the neighbour work's seconds carry over the resume, as the step phases do
+    assert 0 < saved < result.phases["multiview"]
 
 
 def test_initial_scales_are_clamped_by_the_nearest_camera(tiny_spot, tmp_path):
