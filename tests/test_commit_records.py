@@ -43,3 +43,20 @@ def test_finished_records_are_copied_with_relative_paths_and_interrupted_ones_le
     assert tail == ('  File "gsbench/mesh/tsdf.py", line 9, in fuse\n'
                     '  File "site-packages/torch/nn.py", line 2, in f\n')
     assert not (committed / "dtu" / "spot" / "gof").exists()
+
+
+def test_a_committed_manifest_keeps_the_runs_a_later_invocation_lacks(tmp_path):
+    """A sweep run a seed at a time: the committed manifest of seed 0 gains seed 1's entries, and an entry in both
+    takes the newer status."""
+    runs, cache, committed = tmp_path / "runs", tmp_path / "cache", tmp_path / "committed"
+    (committed / "sweeps").mkdir(parents=True)
+    seed0 = [{"run_id": "a0", "seed": 0, "status": "ok"}, {"run_id": "b0", "seed": 0, "status": "pending"}]
+    (committed / "sweeps" / "abl.json").write_text(json.dumps({"name": "abl", "runs": seed0}))
+    (runs / "sweeps").mkdir(parents=True)
+    seed1 = [{"run_id": "b0", "seed": 0, "status": "skipped"}, {"run_id": "a1", "seed": 1, "status": "ok"}]
+    (runs / "sweeps" / "abl.json").write_text(json.dumps({"name": "abl", "description": "now", "runs": seed1}))
+    subprocess.run([sys.executable, str(TOOL), str(runs), str(committed)], capture_output=True, text=True,
+                   env={**os.environ, "GSBENCH_DATA": str(cache)}, check=True)
+    merged = json.loads((committed / "sweeps" / "abl.json").read_text())
+    assert merged["description"] == "now"
+    assert [(e["run_id"], e["status"]) for e in merged["runs"]] == [("a0", "ok"), ("b0", "skipped"), ("a1", "ok")]

@@ -8,15 +8,16 @@ import _thread
 import json
 import signal
 import threading
-from concurrent.futures import Executor, Future
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 
+import gsbench.runs.sweep as sweep_module
 from gsbench.config.files import config_root
 from gsbench.errors import ConfigError
 from gsbench.run_folder import RunFolder
-from gsbench.runs.sweep import expand, format_runs, load_sweep, with_suite
+from gsbench.runs.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
 
 SWEEPS = sorted((config_root() / "sweeps").glob("*.yaml"))
 
@@ -138,7 +139,6 @@ def fake_runs(monkeypatch, fail_seed=None):
     """The sweep's runner replaced in this process: writes an ok record, or raises for ``fail_seed``; returns the
     seeds run."""
     import gsbench.runs.runner as runner
-    import gsbench.runs.sweep as sweep_module
     from gsbench.runs.records import RunRecord, git_state
 
     calls = []
@@ -157,10 +157,6 @@ def fake_runs(monkeypatch, fail_seed=None):
 
 
 def test_sweep_skips_finished_runs_survives_a_failure_and_writes_the_manifest(tmp_path, monkeypatch):
-    from concurrent.futures import ThreadPoolExecutor
-
-    from gsbench.runs.sweep import run_sweep
-
     runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
     calls = fake_runs(monkeypatch, fail_seed=1)
     out = tmp_path / "runs"
@@ -187,6 +183,24 @@ def test_sweep_skips_finished_runs_survives_a_failure_and_writes_the_manifest(tm
     assert sorted(calls) == [0, 1, 1, 2]
     statuses = [e["status"] for e in json.loads((out / "sweeps" / "seeds.json").read_text())["runs"]]
     assert statuses == ["skipped", "failed", "skipped"]
+
+
+def test_a_sweep_run_a_seed_at_a_time_lists_every_seed_in_its_manifest(tmp_path, monkeypatch):
+    """``--seeds 0``, then ``--seeds 1``: the manifest keeps seed 0's entries before seed 1's, with their statuses."""
+    runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
+    fake_runs(monkeypatch, fail_seed=None)
+    out, path = tmp_path / "runs", tmp_path / "runs" / "sweeps" / "seeds.json"
+    for seed in (0, 1):
+        with ThreadPoolExecutor(1) as executor:
+            run_sweep([r for r in runs if r.config.seed == seed], executor, name="seeds", out=str(out),
+                      echo=lambda *a: None)
+    entries = json.loads(path.read_text())["runs"]
+    assert [(e["run_id"], e["seed"], e["status"]) for e in entries] == [(runs[0].run_id, 0, "ok"),
+                                                                       (runs[1].run_id, 1, "ok")]
+    path.write_text("{not json")
+    with pytest.raises(ConfigError, match="seeds.json: unreadable sweep manifest"):
+        with ThreadPoolExecutor(1) as executor:
+            run_sweep(runs[:1], executor, name="seeds", out=str(out), echo=lambda *a: None)
 
 
 class FirstRunThenCtrlC(Executor):
@@ -240,10 +254,6 @@ def test_ctrl_c_cancels_the_unfinished_runs_keeps_finished_records_and_exits_130
 def test_records_made_by_other_code_are_refused_rerun_or_kept_as_asked(tmp_path, monkeypatch):
     """A sweep must not average runs of different commits without saying so: by default it refuses to skip
     finished records of another code version; ``rerun`` runs them again, ``keep`` keeps them and says so."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    import gsbench.runs.sweep as sweep_module
-    from gsbench.runs.sweep import run_sweep
 
     runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
     calls = fake_runs(monkeypatch)

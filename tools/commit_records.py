@@ -11,7 +11,8 @@ traceback names its files from the checkout (``gsbench/...``) or the installed p
 instead of the machine's folders; every other field is as the run wrote it. Unfinished runs (no record, or one
 with status ``interrupted``: it resumes) are skipped; records already there are replaced. The sweeps' manifests
 (``RUNS_DIR/sweeps/<name>.json``: of the given sweep files, else all) go to ``RECORDS_DIR/sweeps`` the same way:
-`gsbench report` finds a sweep's rows (its ablation tables and claims) through them.
+`gsbench report` finds a sweep's rows (its ablation tables and claims) through them. A manifest already there
+keeps its entries for runs the new one lacks, as a sweep's own manifest does (a sweep run a seed at a time).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 
 from gsbench.atomic import atomic_path
 from gsbench.data.cache import cache_dir
-from gsbench.runs.sweep import expand, load_sweep, with_suite
+from gsbench.runs.sweep import expand, load_sweep, merge_manifest_runs, read_manifest_runs, with_suite
 
 TRACEBACK_FOLDER = re.compile(r'File "[^"]*?/(gsbench|site-packages)/')  # the machine's part of a traceback's path
 
@@ -76,8 +77,10 @@ def main() -> None:
     for path in manifests:
         target = args.records / "sweeps" / path.name
         target.parent.mkdir(parents=True, exist_ok=True)
+        manifest = relative(json.loads(path.read_text()), runs, cache)
+        manifest["runs"] = merge_manifest_runs(read_manifest_runs(target), manifest["runs"])
         with atomic_path(target) as tmp:
-            tmp.write_text(json.dumps(relative(json.loads(path.read_text()), runs, cache), indent=2) + "\n")
+            tmp.write_text(json.dumps(manifest, indent=2) + "\n")
     print(f"{copied} records and {len(manifests)} sweep manifests written under {args.records}")
 
 

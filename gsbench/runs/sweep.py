@@ -278,14 +278,33 @@ def settle_other_code(runs: list[SweepRun], finished: set, policy: str, echo) ->
     return finished - set(other)
 
 
+def read_manifest_runs(path: Path) -> list[dict]:
+    """The ``runs`` entries of the manifest at ``path`` (none when there is no file)."""
+    if not path.is_file():
+        return []
+    try:
+        return list(json.loads(path.read_text())["runs"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigError(f"{path}: unreadable sweep manifest ({type(exc).__name__}: {exc}); fix: move it aside "
+                          "(the sweep writes a new one; its records are untouched)") from exc
+
+
+def merge_manifest_runs(earlier: list[dict], now: list[dict]) -> list[dict]:
+    """An earlier manifest's entries for runs that ``now`` lacks (another ``--seeds`` or ``--suite``, so a sweep
+    run a seed at a time lists every seed), in their order, then ``now``'s."""
+    ids = {entry["run_id"] for entry in now}
+    return [entry for entry in earlier if entry.get("run_id") not in ids] + list(now)
+
+
 class Manifest:
     """``<out>/sweeps/<name>.json``, what the report builds ablation tables from::
 
         {"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed", "dir", "status"}]}
 
     ``dir`` is the run folder relative to ``<out>``; ``status`` is pending, skipped (finished by an
-    earlier invocation), ok, failed or cancelled (interrupted, or never started). Rewritten atomically
-    on every change."""
+    earlier invocation), ok, failed or cancelled (interrupted, or never started). An earlier invocation's
+    entries for runs this one does not have are kept before this one's (`merge_manifest_runs`). Rewritten
+    atomically on every change."""
 
     def __init__(self, path: Path, *, name: str, description: str, file: str, runs: list[SweepRun], out: Path,
                  finished: set):
@@ -293,7 +312,8 @@ class Manifest:
         entries = [{"run_id": r.run_id, "label": r.label, "method": r.config.method["name"], "scene": r.config.scene,
                     "seed": r.config.seed, "dir": str(run_dir(r.config).relative_to(out)),
                     "status": "skipped" if r.run_id in finished else "pending"} for r in runs]
-        self.data = {"name": name, "description": description, "file": file, "runs": entries}
+        self.data = {"name": name, "description": description, "file": file,
+                     "runs": merge_manifest_runs(read_manifest_runs(path), entries)}
         self._by_id = {entry["run_id"]: entry for entry in entries}
 
     def set(self, run_id: str, status: str) -> None:
