@@ -13,10 +13,12 @@ from pathlib import Path
 
 import pytest
 
+import gsbench.runs.runner as runner
 import gsbench.runs.sweep as sweep_module
 from gsbench.config.files import config_root
 from gsbench.errors import ConfigError
 from gsbench.run_folder import RunFolder
+from gsbench.runs.records import RunRecord, git_state
 from gsbench.runs.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
 
 SWEEPS = sorted((config_root() / "sweeps").glob("*.yaml"))
@@ -138,9 +140,6 @@ grid: {seed: [0, 1, 2]}
 def fake_runs(monkeypatch, fail_seed=None):
     """The sweep's runner replaced in this process: writes an ok record, or raises for ``fail_seed``; returns the
     seeds run."""
-    import gsbench.runs.runner as runner
-    from gsbench.runs.records import RunRecord, git_state
-
     calls = []
 
     def fake_run(cfg, echo=print):
@@ -254,7 +253,6 @@ def test_ctrl_c_cancels_the_unfinished_runs_keeps_finished_records_and_exits_130
 def test_records_made_by_other_code_are_refused_rerun_or_kept_as_asked(tmp_path, monkeypatch):
     """A sweep must not average runs of different commits without saying so: by default it refuses to skip
     finished records of another code version; ``rerun`` runs them again, ``keep`` keeps them and says so."""
-
     runs = expand(load_sweep(write(tmp_path, THREE_SEEDS)))
     calls = fake_runs(monkeypatch)
     out = tmp_path / "runs"
