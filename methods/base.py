@@ -30,7 +30,8 @@
   ``exp((1−t) ln lr0 + t ln lr1)`` with t = min(step / (position_lr_max_steps·scale), 1) (docs/methods/3dgs.md §5.1, no
   delay); SH degree ``min(raster.sh_degree, step // (sh_interval·scale))`` (docs/methods/3dgs.md §2.4: +1 every 1000 steps).
 - ``render``: the method's kernel on `Gaussians.raster_input` with the method's `filter3d` variance
-  (None here; GOF/RaDe-GS return the Mip-Splatting 3D filter) and `raster_settings`.
+  (None here; GOF/RaDe-GS return the Mip-Splatting 3D filter) and `raster_settings`. ``render_image``: the
+  colour the held-out image metrics score (``render``'s rgb here; RT2DGS's light traced at every pixel).
 - ``extract_mesh``: ``mesh.extractor`` must be in ``MESH_EXTRACTORS`` (``tsdf`` here). ``tsdf``: TSDF
   fusion (`gsbench.mesh.tsdf.tsdf_fusion`, docs/methods/3dgs.md §6; docs/methods/2dgs.md §6) of the depth named by ``mesh.depth``
   (``expected`` → the ``depth`` output, ``median`` → ``median_depth``) rendered from every training
@@ -39,7 +40,9 @@
   `gsbench.mesh.tets.tetra_mesh` of the raster input over the training cameras at ``mesh.level`` with
   ``mesh.bisection_steps`` (docs/methods/gof.md §7).
 - ``state_dict`` / ``load_state_dict``: parameters, Adam state (moments and step counts) and the
-  active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs).
+  active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs); a finished
+  run is loaded back with `gsbench.training.trainer.load_trained`, which also replays ``update_schedules`` at
+  the checkpoint's step.
 """
 
 from __future__ import annotations
@@ -365,6 +368,10 @@ class Method:
                          settings=self.raster_settings())
 
     # ---- a second stage -------------------------------------------------------------------------
+    def render_image(self, camera) -> torch.Tensor:
+        """The colour image (H, W, 3) the held-out image metrics score (module docstring)."""
+        return self.render(camera, {"rgb"}).rgb
+
     def second_stage_config(self, cfg: RunConfig) -> RunConfig | None:
         """The run config of a second model trained from this one before meshing (SuGaR's refinement), or None."""
         return None

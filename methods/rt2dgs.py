@@ -18,7 +18,8 @@ exit interface (its τ-weighted depth and normal), R₂ the reflectance leaving 
 internal reflection: 1), E(ray) = Σ_j w_j (1 − τ_j) c_j along a ray (what opaque surfels it meets). Two
 interfaces and one reflection: the bounded tree (docs/methods/rt2dgs.md §2). L is traced at up to
 ``trace_pixels`` pixels per render (a regular sub-grid with a random offset per step, nearest-neighbour
-filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out. With
+filled between them) whose τ̄ exceeds ``trace_min_transparency``; elsewhere τ̄ L is left out. The held-out
+images (``render_image``) trace every such pixel, as the paper's renderer does. With
 ``transparency_gradient`` "traced" (the default) τ learns only at the traced pixels: the filled ones copy
 a neighbour's L, so their dC/dτ = L − c is wrong; "filled" takes it from every pixel. The light
 is traced from step ``trace_from`` (7 000 of 30 000, scaled to the run); before it the render is 2DGS's and
@@ -56,6 +57,7 @@ from gsbench.training.trainer import scale_step
 
 IOR_MAX = 3.0  # the learned index lives in (1, IOR_MAX): η = 1 + (IOR_MAX − 1) sigmoid(raw)
 EXIT_MIN = 0.1  # Σ w τ along the refracted ray below which no exit interface is found (the ray goes on)
+TRACE_CHUNK = 4096  # pixels traced at once (each ray's surfel pairs are held at once: memory, not results)
 TRANSPARENCY_GRADIENTS = ("traced", "filled")  # docs/methods/rt2dgs.md §4
 
 
@@ -161,8 +163,16 @@ class RT2DGS(GS2D):
         return self.step >= scale_step(self.params.trace_from, self.scale)
 
     def render(self, camera, outputs) -> RenderOutput:
-        """The pixel colour of the module docstring from ``trace_from`` on (2DGS's before it, τ unused); other
-        outputs are 2DGS's (the surfaces)."""
+        """The pixel colour of the module docstring from ``trace_from`` on (2DGS's before it, τ unused), the light
+        traced on the training's sub-grid; other outputs are 2DGS's (the surfaces)."""
+        return self._render(camera, outputs, every_pixel=False)
+
+    def render_image(self, camera) -> torch.Tensor:
+        """The held-out image: `render`'s colour with the light traced at every candidate pixel, as the paper's
+        renderer does (the sub-grid and its fill are the training's CPU budget, docs/methods/rt2dgs.md §4)."""
+        return self._render(camera, {"rgb"}, every_pixel=True).rgb
+
+    def _render(self, camera, outputs, every_pixel: bool) -> RenderOutput:
         outputs = set(outputs)
         if "rgb" not in outputs or not self.tracing():
             return super().render(camera, outputs)
@@ -179,7 +189,7 @@ class RT2DGS(GS2D):
         clear = rasterize(RasterGaussians(g.means, g.quats, g.scales, g.opacities, degree0(tau[:, None].expand(-1, 3))),
                           camera, kernel="surfel", outputs=("rgb",), settings=_degree0(settings, (0.0, 0.0, 0.0)))
         tau_map = clear.rgb[..., 0]
-        light, traced = self._traced_light(camera, opaque, tau_map, g, tau, colours)
+        light, traced = self._traced_light(camera, opaque, tau_map, g, tau, colours, every_pixel)
         if not only_traced:
             opaque.rgb = opaque.rgb + tau_map[..., None] * light
             return opaque
@@ -204,9 +214,10 @@ class RT2DGS(GS2D):
         return getattr(out, key), out
 
     def _traced_light(self, camera, out: RenderOutput, tau_map: torch.Tensor, g: RasterGaussians, tau: torch.Tensor,
-                      colours: torch.Tensor) -> torch.Tensor:
+                      colours: torch.Tensor, every_pixel: bool) -> torch.Tensor:
         """(L (H, W, 3) at the traced sub-grid, nearest-filled, 0 where τ̄ is below the threshold; the traced
-        pixels (H, W) bool)."""
+        pixels (H, W) bool). ``every_pixel``: every candidate is traced (stride 1, no fill), ``TRACE_CHUNK`` rays
+        at a time."""
         p = self.params
         H, W = tau_map.shape
         light = torch.zeros(H, W, 3, dtype=colours.dtype)
@@ -214,7 +225,7 @@ class RT2DGS(GS2D):
         count = int(candidates.sum())
         if count == 0:
             return light, torch.zeros(H, W, dtype=torch.bool)
-        stride = max(1, math.ceil(math.sqrt(count / p.trace_pixels)))
+        stride = 1 if every_pixel else max(1, math.ceil(math.sqrt(count / p.trace_pixels)))
         oy, ox = (int(v) for v in torch.randint(0, stride, (2,))) if stride > 1 else (0, 0)
         grid = torch.zeros(H, W, dtype=torch.bool)
         grid[oy::stride, ox::stride] = True
@@ -229,8 +240,11 @@ class RT2DGS(GS2D):
         centre = torch.as_tensor(camera.center, dtype=colours.dtype)
         x = centre + out.median_depth[ys, xs, None] * ray
         normal = F.normalize(out.normal[ys, xs] @ R, dim=-1)  # camera to world; faces the camera
-        sampled = trace_interface(x, F.normalize(ray, dim=-1), normal, self.ior, g, tau, colours,
-                                  near=1e-4 * self.scene_radius)
+        view, near = F.normalize(ray, dim=-1), 1e-4 * self.scene_radius
+        index = CandidateIndex(g.means, g.quats, g.scales)
+        chunks = [slice(k, k + TRACE_CHUNK) for k in range(0, len(x), TRACE_CHUNK)]
+        sampled = torch.cat([trace_interface(x[c], view[c], normal[c], self.ior, g, tau, colours, near, index)
+                             for c in chunks])
         block = torch.zeros(H, W, 3, dtype=colours.dtype)
         block[ys, xs] = sampled
         # nearest fill: every candidate pixel takes the traced value of its sub-grid cell's corner
@@ -292,11 +306,13 @@ def surface_light(origins: torch.Tensor, directions: torch.Tensor, g: RasterGaus
 
 
 def trace_interface(x: torch.Tensor, view: torch.Tensor, normal: torch.Tensor, ior: torch.Tensor, g: RasterGaussians,
-                    tau: torch.Tensor, colours: torch.Tensor, near: float) -> torch.Tensor:
+                    tau: torch.Tensor, colours: torch.Tensor, near: float,
+                    index: CandidateIndex | None = None) -> torch.Tensor:
     """L (R, 3) at surface points ``x`` seen along unit ``view`` with unit normals ``normal`` facing the
-    viewer (module docstring): one reflection, the refraction in, the exit found along it, the refraction out."""
+    viewer (module docstring): one reflection, the refraction in, the exit found along it, the refraction out.
+    ``index``: the surfels' `CandidateIndex` (built here when None)."""
     one = torch.ones((), dtype=x.dtype)
-    index = CandidateIndex(g.means, g.quats, g.scales)
+    index = index or CandidateIndex(g.means, g.quats, g.scales)
     n = torch.where(((view * normal).sum(-1, keepdim=True) > 0), -normal, normal)  # facing the incoming ray
     r1 = fresnel(-(view * n).sum(-1), one, ior)
     reflected = F.normalize(reflect(view, n), dim=-1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,8 +18,10 @@ from gsbench.data.loader import make_scene
 from gsbench.data.synthetic.primitives import Surface, box, merge
 from gsbench.data.synthetic.render import Renderer
 from gsbench.geometry.optics import fresnel, refract
-from gsbench.methods.rt2dgs import surface_light, trace_interface
+from gsbench.methods import rt2dgs
+from gsbench.methods.rt2dgs import RT2DGS, surface_light, trace_interface
 from gsbench.raster.types import RasterGaussians
+from gsbench.runs.finished_run import load_finished_run
 from gsbench.training.trainer import Trainer
 from tests.method_setup import setup_method, straight_and_resumed
 
@@ -175,6 +178,44 @@ def test_quick_run_to_ok(tiny_orb, tmp_path, restore_threads):
     assert record["status"] == "ok" and math.isfinite(record["metrics"]["chamfer"])
     assert "normal_smoothness" in record["losses"]["schedule"]
 
+
+
+def test_a_finished_run_evaluated_or_loaded_again_traces_the_light(tiny_orb, tmp_path, monkeypatch, restore_threads):
+    """trace_from 15 000 of 30 000 in a 12-step run: the light is traced from step 6. The run folder evaluated
+    again from its final checkpoint (the runner after an interruption) and loaded back (`gsbench render`, the
+    diagnostics) renders with the light, as at its last step, not 2DGS's render of step 0."""
+    out = tmp_path / "runs"
+    args = ["run", "--method", "rt2dgs", "--scene", str(tiny_orb), "--preset", "quick", "--out", str(out),
+            "--set", "train.iterations=12", "--set", "method.trace_from=15000", "--set", "method.trace_pixels=64",
+            "--set", "eval.evaluators=[image]", "--set", "data.holdout_every=4"]
+    assert main(args) == 0
+    folder = next(out.rglob("record.json")).parent
+    (folder / "eval.json").unlink()
+    traced = []
+    tracing = RT2DGS.tracing
+    monkeypatch.setattr(Trainer, "fit", lambda self: pytest.fail("training ran again"))
+    monkeypatch.setattr(RT2DGS, "tracing", lambda self: traced.append(tracing(self)) or traced[-1])
+    assert main(args) == 0
+    assert traced and all(traced)
+    _, _, method = load_finished_run(folder, "test")
+    assert method.step == 12 and method.tracing()
+
+
+def test_the_held_out_image_traces_the_light_at_every_candidate_pixel(tiny_orb, monkeypatch, restore_threads):
+    """`render_image` (what the held-out metrics score) is the render with the light traced at every candidate
+    pixel, in chunks that do not change it; the training render traces at most ``trace_pixels`` and fills the
+    pixels between (docs/methods/rt2dgs.md §4), which differs."""
+    method, scene, cfg = setup_method("rt2dgs", tiny_orb, "threads=1", "method.trace_pixels=16", "method.trace_from=0")
+    camera = scene.cameras[0]
+    with torch.no_grad():
+        image = method.render_image(camera)
+        monkeypatch.setattr(rt2dgs, "TRACE_CHUNK", 5)
+        chunked = method.render_image(camera)
+        subgrid = method.render(camera, {"rgb"}).rgb
+        method.params = replace(method.params, trace_pixels=10**9)
+        every = method.render(camera, {"rgb"}).rgb
+    assert torch.allclose(chunked, image, rtol=0, atol=1e-6) and torch.allclose(every, image, rtol=0, atol=1e-6)
+    assert float((subgrid - image).abs().max()) > 1e-3
 
 def test_resume_is_bit_identical_with_the_traced_light(tiny_orb, tmp_path, monkeypatch, restore_threads):
     """12 steps straight vs 6 + crash + resume + 6, light traced from step 1 (τ starts at 0.1, above the 0.02

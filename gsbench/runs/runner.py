@@ -58,7 +58,7 @@ from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, capture_environment, sha256_file, write_json_atomic
 from gsbench.runs.run_lock import run_lock
 from gsbench.training.progress import stage
-from gsbench.training.trainer import Trainer, load_checkpoint, scaled_losses, schedule_scale
+from gsbench.training.trainer import Trainer, load_trained, scaled_losses, schedule_scale
 
 ERROR_TAIL_LINES = 30
 
@@ -126,7 +126,7 @@ def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
     held_out = scene.held_out_views
     if plan.image:
         with torch.no_grad():
-            renders = [method.render(scene.cameras[i], {"rgb"}).rgb.clamp(0, 1).numpy() for i in held_out]
+            renders = [method.render_image(scene.cameras[i]).clamp(0, 1).numpy() for i in held_out]
         use_masks = bool(cfg.data.use_masks and scene.masks is not None)
         report["results"]["image"] = get_evaluator("image").evaluate(renders, scene, indices=tuple(held_out),
                                                                      use_masks=use_masks)
@@ -230,7 +230,7 @@ def _second_stage(method, scene, cfg: RunConfig, second_cfg: RunConfig, sub: Run
         stages.done("refine", built + result.seconds, build_seconds=built, it_per_s=result.it_per_s,
                     num_gaussians=result.num_gaussians, steps=result.steps)
     else:
-        second.load_state_dict(load_checkpoint(sub.final_checkpoint)["method"])
+        load_trained(second, sub.final_checkpoint, second_cfg.train.iterations)
     return second
 
 
@@ -256,7 +256,7 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
                     num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
     elif not (mesh_path.is_file() and report is not None):
-        method.load_state_dict(load_checkpoint(final)["method"])
+        load_trained(method, final, cfg.train.iterations)
 
     second_cfg = method.second_stage_config(cfg)
     if second_cfg is not None and not mesh_path.is_file():
