@@ -40,9 +40,8 @@
   `gsbench.mesh.tets.tetra_mesh` of the raster input over the training cameras at ``mesh.level`` with
   ``mesh.bisection_steps`` (docs/methods/gof.md §7).
 - ``state_dict`` / ``load_state_dict``: parameters, Adam state (moments and step counts) and the
-  active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs); a finished
-  run is loaded back with `gsbench.training.trainer.load_trained`, which also replays ``update_schedules`` at
-  the checkpoint's step.
+  active SH degree, enough for a bit-exact resume (the Trainer adds strategy state and RNGs) and for a
+  finished run loaded back to render as at its last step.
 """
 
 from __future__ import annotations
@@ -367,11 +366,11 @@ class Method:
         return rasterize(self.raster_input(), camera, kernel=self.info().kernel, outputs=tuple(sorted(outputs)),
                          settings=self.raster_settings())
 
-    # ---- a second stage -------------------------------------------------------------------------
     def render_image(self, camera) -> torch.Tensor:
         """The colour image (H, W, 3) the held-out image metrics score (module docstring)."""
         return self.render(camera, {"rgb"}).rgb
 
+    # ---- a second stage -------------------------------------------------------------------------
     def second_stage_config(self, cfg: RunConfig) -> RunConfig | None:
         """The run config of a second model trained from this one before meshing (SuGaR's refinement), or None."""
         return None

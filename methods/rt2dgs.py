@@ -274,11 +274,15 @@ class RT2DGS(GS2D):
         return self.neighbours.check(n)
 
     def state_dict(self) -> dict:
-        return {**super().state_dict(), "ior_raw": self.ior_raw.detach().clone(), "neighbours": self.neighbours.state_dict()}
+        return {**super().state_dict(), "ior_raw": self.ior_raw.detach().clone(),
+                "neighbours": self.neighbours.state_dict(), "step": self.step, "scale": self.scale}
 
     def load_state_dict(self, state: dict) -> None:
+        """The state, and the step (whether the light is traced), so a finished run loaded back renders as at its
+        last step; checkpoints from before the step was kept load at step 0, as they did then."""
         self.ior_raw = torch.nn.Parameter(state["ior_raw"].clone(), requires_grad=self.params.learn_ior)
         self.neighbours.load_state_dict(state["neighbours"])
+        self.step, self.scale = int(state.get("step", 0)), float(state.get("scale", 1.0))
         super().load_state_dict(state)
 
 

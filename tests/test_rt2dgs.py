@@ -179,7 +179,6 @@ def test_quick_run_to_ok(tiny_orb, tmp_path, restore_threads):
     assert "normal_smoothness" in record["losses"]["schedule"]
 
 
-
 def test_a_finished_run_evaluated_or_loaded_again_traces_the_light(tiny_orb, tmp_path, monkeypatch, restore_threads):
     """trace_from 15 000 of 30 000 in a 12-step run: the light is traced from step 6. The run folder evaluated
     again from its final checkpoint (the runner after an interruption) and loaded back (`gsbench render`, the
@@ -216,6 +215,7 @@ def test_the_held_out_image_traces_the_light_at_every_candidate_pixel(tiny_orb, 
         every = method.render(camera, {"rgb"}).rgb
     assert torch.allclose(chunked, image, rtol=0, atol=1e-6) and torch.allclose(every, image, rtol=0, atol=1e-6)
     assert float((subgrid - image).abs().max()) > 1e-3
+
 
 def test_resume_is_bit_identical_with_the_traced_light(tiny_orb, tmp_path, monkeypatch, restore_threads):
     """12 steps straight vs 6 + crash + resume + 6, light traced from step 1 (τ starts at 0.1, above the 0.02

@@ -14,7 +14,7 @@ from gsbench.errors import GsbenchError
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
 from gsbench.runs.runner import load_run_scene, resolve_run
-from gsbench.training.trainer import load_trained
+from gsbench.training.trainer import load_checkpoint
 
 
 def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFolder.FINAL_CHECKPOINT,)):
@@ -38,11 +38,10 @@ def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFol
 
 def load_finished_run(folder, command: str, *, load_images: bool = True):
     """``(cfg, scene, method)`` of the finished run in ``folder``, the method set up on the scene and
-    loaded from the final checkpoint at its last step (`gsbench.training.trainer.load_trained`); ``command`` names
-    the caller in the errors."""
+    loaded from the final checkpoint; ``command`` names the caller in the errors."""
     cfg, final = read_run_config(folder, command)
     scene = load_run_scene(cfg, load_images=load_images)
     method = METHODS.get(cfg.method["name"])()
     method.setup(scene, cfg)
-    load_trained(method, final, cfg.train.iterations)
+    method.load_state_dict(load_checkpoint(final)["method"])
     return cfg, scene, method

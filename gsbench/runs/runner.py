@@ -58,7 +58,7 @@ from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, capture_environment, sha256_file, write_json_atomic
 from gsbench.runs.run_lock import run_lock
 from gsbench.training.progress import stage
-from gsbench.training.trainer import Trainer, load_trained, scaled_losses, schedule_scale
+from gsbench.training.trainer import Trainer, load_checkpoint, scaled_losses, schedule_scale
 
 ERROR_TAIL_LINES = 30
 
@@ -230,7 +230,7 @@ def _second_stage(method, scene, cfg: RunConfig, second_cfg: RunConfig, sub: Run
         stages.done("refine", built + result.seconds, build_seconds=built, it_per_s=result.it_per_s,
                     num_gaussians=result.num_gaussians, steps=result.steps)
     else:
-        load_trained(second, sub.final_checkpoint, second_cfg.train.iterations)
+        second.load_state_dict(load_checkpoint(sub.final_checkpoint)["method"])
     return second
 
 
@@ -256,7 +256,7 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
                     num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
     elif not (mesh_path.is_file() and report is not None):
-        load_trained(method, final, cfg.train.iterations)
+        method.load_state_dict(load_checkpoint(final)["method"])
 
     second_cfg = method.second_stage_config(cfg)
     if second_cfg is not None and not mesh_path.is_file():

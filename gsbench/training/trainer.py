@@ -174,16 +174,6 @@ def load_checkpoint(path: Path) -> dict:
                               "and the run trains again from the start") from None
 
 
-
-def load_trained(method, path: Path, iterations: int) -> None:
-    """Load the final checkpoint ``path`` into ``method`` (after `setup`) as training left it: its state, and
-    ``method.update_schedules`` at the checkpoint's step with ``scale = iterations / 30000``, so what a method
-    derives from the step (SH degree, learning rates, RT2DGS's traced light, PGSR's step) is the last step's,
-    as in the process that trained it."""
-    state = load_checkpoint(path)
-    method.load_state_dict(state["method"])
-    method.update_schedules(int(state["step"]), schedule_scale(iterations))
-
 def rng_state() -> dict:
     """The python, numpy and torch RNG states as plain values and tensors (what `load_checkpoint` reads back)."""
     algorithm, keys, position, has_gauss, cached_gaussian = np.random.get_state()
