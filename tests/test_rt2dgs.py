@@ -19,10 +19,11 @@ from gsbench.data.synthetic.primitives import Surface, box, merge
 from gsbench.data.synthetic.render import Renderer
 from gsbench.geometry.optics import fresnel, refract
 from gsbench.methods import rt2dgs
+from gsbench.methods.gs2d import GS2D
 from gsbench.methods.rt2dgs import RT2DGS, surface_light, trace_interface
 from gsbench.raster.types import RasterGaussians
 from gsbench.runs.finished_run import load_finished_run
-from gsbench.training.trainer import Trainer
+from gsbench.training.trainer import Trainer, schedule_scale
 from tests.method_setup import setup_method, straight_and_resumed
 
 BALL = 0.5
@@ -246,6 +247,18 @@ def test_the_light_is_traced_from_trace_from_only(tiny_orb, tmp_path, monkeypatc
         grads[step] = logits.grad
     assert method.tracing() and (grads[5] is None or not bool(grads[5].any()))
     assert grads[6] is not None and bool(grads[6].any())
+
+
+def test_a_trace_from_past_the_run_never_traces_the_light(tiny_orb, restore_threads):
+    """configs/sweeps/rt2dgs_light.yaml's rt2dgs never tracing: at the run's last step, where the held-out images
+    are rendered, a trace_from past 30 000 leaves every image 2DGS's; 30 000 itself is reached there and traces."""
+    for trace_from, traces in ((10**9, False), (30000, True)):
+        method, scene, cfg = setup_method("rt2dgs", tiny_orb, "threads=1", f"method.trace_from={trace_from}")
+        method.update_schedules(cfg.train.iterations, schedule_scale(cfg.train.iterations))
+        with torch.no_grad():
+            image, surfels = method.render_image(scene.cameras[0]), GS2D.render(method, scene.cameras[0], {"rgb"}).rgb
+        assert method.tracing() is traces
+        assert torch.equal(image, surfels) is not traces
 
 
 def test_transparency_learns_only_where_the_light_was_traced(tiny_orb, tmp_path, monkeypatch, restore_threads):
