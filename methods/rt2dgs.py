@@ -73,8 +73,7 @@ class RT2DGSConfig(GS2DConfig):
     transparency_lr: float = 0.05
     min_scale: float = 0.0005
     trace_pixels: int = 256
-    trace_from: int = 7000  # step (of 30 000, scaled) from which the light is traced; 2DGS's render before it (past the
-    # run's end: never, configs/sweeps/rt2dgs_light.yaml)
+    trace_from: int = 7000  # step (of 30 000, scaled) of the first traced light (2DGS's before); past the run: never
     trace_min_transparency: float = 0.02
     transparency_gradient: str = "traced"  # where τ learns: "traced" pixels only, or every "filled" one as well
     smooth_neighbours: int = 8
