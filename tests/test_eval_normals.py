@@ -57,6 +57,15 @@ def test_obsmask_filters_the_prediction(tmp_path):
     assert 0.4 < res["diagnostics"]["pred_samples"] / 20_000 < 0.6  # the lower half is unobserved
 
 
+def test_a_mesh_far_from_the_gt_everywhere_is_scored_ungated(scene):
+    far = F.dtu_sphere_mesh(radius_mm=F.DTU_RADIUS + 3)  # 3 mm out everywhere, inside the box and the ObsMask
+    with pytest.warns(UserWarning, match="gated metrics are undefined"):
+        res = NormalSimilarity().evaluate(far, scene, n_samples=20_000)
+    assert set(res["metrics"]) == {"normal_consistency", "normal_accuracy", "normal_completeness"}
+    assert res["metrics"]["normal_consistency"] > 0.99  # concentric: the normals still agree
+    assert res["diagnostics"]["accuracy_pairs_fraction"] == 0.0 and res["diagnostics"]["max_dist"] < 3
+
+
 def test_gt_mesh_option_and_errors(scene, tmp_path):
     gt = tmp_path / "gt_mesh.ply"
     mesh = F.dtu_sphere_mesh(subdivisions=4)
@@ -65,6 +74,8 @@ def test_gt_mesh_option_and_errors(scene, tmp_path):
     assert m["metrics"]["normal_consistency"] > 0.999 and m["diagnostics"]["gt_normals"] == "mesh samples"
     with pytest.raises(EvaluationError, match="wrong frame or units"):
         NormalSimilarity().evaluate(mesh, scene, frame="dataset", n_samples=5_000)  # normalised mesh read as mm
+    with pytest.raises(EvaluationError, match="wrong frame or units, or a mesh nowhere near"):  # nothing filtered
+        NormalSimilarity().evaluate(mesh, scene, gt_mesh=str(gt), frame="dataset", n_samples=5_000, max_dist=1e-9)
     with pytest.raises(EvaluationError, match="not found: .*nope.ply"):
         NormalSimilarity().evaluate(mesh, scene, gt_mesh=str(tmp_path / "nope.ply"))
 
