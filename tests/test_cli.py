@@ -1,5 +1,7 @@
 """CLI: sub-commands print what they should; errors are one line naming the fix; --debug re-raises."""
 
+import subprocess
+import sys
 from dataclasses import dataclass
 
 import pytest
@@ -63,3 +65,12 @@ def test_scene_check_reports_a_broken_folder(tmp_path, capsys):
     (tmp_path / "image").mkdir()
     assert main(["scene", "check", str(tmp_path)]) == 1
     assert '"ok": false' in capsys.readouterr().out
+
+
+def test_help_and_list_start_without_torch():
+    """Each command module imports its stage inside the function it runs, so the parser alone loads no stage."""
+    code = ("import sys; from gsbench.cli import main\n"
+            "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "main(['list']); print('heavy:', [m for m in ('torch', 'open3d', 'trimesh') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().endswith("heavy: []")

@@ -2,8 +2,8 @@
 functions, so a cycle closed by a lazy import is still a cycle.
 
 A module imports only modules below it (docs/design.md §2, "Layout"); a cycle would mean two modules each
-need the other. Imports sit at the top of modules: the command line (`gsbench.cli`) alone imports each
-subcommand's stage lazily, so that ``gsbench list`` and ``--help`` start without torch.
+need the other. Imports sit at the top of modules: the command line (the `gsbench.cli` package) alone imports
+each subcommand's stage lazily, so that ``gsbench list`` and ``--help`` start without torch.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 # source folder -> the package it installs as (pyproject.toml, [tool.setuptools] package-dir)
 ROOTS = {"gsbench": REPO / "gsbench", "gsbench.methods": REPO / "methods", "gsbench.evaluators": REPO / "evaluators"}
-LAZY_PROJECT_IMPORTS_ALLOWED = {"gsbench.cli"}
+LAZY_PROJECT_IMPORTS_ALLOWED = "gsbench.cli"  # the package and its modules
 
 
 def project_modules() -> dict[str, Path]:
@@ -127,5 +127,6 @@ def test_no_import_cycle_among_the_projects_modules():
 
 def test_imports_of_project_modules_sit_at_the_top():
     _, nested = import_graph()
-    offenders = {m: lines for m, lines in nested.items() if lines and m not in LAZY_PROJECT_IMPORTS_ALLOWED}
+    offenders = {m: lines for m, lines in nested.items()
+                 if lines and m != LAZY_PROJECT_IMPORTS_ALLOWED and not m.startswith(LAZY_PROJECT_IMPORTS_ALLOWED + ".")}
     assert not offenders, f"project imports inside functions: {offenders}"
