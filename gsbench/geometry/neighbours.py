@@ -1,4 +1,4 @@
-"""The K-nearest-neighbour index of Gaussian means (IBGS, docs/methods/ibgs.md §2, docs/methods/ibgs.md §2).
+"""The K-nearest-neighbour index of Gaussian means (IBGS, docs/methods/ibgs.md §2).
 
 ``N(i)`` = the K nearest *other* means of Gaussian i, by a scipy KD-tree (``cKDTree``, all cores),
 held fixed (no gradient) between refreshes. IBGS refreshes it every 100 steps and after every

@@ -4,7 +4,7 @@ Pipeline of `levelset_mesh`:
 
 1. Keep the Gaussians with opacity > 0.5 (docs/methods/sugar.md §4.1). Their density field (κ = 1) is
    d(x) = Σ_j o_j·exp(−½‖diag(1/s_j) R_jᵀ (x − μ_j)‖²) over the K = 16 centres nearest to the pixel's
-   hit point (scipy cKDTree), the squared norm clamped to [0, 1e8] and s to >= 1e-8 (docs/methods/sugar.md docs/methods/sugar.md §5).
+   hit point (scipy cKDTree), the squared norm clamped to [0, 1e8] and s to >= 1e-8 (docs/methods/sugar.md §5).
 2. Per training view (`view_points`): render the ``depth_output`` depth, alpha and rgb with the
    method's kernel; every pixel with alpha >= 0.5 (and inside the mask when masks are given, as the
    TSDF extractor does; SuGaR has none) gives the hit point p = C + z·r (camera z along the pixel ray,
@@ -71,8 +71,8 @@ KNN = 16  # neighbours of the density field
 RAY_SAMPLES = 21  # n_points_in_range
 RAY_SIGMAS = 3.0  # range_size: samples over ±3σ
 ALPHA_MIN = 0.5  # a pixel "hits" the model when its rendered alpha is at least this
-MAHALANOBIS_MAX = 1e8  # docs/methods/sugar.md docs/methods/sugar.md §5
-SCALE_MIN = 1e-8  # docs/methods/sugar.md docs/methods/sugar.md §5
+MAHALANOBIS_MAX = 1e8  # docs/methods/sugar.md §5
+SCALE_MIN = 1e-8  # docs/methods/sugar.md §5
 FOREGROUND_EXTENTS = 1.0  # foreground cube half-size, in cameras_extent
 BACKGROUND_EXTENTS = 4.0  # background cube half-size, in cameras_extent
 MIN_PART_POINTS = 100  # a part with fewer points is dropped
@@ -114,7 +114,7 @@ class DensityField:
 
 
 def _gaussian_terms(squared: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor:
-    """o·exp(−½ m²) with m² clamped to [0, 1e8] (docs/methods/sugar.md docs/methods/sugar.md §5)."""
+    """o·exp(−½ m²) with m² clamped to [0, 1e8] (docs/methods/sugar.md §5)."""
     return opacities * torch.exp(-0.5 * squared.clamp(0.0, MAHALANOBIS_MAX))
 
 

@@ -1,5 +1,5 @@
 // Batched symmetric 3×3 eigen-decomposition in float64 with a gap-regularised backward; IBGS local
-// covariances, docs/methods/ibgs.md §3.2 and docs/methods/ibgs.md §3.2, §3.3. Python API, reference and
+// covariances, docs/methods/ibgs.md §3.2, §3.3. Python API, reference and
 // tests: gsbench/geometry/eigen3.py, tests/test_eigen3.py. Plain C ABI, OpenMP over the N matrices.
 //
 // Forward, per matrix C (row-major 3×3; S = (C + Cᵀ)/2 is decomposed, so any input is accepted):

@@ -44,7 +44,7 @@ class AbsGradStatistics(DefaultStrategy):
 
 @dataclass(frozen=True)
 class AbsGradStrategy(AbsGradStatistics):
-    """GOF / RaDe-GS densification (docs/methods/gof.md §5, docs/methods/radegs.md §2.2, docs/methods/radegs.md §2.2) with the 3D filter (docs/methods/gof.md §2.4).
+    """GOF / RaDe-GS densification (docs/methods/gof.md §5, docs/methods/radegs.md §2.2) with the 3D filter (docs/methods/gof.md §2.4).
 
     `DefaultStrategy` (window, interval, pruning, opacity-reset schedule, budget) with these changes:
 

@@ -1,5 +1,5 @@
 """IBGS densification: the abs-gradient criterion plus sparsity-aware densification (SADC)
-(docs/methods/ibgs.md §6, docs/methods/ibgs.md §6; the SADC form is [ASSUMED], switchable).
+(docs/methods/ibgs.md §6; the SADC form is [ASSUMED], switchable).
 
 `SparsityAwareStrategy` is `gsbench.training.strategies.absgrad.AbsGradStrategy` (GOF/RaDe clone/split/prune, the paper's
 "improved densification criterion, Eq. (2)" [ASSUMED]) with, at every refinement step:
