@@ -1,74 +1,10 @@
-"""The one training loop (docs/design.md §4: the Trainer owns the loop, methods declare data).
+"""The one training loop (docs/design.md §4: the Trainer owns the loop, methods declare data; the details
+and their reasons: docs/training.md).
 
-Per step ``t = 1 … train.iterations`` (3DGS ``train.py`` order, docs/methods/3dgs.md §5.2):
-
-1. ``method.update_schedules(t, scale)`` — position lr decay and SH degree;
-2. next camera from a seeded shuffled stack, refilled when empty (one epoch = one pass, docs/methods/3dgs.md §1.4);
-3. active terms = `gsbench.losses.terms.active_terms` of the scaled loss config with the method's term
-   parameters; the render computes only their `required_outputs` (weight 0 removes a term's outputs);
-4. L = Σ weight·term; non-finite L is a `NumericalError` naming the terms and the step;
-5. backward; ``strategy.step_post_backward`` (densify / prune / opacity reset);
-6. Adam step (skipped on the last step, as 3DGS); with ``train.optimizer: visible_adam`` only the
-   rows of the Gaussians this view sees (`gsbench.training.optim`).
-
-Checks: a non-finite loss is a `NumericalError` at once (one scalar test a step); the parameters are
-tested every `PARAMETER_CHECK_EVERY` steps, before every checkpoint and at the last step, with one
-reduction per parameter group (`Gaussians.check_finite`), and the error names the parameter and the
-step it was found at. A parameter gone non-finite between two checks is caught earlier anyway: the
-rasterizer tests its inputs on every render (`gsbench.raster.validate_gaussians`), so the next step
-fails naming the rendered quantity.
-
-Schedule scaling — the one place presets change the schedule: every step-valued setting of the
-paper's 30 000-step run (loss ``start``/``end``, the densification window/interval/opacity reset via
-`DefaultStrategy.scaled`, the position-lr decay length and the SH interval via
-``method.update_schedules``) is multiplied by ``scale = train.iterations / 30000`` with `scale_step`
-(rounded, at least 1; 0 and negative "unset" values stay), except the refinement interval, which
-stays 100 steps unless ``train.scale_refine_interval`` (`scaled_strategy` says why). A 3 000-step cpu
-run therefore densifies every 100 steps over steps 50–1500, resets opacity every 300 steps, starts
-λ_d at 300 and λ_n at 700: the same fractions of the run as the paper's 30 000 steps.
-
-Masks (``data.use_masks`` with a scene that has masks): ``batch.mask`` is passed to the terms (their
-``use_mask`` parameter, off by default); the GT image is used whole, as 2DGS, GOF and RaDe-GS train on
-DTU. With ``data.mask_target`` as well, the GT image is composited over the render background,
-``gt' = mask·gt + (1 − mask)·bg`` (the 2023 3DGS intent), so background pixels ask for empty space:
-Gaussians there only raise the loss and are pruned instead of spawned. On a scene whose background
-is black anyway (synthetic/spot and the other object-in-black scenes) the two differ only at the
-anti-aliased silhouette pixels.
-
-Checkpoints (``checkpoint.pt`` every ``train.checkpoint_every`` steps, ``checkpoint-final.pt`` at the
-end, both written atomically) hold the method state (parameters, Adam moments), the strategy state,
-the python/numpy/torch RNG states, the camera stack and the step, so a resumed run is bit-identical
-to an uninterrupted one with the same seed and thread count. ``metrics.jsonl`` gets one line every
-``train.log_every`` steps: step, each term (unweighted), total, num_gaussians, it/s. Training time
-(`TrainResult.seconds`, summed over resumes) counts the steps and logging, not checkpoint writes;
-`TrainResult.cpu_seconds` is the process's CPU time over the same intervals (`time.process_time`: every
-thread's, so about ``threads`` times the wall time when the cores are free, and at one thread the time a
-quiet core would take when other processes share the cores); None for a run resumed from a checkpoint written
-before it was kept, whose earlier steps' CPU time is unknown.
-
-Phases: `Trainer.train_step` times each part of a step with ``time.perf_counter`` and adds it to
-`Trainer.phases` (`STEP_PHASES`): ``render`` (the method's forward render), ``loss`` (`total_loss`),
-``backward`` (``strategy.step_pre_backward`` + ``loss.backward()``), ``densify``
-(``strategy.step_post_backward``), ``optimizer`` (Adam step + ``zero_grad``) and ``checks`` (the
-finiteness tests of the loss and of the parameters). The sums are part of the checkpoint (a
-checkpoint without them, written before they existed, resumes from zeros), so a resumed run's phases
-cover all its steps like `TrainResult.seconds`, and they sum to at most that (the rest is the
-schedule update, camera sampling, logging and progress output). `TrainResult.phases` holds them next
-to the method's own phases (`Method.training_phases`, e.g. IBGS's ``knn`` and ``local_geometry``
-in methods/ibgs.py); the method's keep their names, and a step phase whose name a method also uses
-is reported as ``step.<name>`` instead. Method phases run *inside* the step phases (IBGS's
-eigen-decomposition within ``render`` and ``backward``), so the two sets overlap and must not be
-added together. The runner (gsbench/runs/runner.py) records every entry as ``train.<name>``.
-
-Budget: with ``train.max_gaussians`` > 0 a refinement may leave densification candidates out
-(`DefaultStrategy` clone/split candidates, IBGS's SADC pairs: the info's ``budget_cut``).
-`DensifyBudget` keeps the first step at which one did and how many it left out in all; it is part of
-the checkpoint and of `TrainResult`, and the runner records it as ``densify_budget``, so a report can
-say which methods' geometry was made under a binding budget and from when.
-
-Progress: the tqdm bar draws itself only on a terminal; when stderr is not one (a run logged to a
-file), `gsbench.training.progress.ProgressLines` prints a line with the step, it/s, the latest total loss, N
-and the ETA every `Trainer.progress_interval` seconds (30 by default) and a final line at the end.
+Per step t = 1 … ``train.iterations``, in 3DGS ``train.py`` order (docs/methods/3dgs.md §5.2): update the
+schedules, draw the next view, render what the active terms need, L = Σ weight·term, backward and densify,
+Adam step (skipped on the last step). Every step-valued setting of the paper's 30 000-step run is scaled by
+``train.iterations / 30000`` (docs/training.md §1); a resumed run is bit-identical to an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -97,7 +33,7 @@ from gsbench.training.progress import DEFAULT_INTERVAL, ProgressLines
 from gsbench.training.strategies.base import REFERENCE_ITERATIONS
 
 STEP_PHASES = ("render", "loss", "backward", "densify", "optimizer", "checks")
-PARAMETER_CHECK_EVERY = 50  # steps between finiteness checks of the parameters (module docstring, "Checks")
+PARAMETER_CHECK_EVERY = 50  # steps between finiteness checks of the parameters (docs/training.md §3)
 STEP_PHASE_PREFIX = "step."
 
 
@@ -107,7 +43,7 @@ def scale_step(value: int, scale: float) -> int:
 
 
 def schedule_scale(iterations: int) -> float:
-    """iterations / 30000: the factor every step-valued setting is multiplied by (module docstring)."""
+    """iterations / 30000: the factor every step-valued setting is multiplied by (docs/training.md §1)."""
     return iterations / REFERENCE_ITERATIONS
 
 
@@ -118,20 +54,9 @@ def scaled_losses(losses: dict, scale: float) -> dict:
 
 
 def scaled_strategy(strategy, iterations: int, scale_refine_interval: bool = False):
-    """The strategy's schedule for this run (module docstring, "Schedule scaling").
-
-    `DefaultStrategy.scaled` scales the window and the reset interval. By default the refinement
-    interval keeps the paper's absolute value and the reset interval is rounded to a multiple of it,
-    because both are counts of Adam steps, not fractions of the run: a reset sets o <= 0.01 and the
-    next refinement, ``refine_every`` steps later, prunes o < ``prune_opacity`` (0.05 for 2DGS),
-    which Adam (opacity lr 0.05 per step on the logit) can only climb back above after ~40+ steps.
-
-    ``scale_refine_interval`` (``train.scale_refine_interval``) scales the interval too, so a short
-    run keeps the paper's number of refinement rounds (145), and sets ``prune_grace`` to the paper's
-    interval, so low-opacity pruning still waits that many Adam steps after each reset (at the
-    paper's schedule both choices are the same). Measured on synthetic/spot, cpu preset, 2DGS:
-    Chamfer 1.157 mm with it vs 1.312 mm without (13.7k vs 4.3k surfels; 657 vs 415 s training, 2 threads).
-    """
+    """The strategy's schedule for this run: `DefaultStrategy.scaled`'s window and reset interval; the
+    refinement interval keeps the paper's 100 Adam steps (the reset interval a multiple of it) unless
+    ``scale_refine_interval``, which scales it and sets ``prune_grace`` to the paper's (docs/training.md §1.1)."""
     if not hasattr(strategy, "scaled"):
         return strategy
     paper_every = strategy.refine_every
@@ -156,11 +81,8 @@ def save_atomic(obj, path: Path) -> None:
 
 
 def load_checkpoint(path: Path) -> dict:
-    """A checkpoint read as data: ``torch.load(weights_only=True)`` accepts tensors and plain values (numbers,
-    strings, lists, tuples, dicts) and never runs code from the file. A file that holds anything else (an
-    object to unpickle, as a checkpoint made to run code does, or a gsbench checkpoint from before the RNG
-    states were stored as tensors) or that is damaged is a `CheckpointError` naming it, before anything in it
-    is executed."""
+    """A checkpoint read as data (``weights_only``: tensors and plain values, never code from the file); anything
+    else, or a damaged file, is a `CheckpointError` naming it (docs/training.md §4)."""
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -216,8 +138,8 @@ class CameraSampler:
 
 @dataclass
 class DensifyBudget:
-    """How ``train.max_gaussians`` bound densification (module docstring, "Budget"): the first step at
-    which a refinement left candidates out (None: never) and the candidates left out over the run."""
+    """How ``train.max_gaussians`` bound densification (docs/training.md §6): the first step at which a
+    refinement left candidates out (None: never) and the candidates left out over the run."""
 
     max_gaussians: int = 0
     first_cut_step: int | None = None
@@ -233,9 +155,8 @@ class DensifyBudget:
 
 @dataclass
 class TrainResult:
-    """What training produced: steps done in total, seconds spent (over all resumes), it/s, final N, and
-    the seconds per phase within training: the Trainer's step phases (`STEP_PHASES`) and the method's
-    own (`Method.training_phases`), both over all resumes (module docstring, "Phases")."""
+    """What training produced, over all resumes: steps, seconds, it/s, CPU seconds, final N, and the seconds
+    per phase: the Trainer's step phases (`STEP_PHASES`) and the method's own (docs/training.md §4, §5)."""
 
     steps: int
     seconds: float
@@ -248,7 +169,7 @@ class TrainResult:
 
 
 def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list]:
-    """GT tensors per view (composited over ``background`` outside the mask with ``data.mask_target``)
+    """GT tensors per view (``gt' = mask·gt + (1 − mask)·bg`` with ``data.mask_target``, docs/training.md §2)
     and the masks handed to the loss terms (None without ``data.use_masks``)."""
     bg = torch.tensor(background, dtype=torch.float32)
     use = cfg.data.use_masks and scene.masks is not None
@@ -265,7 +186,7 @@ def _target_images(scene: Scene, cfg: RunConfig, background) -> tuple[list, list
 
 def merge_phases(step_phases: dict, method_phases: dict) -> dict:
     """The method's phases under their own names plus the step phases; a step phase whose name the
-    method also uses gets `STEP_PHASE_PREFIX` (module docstring, "Phases")."""
+    method also uses gets `STEP_PHASE_PREFIX` (docs/training.md §5)."""
     merged = {name: float(v) for name, v in method_phases.items()}
     for name, seconds in step_phases.items():
         merged[STEP_PHASE_PREFIX + name if name in method_phases else name] = float(seconds)
@@ -336,9 +257,8 @@ class Trainer:
 
     # ---- the loop -----------------------------------------------------------------------------
     def train_step(self, step: int) -> dict[str, float]:
-        """One optimisation step (module docstring); returns the unweighted term values and the total.
-
-        Each part's wall time is added to `phases` (module docstring, "Phases")."""
+        """One optimisation step; returns the unweighted term values and the total. Each part's wall time is
+        added to `phases` (docs/training.md §5)."""
         m, phases, clock = self.method, self.phases, time.perf_counter
         m.update_schedules(step, self.scale)
         idx = self.sampler.next()
@@ -393,7 +313,7 @@ class Trainer:
         return values
 
     def check_parameters(self, step: int) -> None:
-        """`Gaussians.check_finite`, its error naming the step (module docstring, "Checks")."""
+        """`Gaussians.check_finite`, its error naming the step (docs/training.md §3)."""
         try:
             self.method.gaussians.check_finite()
         except NumericalError as exc:
