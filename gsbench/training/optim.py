@@ -1,21 +1,11 @@
-"""The optimizers a run can choose (``train.optimizer``).
+"""The optimizers a run can choose (``train.optimizer``, docs/training.md §8): ``adam``, `FusedAdam`
+(torch's fused Adam, the papers' update), and ``visible_adam``, `VisibleAdam`, which per visible row i,
+with the group's global step count t, does
 
-- ``adam`` (every method's default): `FusedAdam`, `torch.optim.Adam` on its fused path (one C++ loop per
-  parameter tensor, ~3x faster than the multi-tensor path on 13k–100k Gaussians), the papers' update for
-  every Gaussian every step: equal to the single-tensor Adam up to rounding (the fused loop evaluates the
-  same formula in another order; within 1e-6 relative after several steps, tested), and bit for bit
-  torch's fused step (tested).
-- ``visible_adam`` (opt-in, `VisibleAdam`): Adam on the rows of the Gaussians the step's view sees
-  (``render.visible``) only. Per visible row i, with the group's global step count t:
+    m_i ← β1 m_i + (1 − β1) g_i,   v_i ← β2 v_i + (1 − β2) g_i²,
+    θ_i ← θ_i − lr / (1 − β1ᵗ) · m_i / (√v_i / √(1 − β2ᵗ) + ε)
 
-      m_i ← β1 m_i + (1 − β1) g_i,   v_i ← β2 v_i + (1 − β2) g_i²,
-      θ_i ← θ_i − lr / (1 − β1ᵗ) · m_i / (√v_i / √(1 − β2ᵗ) + ε)
-
-  and nothing for the others: their moments do not decay and their parameters do not drift on the
-  momentum of earlier views. That is not the papers' update (Adam moves every Gaussian every step,
-  the invisible ones by their moments alone), so no method preset uses it; it saves the optimizer's
-  work on Gaussians outside the view, which matters for scenes seen in parts (TnT), hardly for an
-  object seen whole in every view. With every row visible it is Adam's update up to rounding.
+and nothing for the rows the view does not see (not the papers' update: opt-in, no preset uses it).
 """
 
 from __future__ import annotations
@@ -30,7 +20,7 @@ OPTIMIZERS = ("adam", "visible_adam")
 
 
 class VisibleAdam(torch.optim.Adam):
-    """Adam on visible rows only (module docstring); set ``visible`` (bool (N,)) before each `step`.
+    """Adam on visible rows only (the module's formula); set ``visible`` (bool (N,)) before each `step`.
 
     The state keeps Adam's layout (``step``, ``exp_avg``, ``exp_avg_sq`` per parameter), so
     densification's row surgery (`gsbench.training.strategies`) and checkpoints work unchanged. ``visible`` None:

@@ -1,17 +1,5 @@
-"""Progress lines for runs whose stderr is not a terminal (a log file, a batch job, a pipe).
-
-tqdm with ``disable=None`` turns itself off when stderr is not a TTY, so a run logged to a file would
-print nothing for its whole training. `ProgressLines` fills that gap: when stderr is *not* a terminal
-it prints one line every ``interval`` seconds (default `DEFAULT_INTERVAL`, 30 s), e.g.::
-
-    train 2dgs: step 1200/3000 (40%) 3.1 it/s loss 0.0712 N 23456 ETA 9m41s
-
-and a final line when closed; when stderr *is* a terminal it prints nothing (tqdm draws the bar).
-The rate is the mean over the steps done since this process started (a resumed run's earlier steps
-are not counted), the ETA is the remaining steps at that rate.
-
-`stage(message)` prints ``gsbench: <message>`` to stderr, terminal or not (one line per run stage).
-Both flush at once so a log file shows each line as it is written. Only the standard library is
+"""Progress lines for runs whose stderr is not a terminal, where tqdm (``disable=None``) is silent
+(docs/training.md §7); `stage` prints a run stage's line, terminal or not. Only the standard library is
 imported here.
 """
 
@@ -59,7 +47,7 @@ def stage(message: str, stream=None) -> None:
 
 
 class ProgressLines:
-    """Periodic one-line progress reports on a non-terminal stream (module docstring).
+    """Periodic one-line progress reports on a non-terminal stream (docs/training.md §7).
 
     ``total``: the last step; ``initial``: the step training starts from (a resume); ``interval``:
     seconds between lines (0: a line every update); ``stream``: default ``sys.stderr`` (looked up

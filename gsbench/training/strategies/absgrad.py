@@ -44,25 +44,14 @@ class AbsGradStatistics(DefaultStrategy):
 
 @dataclass(frozen=True)
 class AbsGradStrategy(AbsGradStatistics):
-    """GOF / RaDe-GS densification (docs/methods/gof.md §5, docs/methods/radegs.md §2.2) with the 3D filter (docs/methods/gof.md §2.4).
+    """GOF / RaDe-GS densification: `DefaultStrategy` with the abs-gradient criterion, sampled clone
+    positions and the 3D filter's recomputation, as docs/methods/gof.md §5 and §2.4 state them
+    (docs/methods/radegs.md §2.2).
 
-    `DefaultStrategy` (window, interval, pruning, opacity-reset schedule, budget) with these changes:
-
-    - statistics: besides g = mean ‖∂L/∂μ_ndc‖ it averages the abs-gradient
-      g_abs = mean Σ_pixels (|∂L_pix/∂m_x| + |∂L_pix/∂m_y|) (`RenderOutput.densify_grads`, NDC units)
-      over the same visible renders;
-    - selection: with ρ = the fraction of Gaussians with g >= τ (``grad_threshold``), τ_abs = the
-      (1 − ρ) quantile of g_abs (linear interpolation, as ``torch.quantile``), so the abs-criterion
-      selects as many Gaussians as the standard one; selected = (g >= τ) OR (g_abs >= τ_abs, g_abs > 0).
-      The g_abs > 0 guard keeps Gaussians unseen since the last refinement out when τ_abs = 0 (GOF's
-      bare >= would select all of them); ρ = 0 still selects the largest g_abs, as in GOF;
-    - clone: the copy's centre is sampled at μ + R (s ⊙ ε), ε ~ N(0, I) (split as in 3DGS);
-    - budget: candidates are taken by decreasing g_abs (>= g for every Gaussian);
-    - 3D filter (``filter3d``, shared with the method that renders with it; None = no filter): recomputed
-      after every refinement, before the opacity reset, which resets the *filtered* opacity
-      (`reset_opacity` with the variance); and every ``filter_every`` steps after ``refine_stop``
-      while ``step < iterations − filter_every`` (GOF ``train.py``). ``filter_every`` is a number of
-      steps like ``refine_every`` and is not scaled; `scaled` sets ``iterations`` to the run length.
+    Selected = (g >= τ) OR (g_abs >= τ_abs AND g_abs > 0), τ_abs the (1 − ρ) quantile of g_abs, ρ the share
+    with g >= τ. The g_abs > 0 guard keeps Gaussians unseen since the last refinement out when τ_abs = 0 (GOF's
+    bare >= would select all of them). ``filter3d`` is shared with the method that renders with it (None: no
+    filter); ``filter_every`` counts steps like ``refine_every`` and is not scaled.
     """
 
     prune_opacity: float = 0.05

@@ -1,20 +1,9 @@
-"""Densification strategies with external state (gsplat-style; docs/design.md §3.3).
+"""Densification strategies with external state (gsplat-style, docs/design.md §3.3): the interface and the
+optimizer-aware parameter surgery the strategies share.
 
-A strategy keeps no tensors itself: `Strategy.init_state` returns a plain dict of tensors the caller
-checkpoints, and the caller runs, per training step (``step`` = 1-based iteration, as 3DGS
-``train.py`` counts them)::
-
-    out = method.render(...);  strategy.step_pre_backward(out)
-    loss.backward();           strategy.step_post_backward(gaussians, optimizer, state, step, out)
-    optimizer.step()
-
-The strategies: `gsbench.training.strategies.default.DefaultStrategy` (3DGS 2023, docs/methods/3dgs.md §5.3),
-`gsbench.training.strategies.absgrad.AbsGradStrategy` (GOF's and RaDe-GS's, docs/methods/gof.md §5, with the 3D
-filter of docs/methods/gof.md §2) and `gsbench.training.strategies.sparsity.SparsityAwareStrategy` (IBGS). This
-module holds the interface and the optimizer-aware parameter surgery they share. Densify and prune keep the Adam state in step with the rows of every
-parameter group (`append_params`, `keep_params`): new rows get zero moments, removed rows drop
-theirs. Replaced parameters have no ``.grad``, so the Adam step right after a densification skips
-them — faithful to 3DGS (docs/methods/3dgs.md §5.3).
+``step`` is the 1-based iteration, as 3DGS ``train.py`` counts. `append_params` and `keep_params` keep the Adam
+state in step with the rows: new rows get zero moments, removed rows drop theirs. A replaced parameter has no
+``.grad``, so the Adam step right after a densification skips it, as 3DGS's does (docs/methods/3dgs.md §5.3).
 """
 
 from __future__ import annotations
@@ -79,16 +68,10 @@ def keep_params(gaussians: Gaussians, optimizer: torch.optim.Optimizer, keep: to
 
 def reset_opacity(gaussians: Gaussians, optimizer: torch.optim.Optimizer, value: float,
                   filter3d: torch.Tensor | None = None) -> None:
-    """o ← min(o, value) stored as a logit, and zero that group's Adam moments (3DGS ``reset_opacity``).
-
-    With a 3D-filter variance ``filter3d`` (N,) the *filtered* opacity is reset (docs/methods/gof.md §2.5): with
-    c = `filter_coefficient`, o_eff = o·c ← min(o_eff, value), stored as o = o_eff / c (<= o).
-
-    Both are o ← min(o, value / c) (c = 1 without the filter), applied to the logit, which is monotonic:
-    logit ← min(logit, logit(value / c)). A row the reset does not lower keeps its logit exactly. The authors'
-    codes go through the opacity and back (logit(min(o·c, value) / c)); for a saturated opacity (o = 1 in
-    float32) with c < value that gives logit(c / c) = logit(1) = +inf, or NaN when the division rounds above 1
-    (docs/methods/gof.md §2.5).
+    """logit ← min(logit, logit(value / c)) and that group's Adam moments zeroed (3DGS ``reset_opacity``), with
+    c = `filter_coefficient` of the 3D-filter variance ``filter3d`` (c = 1 without): the filtered opacity o·c
+    is reset. Applied to the logit, a row the reset does not lower keeps it exactly, and a saturated opacity
+    gives no +inf or NaN as the authors' round trip through o does (docs/methods/gof.md §2.5).
     """
     logits = gaussians.params["opacity_logits"].detach()
     if filter3d is None:

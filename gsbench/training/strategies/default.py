@@ -24,33 +24,16 @@ from gsbench.training.strategies.base import (
 
 @dataclass(frozen=True)
 class DefaultStrategy(Strategy):
-    """3DGS 2023 clone/split/prune/opacity reset (docs/methods/3dgs.md §5.3; docs/methods/2dgs.md §5).
+    """3DGS 2023 clone/split/prune and opacity reset, as docs/methods/3dgs.md §5.3 states it (2DGS splits
+    in the surfel plane, docs/methods/2dgs.md §5). Beyond the paper's:
 
-    While ``step < refine_stop``: accumulate, for visible Gaussians (radii > 0), ‖∂L/∂μ_ndc‖ and a
-    count, and the max screen radius. When ``step > refine_start`` and ``step % refine_every == 0``:
-    with g = accum / count (0 where never seen) and s_max the largest scale,
+    - ``prune_grace``: no low-opacity prune within that many steps after a periodic opacity reset (the
+      white-background reset at ``refine_start`` gets none; 0, the paper's behaviour, prunes every time);
+    - ``prune_world_size`` false (GGGS): prune by opacity only;
+    - ``max_gaussians`` > 0: clone (+1) and split (+``split_n`` − 1) candidates by decreasing g while they fit
+      (counted before pruning); those left out are the info's ``budget_cut`` (docs/training.md §6).
 
-    - clone  where g >= ``grad_threshold`` and s_max <= ``percent_dense``·extent (identical copy);
-    - split  where g >= ``grad_threshold`` and s_max >  ``percent_dense``·extent: ``split_n`` children
-      at μ + R (s ⊙ ε), ε ~ N(0, I) (in-plane only for 2D surfels), scale s / (0.8·split_n); the
-      parent is removed. Both use the pre-densification g, so fresh clones are never split;
-    - prune  where o < ``prune_opacity`` (not within ``prune_grace`` steps after a periodic opacity
-      reset — the white-background reset at ``refine_start`` gets no grace; 0, the paper's
-      behaviour, prunes at every refinement), and when ``step > reset_every`` also, with
-      ``prune_world_size`` (every method but GGGS, which prunes by opacity only), s_max >
-      ``big_world``·extent and, only with ``prune_screen_size``, max radius > ``screen_size`` px.
-      3DGS 2023 resets the radii during clone/split, so its screen test never fires (issues
-      #123/#643; gsplat disables it too): ``prune_screen_size = False`` is that faithful behaviour;
-    - then the statistics restart at zero.
-
-    When ``step % reset_every == 0`` (and at ``step == refine_start`` with ``white_background``):
-    o ← min(o, ``reset_value``) and that group's Adam moments are zeroed.
-
-    ``max_gaussians`` > 0 is a budget: if clone (+1 each) and split (+split_n − 1 each) would exceed
-    it, the highest-g candidates are taken while they fit (counted before pruning); the candidates left
-    out are the refinement info's ``budget_cut`` (the trainer records the first step with one,
-    `gsbench.training.trainer.DensifyBudget`). ``scene_extent``
-    is 3DGS ``cameras_extent`` in the scene's units. Split sampling uses torch's global RNG.
+    ``scene_extent`` is 3DGS ``cameras_extent``, in the scene's units. Split sampling uses torch's global RNG.
     """
 
     grad_threshold: float = 0.0002

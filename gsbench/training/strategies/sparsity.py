@@ -1,22 +1,10 @@
-"""IBGS densification: the abs-gradient criterion plus sparsity-aware densification (SADC)
-(docs/methods/ibgs.md §6; the SADC form is [ASSUMED], switchable).
+"""IBGS densification: GOF's abs-gradient clone/split/prune (taken to be the paper's Eq. 2 [ASSUMED]) plus
+sparsity-aware densification, SADC (its form [ASSUMED], switchable), as docs/methods/ibgs.md §6 states them.
 
-`SparsityAwareStrategy` is `gsbench.training.strategies.absgrad.AbsGradStrategy` (GOF/RaDe clone/split/prune, the paper's
-"improved densification criterion, Eq. (2)" [ASSUMED]) with, at every refinement step:
-
-1. the usual clone / split / prune, then a kNN refresh (the rows changed);
-2. with ``sadc``: d̄_i = mean_j ‖μ_j − μ_i‖ over the neighbours, m = median_i d̄_i. Gaussian i is
-   *sparse* if d̄_i > ``sparsity``·m or its largest scale exceeds ``percent_dense``·extent (the split
-   size test). For each sparse i and neighbour j with ‖μ_j − μ_i‖ > ``min_gap``·m, one new Gaussian
-   at the midpoint (μ_i + μ_j)/2 projected onto i's local plane (minus ((x − μ̄_i)·v3,i) v3,i); pairs
-   (i, j) and (j, i) count once. Its SH and opacity are the parents' mean, its scales i's with the
-   in-plane axes halved (the axis of i's frame nearest v3,i keeps its scale; surfels halve both), its
-   residual rotation the identity and its frame i's. The Gaussian budget caps the count (the widest
-   gaps are kept first; the pairs left out add to the info's ``budget_cut``). Then the kNN index and
-   the 3D filter are refreshed again.
-
-The strategy shares the method's `gsbench.geometry.neighbours.NeighbourIndex` (as AbsGradStrategy shares the
-3D filter) and orients split/clone offsets with the IBGS rotation ΔR·V (`_orientations`).
+SADC: with d̄_i = mean_j ‖μ_j − μ_i‖ over the neighbours and m = median_i d̄_i, Gaussian i is sparse if
+d̄_i > ``sparsity``·m or it is large enough to split; each sparse i and neighbour j with ‖μ_j − μ_i‖ >
+``min_gap``·m add one Gaussian at their midpoint projected onto i's local plane. The strategy shares the
+method's `gsbench.geometry.neighbours.NeighbourIndex` and orients offsets with the IBGS rotation ΔR·V.
 """
 
 from __future__ import annotations
