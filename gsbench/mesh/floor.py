@@ -1,20 +1,11 @@
-"""The meshing floor of a built-in synthetic scene: TSDF fusion of its exact depth, scored like a run.
+"""The meshing floor of a built-in synthetic scene: TSDF fusion of its exact depth, scored like a run. No
+method can beat the mesh the same TSDF settings make from the exact depth maps at the training resolution.
 
-No method can beat the mesh that the same TSDF settings make from the *exact* depth maps at the
-training resolution: that mesh is the floor a method's numbers are read against. `floor_report`:
-
-1. resolve the run config of ``3dgs`` on the scene with the preset and overrides (only the dataset
-   and preset layers matter: ``data.downscale`` and ``data.max_size``, ``data.use_masks`` and the ``mesh`` TSDF settings;
-   3DGS's method layer sets no mesh parameter);
-2. re-plan the scene from its ``gsbench_scene.json`` (built-in name or mesh file, format, resolution,
-   seed, framing) and
-   ray-cast every training camera at the training resolution (`gsbench.data.synthetic.render.Renderer`, the
-   object with its surroundings, as the images show it; the
-   stored ``gt_depth/`` maps are at the generated resolution, and a downscaled depth map is not the
-   depth at the downscaled pixel centres);
-3. fuse them with `gsbench.mesh.tsdf.tsdf_fusion` exactly as a method's depth would be (masks when
-   ``data.use_masks``), write the mesh, and evaluate it with the scene's evaluators plus
-   ``surface_offset``.
+`floor_report` resolves ``3dgs``'s run config on the scene (only the dataset and preset layers matter),
+re-plans the scene from its ``gsbench_scene.json``, ray-casts every training camera at the training
+resolution (the stored ``gt_depth/`` maps are at the generated resolution, and a downscaled depth map is not
+the depth at the downscaled pixel centres), fuses the depths with `gsbench.mesh.tsdf.tsdf_fusion` as a
+method's would be, and evaluates the mesh with the scene's evaluators plus ``surface_offset``.
 """
 
 from __future__ import annotations

@@ -1,43 +1,11 @@
-"""SuGaR level-set extraction, the ``poisson`` mesh extractor (docs/methods/sugar.md §4, §5).
+"""SuGaR level-set extraction, the ``poisson`` mesh extractor, as docs/methods/sugar.md §4 states it: level-set
+points along each view's pixel rays, split into foreground and background, then screened Poisson per part.
 
-Pipeline of `levelset_mesh`:
-
-1. Keep the Gaussians with opacity > 0.5 (docs/methods/sugar.md §4.1). Their density field (κ = 1) is
-   d(x) = Σ_j o_j·exp(−½‖diag(1/s_j) R_jᵀ (x − μ_j)‖²) over the K = 16 centres nearest to the pixel's
-   hit point (scipy cKDTree), the squared norm clamped to [0, 1e8] and s to >= 1e-8 (docs/methods/sugar.md §5).
-2. Per training view (`view_points`): render the ``depth_output`` depth, alpha and rgb with the
-   method's kernel; every pixel with alpha >= 0.5 (and inside the mask when masks are given, as the
-   TSDF extractor does; SuGaR has none) gives the hit point p = C + z·r (camera z along the pixel ray,
-   v̂ = the unit ray direction). SuGaR rasterizes a proxy mesh to know which Gaussian a pixel hit; our
-   rasterizer has no per-pixel Gaussian id, so the neighbourhood is the K centres nearest to p (SuGaR's
-   own ``use_gaussian_depth`` branch) and σ is σ_view = ‖s_h ⊙ (R_hᵀ v̂)‖ of the neighbour h that
-   contributes most to d(p), i.e. the Gaussian making the surface there (the nearest centre when none
-   contributes). `level_crossings`: 21 samples t = linspace(−3, 3)·σ, x = p + t·v̂; the first sample
-   with d > ``level`` whose predecessor is below it gives the crossing by linear interpolation of d in
-   t; pixels whose first sample is already above the level, or where nothing crosses, are dropped. The
-   outward normal is −∇d/‖∇d‖ = normalize(Σ_j o_j G_j(x)·R_j diag(1/s_j)·y_j), y_j = diag(1/s_j)R_jᵀ(x − μ_j),
-   analytically; the colour is the rendered rgb. Along the ray the Mahalanobis term is exactly quadratic in t,
-   |a_j + t·b_j|² with a_j = diag(1/s_j)R_jᵀ(p − μ_j), b_j = diag(1/s_j)R_jᵀv̂, so every sample costs
-   three numbers per neighbour. A random (seeded) subset of ``poisson_points``/views + 1 points is kept
-   per view (SuGaR: n_total_points = 10M).
-3. Split (SuGaR): foreground = points in the cube centre ± 1·extent, background = in ± 4·extent but not
-   foreground (the rest dropped); centre = the mean training camera centre, extent = 3DGS
-   ``cameras_extent``. Parts with fewer than 100 points are dropped as stray points.
-4. Per part, with open3d (`poisson_surface`): statistical outlier removal (20 neighbours, std ratio 20),
-   screened Poisson (width 0, scale 1.1, linear_fit False), removal of the vertices whose Poisson
-   density is below the ``poisson_density_quantile`` quantile (0.1), quadric decimation to
-   ``poisson_triangles`` triangles when above it (0 = none; SuGaR passes a vertex count to Open3D's
-   triangle target, 1M by default), clean-up (degenerate and duplicate triangles, duplicate and
-   unreferenced vertices, non-manifold edges). The parts are merged.
-
-Poisson depth: ``poisson_depth`` > 0 is used as given (SuGaR: 10; README: 6-7 for synthetic scenes).
-0 (auto) sizes the octree to the sampling: the smallest depth whose finest cell, 1.1 × the part's
-bounding-box side / 2^depth, is no larger than the median pixel footprint z/f of the part's points,
-capped at SuGaR's 10. DTU at the paper's 800x600 gives ≈ 10; the 200x150 cpu-preset images 7-8.
-
-Everything is relative (Gaussian scales, the camera extent, quantiles, footprints), so a scene in
-millimetres or kilometres gives the same mesh up to scale. An empty result is a `MeshError` naming
-the parameters.
+The field (κ = 1) is d(x) = Σ_j o_j·exp(−½‖diag(1/s_j) R_jᵀ (x − μ_j)‖²) over the K = 16 centres nearest to the
+pixel's hit point p, the squared norm clamped to [0, 1e8] and s to >= 1e-8 (docs/methods/sugar.md §5). Along the
+ray x = p + t·v̂ each term is exactly quadratic in t, |a_j + t·b_j|² with a_j = diag(1/s_j)R_jᵀ(p − μ_j) and
+b_j = diag(1/s_j)R_jᵀv̂, so a sample costs three numbers a neighbour. The outward normal is −∇d/‖∇d‖ =
+normalize(Σ_j o_j G_j(x)·R_j diag(1/s_j)·y_j), y_j = diag(1/s_j)R_jᵀ(x − μ_j), analytically.
 """
 
 from __future__ import annotations

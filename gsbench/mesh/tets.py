@@ -1,44 +1,12 @@
-"""GOF tetrahedra mesh extraction (docs/methods/gof.md §7; Yu, Sattler, Geiger, GOF 2024).
+"""GOF tetrahedra mesh extraction, `tetra_mesh`, as docs/methods/gof.md §7.2–§7.4 states it: the centre and the 8
+corners ``μ + R(q)·(3·s_eff ⊙ c)``, ``c ∈ {−1, 1}³``, of every Gaussian seen by a camera; their Delaunay
+tetrahedralisation; marching tetrahedra on GOF's "SDF" ``level − O(x)`` (positive = free space), then
+``bisection_steps`` bisections of every crossing edge, the vertex the final interval's midpoint.
 
-Pipeline of `tetra_mesh`:
-
-1. `tetra_points`: per Gaussian its centre and the 8 corners of the box ``±3·s_eff`` along its principal
-   axes, ``x = μ + R(q)·(3·s_eff ⊙ c)``, ``c ∈ {−1, 1}³`` (GOF ``get_tetra_points``: a unit cube scaled
-   by 2, then by ``3·s_eff``, then rotated), with the Mip-Splatting filtered scale
-   ``s_eff = sqrt(s² + σ_f²)`` (docs/methods/gof.md §2.3; ``RasterGaussians.filter3d`` is the variance σ_f²).
-2. `frustum_mask`: keep a point if at least one camera sees it: camera z in ``(near, far)`` and its
-   projection inside the image, ``u ∈ [0, W)``, ``v ∈ [0, H)``. ``near``/``far`` are
-   ``settings.near``/``settings.far`` (GOF: 0.02 and 1e6 absolute); ``near`` is the one
-   `gsbench.raster.integrate` uses, so every kept point is seen by the opacity field.
-3. Budget: when more than ``max_points`` points remain, the Gaussians with the highest filtered
-   opacity ``o_eff`` (docs/methods/gof.md §2.3) are kept, the rest dropped (logged warning).
-4. Opacity field ``O(x) = min_v (1 − Π_k (1 − α_k))`` (`gsbench.raster.opacity_field.OpacityField`,
-   kernel ``raymax``; every view projected and binned once for all queries). The marched value is
-   GOF's "SDF" ``level − O(x)`` (positive = free space), zero level; marching and bisection only use
-   its sign, so the points are classified by `OpacityField.below` (``O < level``, exact: same
-   classification as the full evaluation, with early exits), in calls of at most ``chunk`` points.
-5. Delaunay tetrahedralisation of the points (scipy / Qhull; GOF uses CGAL, same triangulation up to
-   ties between cospherical points).
-6. `marching_tetrahedra`: one vertex per crossing edge (shared by the tets around it), 1 or 2
-   triangles per active tet, then ``bisection_steps`` (GOF: 8) bisections of every crossing edge
-   on the field, vertex = midpoint of the final interval (GOF: no linear interpolation). Faces are
-   oriented so that their normals point to free space.
-
-Cost and memory (measured on the shared 2-core machine; Gaussians on a unit sphere shell):
-
-* Delaunay (scipy 1.17 / Qhull, single-threaded): 450k points (50k Gaussians) 39 s, 1.3 GB peak RSS,
-  3.0M tets; 2.0M points 270 s (161 s CPU), 5.5 GB peak RSS, 13.5M tets (≈ 2.8 kB per point, 6.7
-  tets per point). open3d's ``TetraMesh.create_from_point_cloud`` (also Qhull) took the same time.
-* Opacity field, 15k Gaussians, 48 views of 240x135, 2 threads, load average 4-6.5 (wall / CPU):
-  projecting and binning the 48 views 6-33 s / 4.5-17 s (PyTorch raymax projection, the most
-  load-sensitive phase; 2.3 MB per view kept); 135k tet points 4-6 s / 3 s; 8 bisection rounds over
-  115k crossing edges 29-50 s / 20-22 s (an occupied point costs every view up to
-  ``1 − T >= level``, a free one stops at the first view that shows it free). Whole `tetra_mesh`
-  55-115 s / 38-48 s, of which Delaunay 8-21 s / 5-7 s. The per-call, per-view evaluation this
-  replaced: ≈ 35-40 min estimated on the same workload.
-
-Hence the defaults: ``MAX_POINTS`` = 2,000,000 tet points (Delaunay ≈ 5.5 GB) and ``CHUNK`` = 2¹⁸
-points per field query (32 B per point; the chunks only pace the progress bar).
+Marching and bisection read only the field's sign, so points are classified by `OpacityField.below`, exact and
+with early exits. scipy's Qhull gives the triangulation GOF's CGAL does, up to ties between cospherical points.
+``MAX_POINTS`` (2 000 000 points) bounds Delaunay's memory, about 2.8 kB a point (5.5 GB); ``CHUNK`` only paces
+the progress bar. Measured costs: docs/methods/gof.md §7.6.
 """
 
 from __future__ import annotations

@@ -1,30 +1,12 @@
-"""TSDF fusion of rendered depth maps with open3d (2DGS bounded TSDF, docs/methods/2dgs.md §6).
+"""TSDF fusion of rendered depth maps with open3d's ``VoxelBlockGrid`` (2DGS bounded TSDF, as
+docs/methods/2dgs.md §6 states it: depth not integrated where not finite, below ``alpha_threshold`` or outside
+the mask; lengths times ``scene_radius`` unless ``absolute``).
 
-For each view: depth (camera z) is set to 0 — i.e. not integrated — where it is not finite, where
-``alpha < alpha_threshold`` and outside the mask (2DGS: mask < 0.5). Views are integrated into a
-sparse block-hashed TSDF volume (open3d ``t.geometry.VoxelBlockGrid`` on CPU: 16³-voxel blocks,
-running weighted average, truncation ``sdf_trunc``, depths beyond ``depth_trunc`` ignored, colour
-averaged per voxel when given), marching cubes extracts the mesh over voxels observed at least once,
-and `gsbench.mesh.cleanup` keeps the ``num_clusters`` largest components (>= 50 triangles).
-
-Why not ``o3d.pipelines.integration.ScalableTSDFVolume`` (what 2DGS calls): in open3d 0.20 its
-``integrate`` allocates volume units from the depth image divided by a hard-coded 1000 (float depth
-images are now scaled by ``depth_scale`` in ``CreateFromDepthImage``), so metric float depth
-integrates nothing — a plane at z = 2 gives an empty mesh. ``VoxelBlockGrid`` is the same sparse
-TSDF with an explicit ``depth_scale`` (1 here).
-
-Units (docs/design.md §12.1, `gsbench.config.run_config.MeshConfig`): ``voxel_size``, ``sdf_trunc`` and ``depth_trunc``
-are multiplied by ``scene_radius`` unless ``absolute`` is true, so a scene in millimetres or
-kilometres gives the same mesh up to scale. The MeshConfig defaults (0.004, 0.016, 3.0) are the
-2DGS DTU/TnT-object values, which 2DGS applies in its normalised (radius ≈ 1) frame.
-
-Cameras: the intrinsic handed to open3d is ``K`` unchanged and the extrinsic ``world_to_camera``.
-`gsbench.data.camera.Camera` puts the centre of pixel i at i + 0.5, so pixel i covers [i, i + 1).
-open3d 0.20's ``VoxelBlockGrid.integrate`` projects a voxel to (u, v) with ``K`` and reads pixel
-``(floor(u), floor(v))``: the same [i, i + 1) cells, so no half-pixel shift belongs here. (Shifting
-the principal point by −0.5, as this module once did, moves every fused surface by half a pixel:
-TSDF of the exact depth of synthetic/spot at 200x150 scored Chamfer 0.55 mm with the shift and
-0.37 mm without; `tests/test_mesh_tsdf.py` fuses a tilted plane to catch it.)
+Not ``ScalableTSDFVolume``, which 2DGS calls: in open3d 0.20 it sizes its volume units from the depth divided
+by a hard-coded 1000, so metric float depth integrates nothing. No half-pixel shift: open3d projects a voxel
+to (u, v) with ``K`` and reads pixel ``(floor(u), floor(v))``, the cell [i, i + 1) whose centre gsbench puts
+at i + 0.5 (a −0.5 shift of the principal point once moved every fused surface by half a pixel: Chamfer 0.55
+against 0.37 mm on synthetic/spot; tests/test_mesh_tsdf.py fuses a tilted plane to catch it).
 """
 
 from __future__ import annotations
