@@ -1,30 +1,13 @@
-"""Mask culling before DTU evaluation, on CPU (2DGS ``scripts/eval_dtu/evaluate_single_scene.py``).
+"""Mask culling before DTU evaluation, on CPU (2DGS ``scripts/eval_dtu/evaluate_single_scene.py``), as
+docs/evaluation.md §2.3 states it: a vertex is kept if in every view it is outside the frame or on the dilated
+mask, a face if its three vertices are; ``cull`` chooses the dilation, 2DGS's disk(24) at 1600 px (scaled with the
+mask width) or GOF's disk(6) at the masks' resolution.
 
-Reference steps (docs/evaluation.md §2.3) and how gsbench maps them:
-
-1. Cameras: the reference decomposes ``cameras.npz`` into normalised-frame K and pose; gsbench uses
-   the scene's cameras, which are in the same normalised frame.
-2. Masks are dilated by a disk, by one of two conventions (`CULL_CONVENTIONS`, the evaluator option
-   ``cull``): ``2dgs`` (the default) — 2DGS dilates the 1600x1200 masks by ``skimage.morphology.disk(24)``;
-   gsbench scales the radius with the mask width, ``round(24 * width / 1600)``; ``gof`` — GOF's and
-   RaDe-GS's ``evaluate_dtu_mesh.py`` dilate the masks at the training resolution by ``disk(6)``, so the
-   radius is 6 px of the masks as loaded for training, whatever their size. The dilation is computed exactly as
-   "Euclidean distance to the nearest mask pixel <= radius" (``distance_transform_edt`` inside the mask's bounding
-   box grown by the radius), which equals a binary dilation by ``disk(radius)`` (the set of integer
-   offsets with norm <= radius) and is O(pixels).
-3. Image size: the reference hard-codes W, H = 1600, 1200; gsbench uses each camera's own
-   ``width``/``height`` (a deliberate deviation: identical for full-resolution DTU, correct otherwise).
-4. Projection: the reference computes ``uv = (K X_cam)_xy / (z + 1e-6)`` with **no z > 0 test**
-   (reproduced), in the IDR pixel convention where pixel centres are integers, normalises by
-   ``W-1``/``H-1`` to [-1, 1], calls a point *valid* strictly inside (-1, 1) and samples the mask with
-   ``grid_sample(nearest, align_corners=True)``. gsbench cameras put pixel centres at ``i + 0.5``, so
-   ``u_ref = u - 0.5``: valid iff ``0.5 < u < W - 0.5`` (likewise v), and the sampled pixel is
-   ``rint(u - 0.5)`` (round half to even, like ``nearbyint`` in grid_sample).
-5. A vertex is kept if in **every** view it is outside the frame or on the dilated mask; a face is
-   kept if its three vertices are kept. Kept vertices stay even when no kept face uses them (the
-   reference exports ``update_vertices(mask)``, which keeps them and the evaluator reads every vertex).
-6. The caller maps the result to the dataset frame with ``scene.normalisation`` (reference:
-   ``v * scale_mat[0,0] + scale_mat[:3,3]``).
+The reference projects with ``uv = (K X_cam)_xy / (z + 1e-6)`` and no z > 0 test (reproduced), in a pixel
+convention with integer centres: with gsbench's i + 0.5 centres a point is valid iff 0.5 < u < W − 0.5 (likewise
+v), and the sampled pixel is ``rint(u − 0.5)`` (half to even, as ``grid_sample``'s nearest). The dilation is
+"distance to the mask <= radius" (``distance_transform_edt``), which equals a binary dilation by
+``disk(radius)`` and is linear in the pixels.
 """
 
 from __future__ import annotations

@@ -1,31 +1,11 @@
-"""DTU Chamfer distance, reproducing DTUeval-python ``eval.py``, protocol v1; beside it the same
-distances on area samples of the mesh (the tessellation-independent protocol).
+"""DTU Chamfer distance, reproducing DTUeval-python ``eval.py`` after mask culling (`gsbench.evaluators.culling`),
+protocol v1, as docs/evaluation.md §2.2 states it: the mesh's vertices plus a per-triangle barycentric grid,
+seeded shuffle and greedy 0.2 mm downsampling, box and ObsMask filters; accuracy and completeness the mean NN
+distances below ``max_dist`` (larger ones dropped, not clipped); chamfer = (accuracy + completeness) / 2, in mm.
 
-Preceded by mask culling (`gsbench.evaluators.culling`): ``cull="2dgs"`` (default, 2DGS's script),
-``"gof"`` (GOF / RaDe-GS's) or ``"none"``; the record's protocol block names the one used.
-
-Steps of the official protocol (``accuracy``, ``completeness``, ``chamfer``):
-
-1. mesh -> points: the vertices plus the per-triangle barycentric grid at ``downsample_density``
-   (`pointsets.barycentric_grid_samples`); ``mode="pcd"`` uses the points as given.
-2-3. seeded shuffle and greedy 0.2 mm downsampling (`pointsets.greedy_downsample`); the reference
-   shuffle is unseeded, so ``seed`` is a protocol parameter here.
-4. box and ObsMask filters (`gsbench.evaluators.dtu_gt`): the points in the box count for
-   completeness, those also observed (``ObsMask``) for accuracy.
-5. accuracy: mean NN distance from ObsMask points to the STL points over distances ``< max_dist``
-   (larger ones are dropped, not clipped).
-6. completeness: STL points with ``[x y z 1] . P > 0`` (Plane.mat), NN distance to the **box-filtered**
-   (not ObsMask-filtered) points, mean over ``< max_dist``.
-7. overall = (accuracy + completeness) / 2, all in mm.
-8. optional visualisations ``vis_{scan:03d}_d2s.ply`` / ``_s2d.ply``: blue = outside box/mask (or below
-   the plane), green = ``>= max_dist``, white -> red over ``[0, visualize_threshold]``.
-
-The official step 1 scores the mesh's vertices plus a per-triangle grid, so how a surface is
-triangulated changes the number (a fan of thin triangles leaves the grid sparse between them, a denser
-mesh adds vertices). The sampled protocol (``accuracy_sampled``, ``completeness_sampled``,
-``chamfer_sampled``; mesh mode only) replaces step 1 by ``sample_oversample`` area-uniform samples per
-``downsample_density``² of surface (`pointsets.area_samples`, seeded) and keeps steps 2-7, so only the
-surface decides the number.
+Beside it, the same steps on area samples of the mesh (``*_sampled``, docs/evaluation.md §2.4): the official
+first step depends on the triangulation, the samples only on the surface. The reference's shuffle is
+unseeded, so ``seed`` is a protocol parameter here.
 """
 
 from __future__ import annotations

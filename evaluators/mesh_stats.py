@@ -1,26 +1,10 @@
-"""Plain statistics of a mesh, protocol v1: numbers every scene has, with or without ground truth or masks.
+"""Plain statistics of a mesh, protocol v1, as docs/evaluation.md §6 states them: ``vertices``, ``faces``,
+``components``, ``watertight`` and ``area``, numbers every scene has.
 
-They describe the mesh; they do not score it against anything. A mesh of one object should be one
-closed piece, so ``components`` (lower is better: stray pieces are floaters or fragments) and
-``watertight`` (higher is better) read as quality signals; ``area``, ``vertices`` and ``faces`` are
-descriptive only — declared ``higher_is_better=None``, so they are shown and never ranked (``gsbench
-eval`` and the run's table print no direction for them; the report never ranks by them,
-`gsbench.report.metrics`).
-
-Definitions (the mesh as read, ``process=False``):
-
-- ``vertices``, ``faces``: the counts of the file as written.
-- ``components``: connected components of the faces, two faces joined when they share an edge
-  (``trimesh.graph.connected_components`` of ``face_adjacency``), after merging vertices at the same
-  position (``Trimesh.merge_vertices``), so a mesh written with unshared vertices is not one
-  component per triangle. Faces that touch at a single vertex only are separate components.
-- ``watertight``: 1.0 when every edge of the merged mesh belongs to exactly two faces
-  (``Trimesh.is_watertight``), else 0.0.
-- ``area``: ``Σ_t A_t`` in the dataset frame (DTU: mm², TnT: the COLMAP frame's units²): the area in
-  the normalised frame × ``Normalisation.scale²`` (a similarity scales areas by s²), or the area as
-  given for ``frame="dataset"``.
-
-An empty mesh (no faces) gives zeros (``vertices``: its count) with a warning.
+``components`` counts faces joined by shared edges after merging coincident vertices (faces touching at one
+vertex only are separate); ``area`` is in the dataset frame, the normalised area × ``Normalisation.scale²``.
+``area``, ``vertices`` and ``faces`` describe the mesh and are declared ``higher_is_better=None``: shown, never
+ranked.
 """
 
 from __future__ import annotations

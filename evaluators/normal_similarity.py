@@ -1,35 +1,11 @@
-"""Normal consistency of a mesh against ground truth (docs/evaluation.md §4.1), protocol v2.
+"""Normal consistency of a mesh against ground truth (Occupancy Networks ``im2mesh/eval.py``), protocol v2, as
+docs/evaluation.md §4.1, §4.2 state it, on exactly the points the dataset's geometry protocol scores.
 
-Definition (Occupancy Networks ``im2mesh/eval.py``, the one the papers that report it use):
-
-- Sample ``n_samples`` area-uniform points with their face normals on the predicted mesh (seeded).
-- GT: ``n_samples`` points with normals — sampled the same way on a GT mesh, or a seeded subset of
-  the GT points, with the file's normals when it has them, else unoriented PCA normals from the
-  ``k_pca`` nearest points of the **full** GT cloud (the open3d ``estimate_normals(KNN 20)`` formula).
-- ``acc_n = mean_p |n_p . n_gt(NN_gt(p))|`` over predicted samples, ``comp_n = mean_g |n_g .
-  n_pred(NN_pred(g))|`` over GT samples; the absolute value ignores orientation.
-- ``normal_consistency = (acc_n + comp_n) / 2`` in [0, 1], over **every** pair (ungated: a hole or a
-  floater lowers it), the headline. The ``*_gated`` variants keep only pairs whose NN distance is
-  ``< max_dist`` (default: the scene's tau when it has one, else ``gate_factor`` x the median NN spacing
-  of the GT samples), so holes and floaters, already counted by Chamfer / F-score, do not count twice.
-  On a ``dtu`` or ``tnt`` scene a mesh with no pair that close (its samples lie where the protocol scores,
-  so the frame is right) gets the ungated metrics only, and a warning; elsewhere that is an error.
-
-On exactly the points the dataset's geometry protocol scores:
-
-- ``dtu`` (``Points/stl/stl{scan:03d}_total.ply``, mm world): the mesh culled by the masks as
-  ``dtu_chamfer`` culls it (option ``cull``, `gsbench.evaluators.culling`), its samples inside the box
-  and the ObsMask (the accuracy side of the Chamfer); GT points above the plane (its completeness side);
-  `gsbench.evaluators.dtu_gt`.
-- ``tnt`` (``{name}.ply``): the prediction mapped by ``{name}_trans.txt`` (no ICP refinement: assumes the
-  reconstruction frame is the reference COLMAP frame, as for 2DGS/GOF/RaDe-GS data); both sides cropped
-  by ``{name}.json``, as ``tnt_f1`` crops them.
-- any other kind: ``{root}/{name}.ply``, a mesh when it has faces, else points, unfiltered.
-
-``gt_mesh=`` / ``gt_points=`` override the GT file (then nothing is filtered). Protocol v1 (before
-2026-11-24) headlined the gated mean on the unfiltered STL points; its numbers are not comparable.
-
-Image-space normals (recommendation A) are `rendered_normal_similarity`.
+``normal_consistency = (acc_n + comp_n) / 2``, ``acc_n = mean_p |n_p·n_gt(NN_gt(p))|`` over the mesh's samples and
+``comp_n = mean_g |n_g·n_pred(NN_pred(g))|`` over the GT's, over every pair (a hole or a floater lowers it); the
+``*_gated`` variants keep the pairs closer than ``max_dist``. Protocol v1 (before 2026-11-24) headlined the gated
+mean on the unfiltered STL points; its numbers are not comparable. Image-space normals:
+`rendered_normal_similarity` (docs/evaluation.md §4.3).
 """
 
 from __future__ import annotations

@@ -1,39 +1,11 @@
-"""Agreement of a mesh with the scene's object masks, and its surface outside their visual hull,
-protocol v1: measures that need masks, not ground truth.
+"""Agreement of a mesh with the scene's object masks, and its surface outside their visual hull, protocol v1,
+as docs/evaluation.md §5 states it: measures that need masks, not ground truth.
 
-A capture without ground-truth geometry still has its object masks (DTU's ``mask/`` folder, one mask
-per image). They say, for every pixel of every view, whether the object is there; a good mesh seen
-from that camera covers the same pixels, and has no surface where every view that sees it says
-"background" (floaters).
-
-Definition (the cameras and masks of the scene, in its normalised frame; a mesh given in the dataset
-frame, ``frame="dataset"``, is mapped to it by ``Normalisation.invert``, `gsbench.evaluators.geometry`):
-
-- Resolution: the masks' own (H, W); a camera of another size is rescaled to it (``K`` rows scaled by
-  W / width and H / height), so the masks are never resampled.
-- Silhouette ``S_v`` of view v: the pixels (i, j) whose ray through the pixel centre
-  ``(i + 0.5, j + 0.5)`` (`gsbench.data.camera`), from the camera centre, hits a triangle of the mesh
-  (either side; open3d ``RaycastingScene.cast_rays``, float32, coordinates shifted to the mesh's
-  vertex mean so that large coordinates keep their precision, as in `surface_offset`).
-- ``IoU_v = |S_v ∩ M_v| / |S_v ∪ M_v|`` with ``M_v`` the mask of view v; a view where both are empty
-  agrees fully (``IoU_v = 1``). ``mask_iou`` = the mean of ``IoU_v`` over the views scored (option
-  ``views``: scene view indices, default every view), ``mask_iou_min`` = the worst view.
-- Visual hull (`gsbench.data.visual_hull`): point X is inside when at least one camera sees it (in front
-  of it, projected into its image) and every camera that sees it has it inside its mask dilated by
-  one pixel. The hull is always that of **every** view's mask (more views carve a tighter hull);
-  ``views`` selects the IoU views only. The one-pixel dilation: a surface lying exactly on the
-  object's silhouette projects, through pixel discretisation, half the time into the first background
-  pixel; it must not count as a floater for that (the exact mesh of the built-in ``synthetic/spot``
-  scene at 96x72 has 56 % of its area outside the undilated hull). ``min_views = 1``: a point that no camera sees is
-  outside (surface beyond every view is not the captured object).
-- ``outside_hull_area_share = Σ_{t: c_t ∉ hull} A_t / Σ_t A_t`` over the mesh's triangles t, with
-  ``c_t`` the triangle's centroid and ``A_t`` its area: the fraction of the surface area outside the
-  hull (a ratio, the same in either frame). Its floor is not exactly 0: a part of the object thinner
-  than a pixel may hit no pixel centre, so its mask misses it (the exact mesh of the built-in
-  ``synthetic/spot`` scene at 96x72: 0.009 %, one triangle).
-
-An empty mesh (no faces) scores ``mask_iou = mask_iou_min = 0`` and ``outside_hull_area_share = 0``
-with a warning, never NaN.
+``IoU_v = |S_v ∩ M_v| / |S_v ∪ M_v|`` per view, S_v the pixels whose centre ray hits the mesh (1 where both are
+empty); ``mask_iou`` its mean, ``mask_iou_min`` the worst view. ``outside_hull_area_share = Σ_{t: c_t ∉ hull} A_t /
+Σ_t A_t`` over triangle centroids c_t, the hull that of every view's mask dilated by one pixel: without the
+dilation, the exact mesh of synthetic/spot at 96x72 has 56 % of its area outside (its silhouette projects half
+the time into the first background pixel). Its floor is not exactly 0 (the same mesh: 0.009 %, one triangle).
 """
 
 from __future__ import annotations

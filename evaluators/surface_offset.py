@@ -1,24 +1,9 @@
-"""Signed offset of a reconstructed surface from the exact one, in pixel footprints (synthetic scenes).
+"""Signed offset of a reconstructed surface from the exact one, in pixel footprints (built-in synthetic scenes),
+as docs/evaluation.md §8 states it: Chamfer and F1 are unsigned, this says which way the error goes.
 
-The official protocols (Chamfer, F1) are unsigned: a surface that sits one pixel inside the truth
-and one that is noisy by a pixel score alike. This evaluator says which way the error goes, in the
-unit that explains it — the footprint of one training pixel on the object. It needs the exact
-surface, so it runs on built-in synthetic scenes only (their ``gt_mesh.ply``: the object, closed
-and outward-oriented, in the dataset frame).
-
-Definition:
-
-- ``n_samples`` area-uniform samples p of the predicted mesh (seeded), mapped to the dataset frame.
-- q = the closest point of the GT mesh to p, n_q the outward normal of its triangle;
-  ``s(p) = sign((p − q)·n_q) · |p − q|`` (positive outside the object, negative inside).
-- Pixel footprint ``f`` = median over the scene's cameras of ‖C − c‖ / f_x (C the camera centre,
-  c the centre of the GT mesh's bounding box, f_x at the resolution the scene was loaded with —
-  the training resolution in ``gsbench run``), in dataset units: the size of one pixel on the object.
-- Only samples with ``|s| < gate_px · f`` count (default 5 px): floaters, the table and the
-  background are not the object's surface and are left to Chamfer / F1.
-- Metrics: median and mean of s / f (``offset_median_px``, ``offset_mean_px``), the median of |s| / f
-  (``offset_abs_median_px``), the median of s in dataset units (DTU: mm), and the fraction of
-  samples inside the gate (``offset_gated_fraction``).
+``s(p) = sign((p − q)·n_q)·|p − q|`` for area samples p of the mesh, q the closest point of the exact surface and
+n_q its outward normal (positive outside); the footprint f = median over cameras of ‖C − c‖ / f_x at the
+resolution the scene was loaded with; only samples with ``|s| < gate_px·f`` count.
 """
 
 from __future__ import annotations

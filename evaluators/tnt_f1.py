@@ -1,50 +1,13 @@
-"""Tanks-and-Temples precision / recall / F-score, reproducing the official toolbox (protocol v2).
+"""Tanks-and-Temples precision / recall / F-score, the official toolbox (isl-org/TanksAndTemples
+``python_toolbox/evaluation``) ported to ``open3d.pipelines.registration``, protocol v2, as docs/evaluation.md §3
+states it: trajectory registration, three ICP refinements, then P = mean(d_s < τ), R = mean(d_t < τ) (strict),
+F = 2PR/(P+R), on three point sets of the mesh (vertices, the headline; vertices plus face centroids, what the
+papers report; area samples) aligned once.
 
-Reference: isl-org/TanksAndTemples ``python_toolbox/evaluation`` (``run.py``, ``registration.py``,
-``evaluation.py``), ported to ``open3d.pipelines.registration`` (docs/evaluation.md §3.3–3.5).
-
-Three point sets of one mesh, each scored after the same alignment (steps 2-4, done with the first):
-
-- ``precision``, ``recall``, ``f1`` — the official protocol: the toolbox reads a mesh ``.ply`` as a
-  point cloud, i.e. its **vertices** (the headline, and the leaderboard's ranking metric);
-- ``*_centroids`` — vertices plus face centroids, the convention of the 2DGS / GOF / RaDe-GS copies
-  of the toolbox and so of the numbers those papers (and IBGS) report; here scored after the official
-  alignment, where those copies also align with this set;
-- ``*_sampled`` — the tessellation-independent protocol: ``sample_oversample`` area-uniform samples
-  per (tau/2)² of the surface (faces with a vertex in the crop's bounding box, padded by tau), reduced
-  on the fly to one centroid per occupied tau/2 voxel (`pointsets.voxel_area_samples`, seeded; the
-  toolbox's voxel step, done while sampling so memory follows the voxels), then cropped and scored as
-  in step 5. The reduction comes before the crop here (after it in the toolbox), and its grid is anchored at
-  the origin (the toolbox's at the cloud's minimum corner), so the voxel boundaries differ from the toolbox's.
-
+Non-obvious: the toolbox's positional ``ICPConvergenceCriteria(1e-6, 20)`` means relative RMSE 20
+(``icp_criteria="official"`` keeps it); RANSAC with confidence 1.0 runs every iteration, which makes it
+deterministic; every stage estimates scale, so a global similarity error is invisible to these scores.
 Protocol v1 (before 2026-11-24) ranked by vertices plus centroids; v2 headlines are not comparable with it.
-
-1. Points from the mesh, in the mesh's frame: see the three sets above.
-2. Submitted trajectory (gsbench decision): the scene's cameras in scene order, camera-to-world, mapped
-   to the dataset (COLMAP) frame — the centre by ``Normalisation.apply``, the rotation unchanged
-   (a similarity with uniform scale does not rotate). Only the centres enter the registration.
-   The frame count must equal the reference ``{scene}_COLMAP_SfM.log`` (correspondences are i <-> i).
-3. Trajectory registration (``registration.py: trajectory_alignment``): targets are the reference
-   centres mapped by ``{scene}_trans.txt``; open3d ``registration_ransac_based_on_correspondence``,
-   max distance 0.2, point-to-point **with scaling**, ``ransac_n=6``. On open3d >= 0.12 the criteria
-   are ``RANSACConvergenceCriteria(100000, 1.0)``: confidence 1.0 runs every iteration, which makes the
-   result deterministic (docs/evaluation.md §3.5); ``o3d.utility.random.seed(seed)`` is set as well.
-4. Three ICP refinements (``registration_vol_ds`` twice, then ``registration_unif``), each: transform
-   by the current T, crop by the GT polygon volume, downsample, point-to-point ICP with scaling,
-   ``T = T_icp @ T``. Voxel tau / distance 80 tau; voxel tau/2 / distance 20 tau; uniform
-   downsampling to at most ``max_points`` (4e6 in the toolbox) / distance 2 tau. The normals the
-   toolbox estimates there are unused by point-to-point ICP and are skipped.
-   ``icp_criteria="official"`` reproduces the toolbox's positional ``ICPConvergenceCriteria(1e-6, 20)``
-   = (relative_fitness 1e-6, relative_rmse 20, max_iteration 30); ``"intended"`` uses
-   (1e-6, 1e-6, 20). The uniform stage keeps every ``k``-th point, ``k = int(round(n / max_points))``,
-   only when ``n > max_points`` (the toolbox's rule; ``k = 1`` keeps all).
-5. Scores (``evaluation.py: EvaluateHisto``): source transformed, cropped, voxel-downsampled at tau/2;
-   GT cropped and voxel-downsampled at tau/2; NN distances both ways (chunked cKDTree, the same
-   exact NN as ``compute_point_cloud_distance``, each query capped at tau: a farther neighbour counts
-   the same as none, so the search stops there); precision = mean(d_s < tau), recall = mean(d_t < tau)
-   (strict), F = 2PR/(P+R); empty sets give 0.
-
-Because every stage estimates scale, a global similarity error is invisible to these scores.
 """
 
 from __future__ import annotations

@@ -89,7 +89,7 @@ def _gaussian_terms(squared: torch.Tensor, opacities: torch.Tensor) -> torch.Ten
 def level_crossings(field: DensityField, hits: torch.Tensor, directions: torch.Tensor, level: float
                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """First crossings of d = ``level`` along the rays ``hits`` + t·``directions`` (P,3 each, unit
-    directions), t in ±3σ around each hit (module docstring, step 2).
+    directions), t in ±3σ around each hit (docs/methods/sugar.md §4.2).
 
     Returns (points (Q,3), outward unit normals −∇d/‖∇d‖ (Q,3), the (P,) bool mask of the rays kept).
     """
@@ -126,7 +126,7 @@ def level_crossings(field: DensityField, hits: torch.Tensor, directions: torch.T
 def view_points(field: DensityField, gaussians: RasterGaussians, camera: Camera, settings: RasterSettings, *,
                 kernel: str, depth_output: str, level: float, mask: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(points, normals, rgb, pixel footprints z/f) of one view's level crossings (module docstring)."""
+    """(points, normals, rgb, pixel footprints z/f) of one view's level crossings (docs/methods/sugar.md §4.2)."""
     out = rasterize(gaussians, camera, kernel=kernel, outputs=tuple(sorted({depth_output, "alpha", "rgb"})),
                     settings=settings)
     depth = getattr(out, depth_output).detach().to(torch.float64)
@@ -181,7 +181,7 @@ def _silenced_stderr():
 
 def poisson_surface(points: np.ndarray, normals: np.ndarray, colors: np.ndarray, *, depth: int,
                     density_quantile: float, max_triangles: int):
-    """Outlier removal, screened Poisson, density-quantile trim, decimation, clean-up (module docstring, 4)."""
+    """Outlier removal, screened Poisson, density-quantile trim, decimation, clean-up (docs/methods/sugar.md §4.4)."""
     o3d = import_open3d()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.normals = o3d.utility.Vector3dVector(normals)

@@ -62,7 +62,7 @@ class SparsityAwareStrategy(AbsGradStrategy):
 
     @torch.no_grad()
     def _densify_sparse(self, gaussians: Gaussians, optimizer) -> tuple[int, int]:
-        """Append SADC Gaussians (module docstring step 2); returns how many, and how many pairs the
+        """Append SADC Gaussians (docs/methods/ibgs.md §6.3); returns how many, and how many pairs the
         budget left out."""
         n = len(gaussians)
         index = self.neighbours.check(n)
