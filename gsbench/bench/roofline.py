@@ -1,23 +1,12 @@
-"""The machine's limits and how far each rasterizer phase is from them (`gsbench bench raster`, docs/rasterizer.md §12.3).
+"""The machine's limits and how far each rasterizer phase is from them (`gsbench bench raster`), as
+docs/rasterizer.md §12.3 states it: a phase's bound is min(peak / operations, bandwidth / bytes) items per second,
+and `annotate` divides the measured rate by it.
 
-`machine_limits(threads)` measures, on the running machine:
-
-- memory bandwidth: the best of 5 STREAM triads a = b + s·c over three 64 MiB float32 arrays, counted as
-  STREAM counts it (12 bytes per element: two reads and one write);
-- in-place bandwidth: the best of 5 updates a += s·c over two such arrays (12 bytes per element: a read, a written
-  back, c read), the pattern of an optimizer step. A triad's write to a third array first reads the line it
-  writes (4 transfers for 3 counted), an update does not, so it shows the most a stream can draw;
-- the compute peak: the best of 3 runs of 16 independent 16-wide float32 FMA chains per thread
-  (`csrc/roofline.cpp`), in FMA lane
-  operations per second (a lane operation: one add, multiply, FMA, compare or select on one float; the
-  FMA peak is its upper bound, two flops each).
-
-`PHASE_MODEL` gives each phase's cost per item, estimated from the source (docs/rasterizer.md §12.3 lists the
-counts): lane operations and DRAM bytes per item, where an item is a Gaussian (projection, its backward), a
-tile-list entry (sort and bin) or an evaluated pixel lane (compositing forward, backward; ``pairs_fwd`` and
-``pairs_bwd`` of the bench). The bound of a phase is min(peak / operations, bandwidth / bytes) items per
-second; `annotate` divides the measured rate by it. The counts are estimates (± a fifth): a phase at 80% of
-its bound has little left, one at 10% has a lot.
+`machine_limits(threads)` measures the STREAM triad a = b + s·c over three 64 MiB float32 arrays (12 bytes an
+element, as STREAM counts), the in-place update a += s·c (an optimizer's pattern: a triad's write first reads the
+line it writes, an update does not, so it shows the most a stream can draw) and the float32 FMA peak of 16
+independent 16-wide chains per thread (`csrc/roofline.cpp`). `PHASE_MODEL`'s per-item counts are estimates from
+the source (± a fifth): a phase at 80% of its bound has little left, one at 10% has a lot.
 """
 
 from __future__ import annotations

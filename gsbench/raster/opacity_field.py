@@ -1,29 +1,13 @@
-"""GOF opacity field at 3D points, `OpacityField` (behind `gsbench.raster.integrate`): C++, all views in one call.
+"""GOF opacity field at 3D points, `OpacityField` (behind `gsbench.raster.integrate`): C++, all views in one call,
+no gradient, as docs/rasterizer.md §9 and docs/methods/gof.md §7.1 state it: ``O(x) = min_v (1 − Π(1 − α))``
+over the views that see x (1 where none does), each Gaussian of x's tile evaluated on x's own ray at
+``t = min(t*, z_x)``.
 
-Same rule as `gsbench.raster.reference.integrate_reference` (docs/methods/gof.md §7.1): per view, a point in front
-of the near plane that projects inside the image sees the Gaussians binned to its pixel's tile (3σ
-tile rectangle), each evaluated on the point's own ray at ``t = min(t*, z_point)``; the view's opacity
-is ``O_v = 1 − Π(1 − α)``; the field is ``O(x) = min_v O_v(x)`` over the views that see ``x`` (1
-where none does). No gradient.
-
-`OpacityField` projects and bins every view once and then answers many point queries (GOF's mesher
-queries the tet points and then 8 bisection rounds): `OpacityField.values` gives ``O`` and
-`OpacityField.below` the sign ``O < level``. Both are exact: the C++
-kernel (csrc/integrate.cpp) only stops work whose outcome is already decided (a view stops once its
-``1 − T`` reaches the running minimum, which it can then no longer lower; `below` stops at the first
-view with ``O_v < level``), and it skips a Gaussian before the exp only when ``α < 1/255`` is certain.
-GOF's point pass has no transmittance cut either (``forward.cu::integrateCUDA``: its
-``test_T < 0.0001`` stop is commented out; docs/methods/gof.md §7.1 "no early termination in this pass"), so there is
-no approximation to state. (GOF visits only the Gaussians that contributed to the pixel's 5 sub-rays;
-gsbench's rule, like `integrate_reference`, uses the tile list.)
-
-The kernel refines each view's tile lists into 4x4-pixel cells with the Gaussians' conservative
-pixel boxes of ``α >= 1/255`` (again exact) and walks views, then cells, then the points of a cell,
-so that a view's data stays in cache (csrc/integrate.cpp header).
-
-Memory of an `OpacityField`: per view the payload (N, 25) in the Gaussians' dtype (100 B per Gaussian
-in float32), the cell list (4 B per Gaussian-cell pair) and the cell offsets: 2.3 MB per view for 15k
-Gaussians at 240x135. A query needs 32 B per point (points in float64, result).
+Every early exit of csrc/integrate.cpp is exact, and GOF's point pass has no transmittance cut either
+(``forward.cu::integrateCUDA`` comments its ``test_T < 0.0001`` stop out), so there is no approximation to state.
+GOF visits only the Gaussians that contributed to the pixel's 5 sub-rays; gsbench, like `integrate_reference`,
+uses the tile list. Memory: per view the payload (100 B a Gaussian in float32) and the cell lists, 2.3 MB a view
+for 15k Gaussians at 240x135; a query needs 32 B a point.
 """
 
 from __future__ import annotations

@@ -1,30 +1,12 @@
 """Arbitrary rays through 2D Gaussian surfels: the dense PyTorch reference of the ray tracer the
-transparent-object method bends rays with (docs/methods/rt2dgs.md).
+transparent-object method bends rays with (docs/methods/rt2dgs.md §3). Every (ray, surfel) pair is an (R, N)
+tensor, as `gsbench.raster.reference` does for pixels; autograd gives the gradients.
 
-The rasterizer (`gsbench.raster`) renders rays through pixels of a pinhole camera; a ray reflected or
-refracted at a glass interface starts anywhere and points anywhere. This module evaluates every
-(ray, surfel) pair as an (R, N) tensor, as `gsbench.raster.reference` does for pixels, so it is slow and
-obviously right; autograd gives the gradients, float64 for the gradient checks.
-
-A surfel i (2DGS, docs/methods/2dgs.md §2): centre μ, rotation R = [t_u t_v t_w], scales s_u, s_v,
-opacity o. For a ray x(t) = a + t d (|d| = 1):
-
-- the ray meets the surfel's plane at t_i = ((μ − a)·t_w)/(d·t_w); a pair is skipped if |d·t_w| < 1e-12
-  (the ray runs in the plane) or t_i <= ``near``;
-- local coordinates u = (x(t_i) − μ)·t_u / s_u, v = (x(t_i) − μ)·t_v / s_v, ρ = u² + v², skipped
-  beyond the 3σ cutoff ρ > 9 (the rasterizer's surfel box); the screen-space low-pass branch of the
-  rasterizer has no meaning without a pixel and is not applied;
-- α_i = min(0.99, o·exp(−ρ/2)), skipped when below 1/255 (the rasterizer's bounds);
-- pairs are blended front to back in t: w_i = α_i Π_{j before i} (1 − α_j); the output for per-surfel
-  features f (N, F) is Σ w_i f_i, with Σ w_i (the ray's alpha) and Σ w_i t_i; the normal of a pair is
-  t_w turned to face the ray (−sign(d·t_w) t_w).
-
-`trace` evaluates every pair (the reference); `candidate_pairs` + `trace_pairs` evaluate only the pairs
-whose ray crosses the surfel's 3σ square, found by open3d's BVH (the path a training step can afford);
-both blend the same pairs, so they agree to rounding (tests/test_surfel_rays.py).
-
-No early stop (the rasterizer stops at transmittance 1e-4; a ray tracer that compares against it must
-allow that difference). Ties in t keep the surfels' index order (stable sort).
+For a ray x(t) = a + t d (|d| = 1) and a surfel (centre μ, axes t_u, t_v, t_w, scales s_u, s_v, opacity o):
+t_i = ((μ − a)·t_w)/(d·t_w), skipped if |d·t_w| < 1e-12 or t_i <= ``near``; ρ = u² + v² with u = (x(t_i) − μ)·t_u
+/ s_u, v likewise, skipped beyond ρ > 9; α_i = min(0.99, o·exp(−ρ/2)), skipped below 1/255; w_i = α_i Π_{j before
+i} (1 − α_j) front to back in t (ties in index order); the pair's normal is −sign(d·t_w) t_w. Unlike the
+rasterizer: no screen-space low-pass term (there is no pixel) and no early stop at transmittance 1e-4.
 """
 
 from __future__ import annotations
