@@ -30,7 +30,8 @@ from scipy.spatial import cKDTree
 from gsbench.data.loader import load_scene
 from gsbench.evaluators import pointsets
 from gsbench.evaluators.surface_offset import gt_mesh_file, pixel_footprint, signed_distances
-from gsbench.training.trainer import FINAL_CHECKPOINT, load_checkpoint
+from gsbench.run_folder import RunFolder
+from gsbench.training.trainer import load_checkpoint
 
 GATE_PX = 5.0
 CURVATURE_RADIUS_PX = 3.0
@@ -47,7 +48,7 @@ def _run_scene(run: Path):
 
 def primitives(run: Path) -> None:
     scene, gt, fp = _run_scene(run)
-    p = load_checkpoint(run / FINAL_CHECKPOINT)["method"]["params"]
+    p = load_checkpoint(RunFolder(run).final_checkpoint)["method"]["params"]
     means = scene.normalisation.apply(p["means"].double().numpy())
     scales = torch.exp(p["log_scales"].double()).numpy() * scene.normalisation.scale / fp
     opacity = torch.sigmoid(p["opacity_logits"].double()).numpy().reshape(-1)
