@@ -36,9 +36,10 @@ def keep_freed_memory() -> bool:
 
     By default glibc gives each large block (above a threshold that grows to at most 32 MiB) its own ``mmap`` and
     unmaps it when freed, so every training step faults in and zeroes its large tensors (images, per-pixel buffers,
-    the Gaussians' gradients) afresh: at the papers' size that cost 9% of a step (docs/measurements.md, "Memory the
-    allocator gave back"). Kept memory is reused by the next step, so the peak resident size does not grow; the
-    executors give every run its own process (`gsbench.runs.executors`), so nothing is kept from one run to the next.
+    the Gaussians' gradients) afresh: at the papers' size that cost 9% of a step
+    (experiments/papers_size/README.md, "Memory the allocator gave back"). Kept memory is reused by the next step, so
+    the peak resident size does not grow; the executors give every run its own process (`gsbench.runs.executors`),
+    so nothing is kept from one run to the next.
     """
     try:
         libc = ctypes.CDLL(None)

@@ -250,7 +250,7 @@ def test_the_light_is_traced_from_trace_from_only(tiny_orb, tmp_path, monkeypatc
 
 
 def test_a_trace_from_past_the_run_never_traces_the_light(tiny_orb, restore_threads):
-    """configs/sweeps/rt2dgs_light.yaml's rt2dgs never tracing: at the run's last step, where the held-out images
+    """experiments/rt2dgs/rt2dgs_light.yaml's rt2dgs never tracing: at the run's last step, where the held-out images
     are rendered, a trace_from past 30 000 leaves every image 2DGS's; 30 000 itself is reached there and traces."""
     for trace_from, traces in ((10**9, False), (30000, True)):
         method, scene, cfg = setup_method("rt2dgs", tiny_orb, "threads=1", f"method.trace_from={trace_from}")

@@ -1,6 +1,7 @@
 """Sweep files: expansion (variants × grid × zip × scenes × seeds), validation and run-id stability;
-every shipped sweep in configs/sweeps/ expands and validates. Running a sweep on in-process executors
-with a fake runner: resume, a failing run, the manifest, Ctrl-C (real executors: test_executors.py)."""
+every sweep, shipped (configs/sweeps/) or an experiment's (experiments/<name>/), expands and validates under
+the name its manifest and the claims use. Running a sweep on in-process executors with a fake runner: resume,
+a failing run, the manifest, Ctrl-C (real executors: test_executors.py)."""
 
 from __future__ import annotations
 
@@ -20,8 +21,7 @@ from gsbench.errors import ConfigError
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, git_state
 from gsbench.runs.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
-
-SWEEPS = sorted((config_root() / "sweeps").glob("*.yaml"))
+from sweep_files import ALL, REPO, sweep_file
 
 
 def write(tmp_path, text) -> Path:
@@ -83,14 +83,21 @@ def test_malformed_sweeps_fail_before_running(tmp_path, text, message):
         expand(load_sweep(write(tmp_path, text)))
 
 
-@pytest.mark.parametrize("path", SWEEPS, ids=[p.stem for p in SWEEPS])
-def test_shipped_sweeps_expand_and_validate(path):
+@pytest.mark.parametrize("path", ALL, ids=[p.relative_to(REPO).as_posix() for p in ALL])
+def test_every_sweep_expands_and_validates(path):
     runs = expand(load_sweep(path))
     assert runs and len({r.run_id for r in runs}) == len(runs)
 
 
-def test_shipped_sweeps_are_the_issue_grids():
-    by_name = {p.stem: expand(load_sweep(p)) for p in SWEEPS}
+def test_a_sweeps_name_is_its_file_stem_and_names_one_sweep():
+    """The manifest, the report and the claims know a sweep by its name; moving the file must not change it."""
+    names = [load_sweep(path)["name"] for path in ALL]
+    assert names == [path.stem for path in ALL]
+    assert len(set(names)) == len(names)
+
+
+def test_the_grids_are_the_papers_ablations():
+    by_name = {p.stem: expand(load_sweep(p)) for p in ALL}
     assert [r.config.method["knn_k"] for r in by_name["ibgs_k"]] == list(range(2, 11))
     assert {r.config.method["name"] for r in by_name["ibgs_rasterizers"]} == \
         {"2dgs", "ibgs-2dgs", "gof", "ibgs-gof", "radegs", "ibgs"}
@@ -115,8 +122,8 @@ def test_shipped_sweeps_are_the_issue_grids():
 def test_pgsr_suite_sweeps_reuse_the_suite_runs_of_2dgs_and_radegs(suite):
     """pgsr_<suite>.yaml's 2DGS / RaDe-GS runs are the suite sweep's seed-0 runs (same ids: one runs folder)."""
     stem = suite.replace("-", "_")
-    suite_runs = expand(with_suite(load_sweep(config_root() / "sweeps" / f"{stem}.yaml"), suite, [0]))
-    pgsr_runs = expand(load_sweep(config_root() / "sweeps" / f"pgsr_{stem}.yaml"))
+    suite_runs = expand(with_suite(load_sweep(sweep_file(stem)), suite, [0]))
+    pgsr_runs = expand(load_sweep(sweep_file(f"pgsr_{stem}")))
     shared = {r.run_id for r in pgsr_runs if r.config.method["name"] in ("2dgs", "radegs")}
     assert shared and shared <= {r.run_id for r in suite_runs}
     assert {r.config.scene for r in pgsr_runs if r.config.method["name"] == "pgsr"} == \

@@ -3,7 +3,8 @@
     python tools/preset_cost.py --bench BENCH.json --anchor RECORD.json [--anchor-code-factor F]
                                 [--scenes 7] [--seeds 1 3] [--machines 1 16] [--cores 2]
 
-Estimated from two measurements on the same machine (docs/measurements.md, "What the papers' protocol costs"):
+Estimated from two measurements on the same machine (experiments/paper_preset/README.md, "What the papers' protocol
+costs"):
 
 - ``--anchor``: one finished run of the preset (its ``record.json``). Its training's CPU time T_a
   (``timings.train_cpu``: one thread, so the cost on a free core whatever else ran beside it), and its mesh
