@@ -222,6 +222,7 @@ def cmd_report(args) -> int:
 
     check_writable(args.out, "--out")
     written = write_report(Path(args.runs_dir), Path(args.out), plots=not args.no_plots,
+                           self_contained=args.self_contained,
                            warn=lambda message: print(f"gsbench: warning: {message}", file=sys.stderr))
     plots = sum(1 for p in written if p.suffix == ".png")
     print(f"report written to {args.out}: " + ", ".join(p.name for p in written if p.suffix != ".png")
@@ -385,9 +386,12 @@ def build_parser() -> argparse.ArgumentParser:
     render.set_defaults(func=cmd_render)
 
     report = sub.add_parser("report", help="leaderboard tables, speed-vs-error plots and sweep ablations from run records")
-    report.add_argument("runs_dir", metavar="RUNS_DIR", help="runs folder (searched recursively for record.json)")
+    report.add_argument("runs_dir", metavar="SOURCE", help="runs folder (searched recursively for record.json), or a "
+                        "board's records.jsonl.gz or the folder holding it")
     report.add_argument("--out", default="report", help="output folder (default: report/)")
     report.add_argument("--no-plots", action="store_true", help="skip the matplotlib plots (no PNGs, no figures)")
+    report.add_argument("--self-contained", action="store_true",
+                        help="embed the pictures in index.html (one file to share) instead of linking plots/")
     report.set_defaults(func=cmd_report)
     return parser
 
