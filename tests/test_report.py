@@ -1,5 +1,5 @@
-"""`gsbench report`: leaderboard tables (golden files), the self-contained HTML page, Pareto fronts,
-variant labels and robustness to incomplete records.
+"""`gsbench report`: leaderboard tables (golden files), the HTML page (linking its pictures, or embedding them),
+a board's records file as input, Pareto fronts, variant labels and robustness to incomplete records.
 
 Fixtures: ``tests/fixtures/report/runs/`` is a hand-made runs folder (DTU-like scan24/scan37 and
 TnT-like spot-tnt/bunny-tnt; 3dgs, 2dgs, gof, ibgs; two seeds for some; one failed run; missing
@@ -14,6 +14,8 @@ and review the diff of the golden files.
 
 from __future__ import annotations
 
+import base64
+import gzip
 import json
 import os
 import shutil
@@ -31,6 +33,7 @@ from gsbench.report.aggregate import natural_key
 from gsbench.report.build import FILE_STEM_MAX, _file_stem, write_report
 from gsbench.report.collect import label_variants, load_runs
 from gsbench.report.pareto import pareto_front
+from gsbench.report.records_file import RECORDS_FILE, BoardRecords, read_board, write_board
 
 FIXTURES = Path(__file__).parent / "fixtures" / "report"
 RUNS = FIXTURES / "runs"
@@ -68,12 +71,17 @@ class _Page(HTMLParser):
         self.text.append(data)
 
 
-def test_html_is_self_contained_sortable_and_lists_every_run(report):
-    page = (report / "index.html").read_text()
-    assert "http://" not in page and "https://" not in page
+def _parsed(page: str) -> _Page:
     parser = _Page()
     parser.feed(page)
     parser.close()
+    return parser
+
+
+def test_html_links_its_pictures_is_sortable_and_lists_every_run(report):
+    page = (report / "index.html").read_text()
+    assert "http://" not in page and "https://" not in page
+    parser = _parsed(page)
     text = " ".join(parser.text)
     run_ids = [json.loads(p.read_text())["run_id"] for p in RUNS.rglob("record.json")]
     assert len(run_ids) == 17
@@ -85,16 +93,69 @@ def test_html_is_self_contained_sortable_and_lists_every_run(report):
         if tag == "a":
             assert attrs["href"].startswith("#")
         assert not (tag in ("script", "link") and ("src" in attrs or "href" in attrs)), "no external script/style"
-    images = [attrs for tag, attrs in parser.tags if tag == "img"]
-    assert len(images) == 4 and all(a["src"].startswith("data:image/png;base64,") for a in images)
+    pngs = sorted(p.name for p in (report / "plots").glob("*.png"))
+    assert pngs == ["speed-dtu.png", "speed-tnt.png", "sweep-ibgs-k-dtu.png", "sweep-ibgs-losses-dtu.png"]
+    assert sorted(attrs["src"] for tag, attrs in parser.tags if tag == "img") == [f"plots/{n}" for n in pngs]
+    assert "base64" not in page  # each picture is stored once, beside the page
+    assert all((report / "plots" / n).read_bytes().startswith(b"\x89PNG") for n in pngs)
     tables = [attrs for tag, attrs in parser.tags if tag == "table"]
     assert tables and all("sortable" in a.get("class", "").split() for a in tables)
     assert parser.scripts == 1 and "table.sortable" in page
     assert "2026-01-01T00:00:00+00:00" in text
     assert "not comparable" in text.lower()
-    pngs = sorted(p.name for p in (report / "plots").glob("*.png"))
-    assert pngs == ["speed-dtu.png", "speed-tnt.png", "sweep-ibgs-k-dtu.png", "sweep-ibgs-losses-dtu.png"]
-    assert all((report / "plots" / n).read_bytes().startswith(b"\x89PNG") for n in pngs)
+
+
+def test_self_contained_page_embeds_the_same_pictures(report, tmp_path):
+    out = tmp_path / "shared"
+    write_report(RUNS, out, self_contained=True, generated="2026-01-01T00:00:00+00:00")
+    images = [attrs["src"] for tag, attrs in _parsed((out / "index.html").read_text()).tags if tag == "img"]
+    embedded = sorted(base64.b64decode(src.removeprefix("data:image/png;base64,")) for src in images)
+    assert len(images) == 4 and all(src.startswith("data:image/png;base64,") for src in images)
+    assert embedded == sorted(p.read_bytes() for p in (report / "plots").glob("*.png"))
+    assert (out / "leaderboard.md").read_text() == (report / "leaderboard.md").read_text()
+
+
+def _board_of(runs: Path) -> BoardRecords:
+    """The records and manifests of a runs folder, as `tools/commit_records.py` files them."""
+    return BoardRecords(records={p.relative_to(runs).as_posix(): json.loads(p.read_text())
+                                 for p in runs.rglob("record.json")},
+                        manifests={p.relative_to(runs).as_posix(): json.loads(p.read_text())
+                                   for p in runs.glob("sweeps/*.json")})
+
+
+def test_a_board_file_keeps_every_record_exactly_and_gives_the_same_report(report, tmp_path):
+    board = _board_of(RUNS)
+    write_board(tmp_path / "board" / RECORDS_FILE, board)
+    first = (tmp_path / "board" / RECORDS_FILE).read_bytes()
+    write_board(tmp_path / "board" / RECORDS_FILE, _board_of(RUNS))
+    assert (tmp_path / "board" / RECORDS_FILE).read_bytes() == first  # no time stamp: same records, same bytes
+    back = read_board(tmp_path / "board" / RECORDS_FILE)
+    assert back.records == board.records and back.manifests == board.manifests and not back.warnings
+    assert [list(r) for r in back.records.values()] == [list(r) for r in board.records.values()]  # key order too
+    for source in (tmp_path / "board" / RECORDS_FILE, tmp_path / "board"):  # the file, or the board's folder
+        out = tmp_path / "out"
+        write_report(source, out, plots=False)
+        assert _tables((out / "leaderboard.md").read_text()) == _tables((report / "leaderboard.md").read_text())
+        assert (out / "leaderboard.csv").read_text() == (report / "leaderboard.csv").read_text()
+
+
+def _tables(markdown: str) -> list[str]:
+    """The Markdown without its picture lines (a report with plots=False has none)."""
+    return [line for line in markdown.splitlines() if line and not line.startswith("![")]
+
+
+def test_a_damaged_line_of_a_board_file_is_a_warning_naming_it(tmp_path):
+    file = tmp_path / RECORDS_FILE
+    write_board(file, _board_of(RUNS))
+    lines = gzip.decompress(file.read_bytes()).decode().splitlines()
+    file.write_bytes(gzip.compress("\n".join(lines[:3] + ["{not json", '{"path": "x"}'] + lines[3:]).encode()))
+    out = tmp_path / "out"
+    write_report(file, out, plots=False)
+    md = (out / "leaderboard.md").read_text()
+    assert f"{file}:4: unreadable line skipped" in md and f"{file}:5: unreadable line skipped" in md
+    file.write_bytes(b"\x1f\x8b not gzip")
+    with pytest.raises(GsbenchError, match=f"{file}: cannot read the board's records"):
+        write_report(file, out)
 
 
 def test_pareto_front_minimises_cost_and_error_or_maximises_score():
@@ -219,6 +280,11 @@ def test_missing_matplotlib_names_the_fix(tmp_path, monkeypatch):
 def test_cli_report(tmp_path, capsys):
     assert main(["report", str(RUNS), "--out", str(tmp_path / "r"), "--no-plots"]) == 0
     assert "leaderboard.md, leaderboard.csv, index.html" in capsys.readouterr().out
+    write_board(tmp_path / "board" / RECORDS_FILE, _board_of(RUNS))
+    assert main(["report", str(tmp_path / "board" / RECORDS_FILE), "--out", str(tmp_path / "board"),
+                 "--self-contained"]) == 0
+    assert "and 4 plots in plots/" in capsys.readouterr().out
+    assert "data:image/png;base64," in (tmp_path / "board" / "index.html").read_text()
     assert main(["report", str(tmp_path / "empty-or-missing"), "--out", str(tmp_path / "r2")]) == 2
     assert "does not exist" in capsys.readouterr().err
 

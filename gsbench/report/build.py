@@ -1,20 +1,8 @@
-"""`write_report`: a runs folder -> ``leaderboard.md``, ``leaderboard.csv``, ``index.html`` and
-``plots/*.png`` in the output folder (``gsbench report RUNS_DIR --out DIR``).
+"""`write_report`: run records -> ``leaderboard.md``, ``leaderboard.csv``, ``index.html`` and ``plots/*.png``
+(``gsbench report SOURCE --out DIR``; docs/report.md says what each section shows).
 
-Sections: the leaderboards (cells: mean ± 95% t-interval over seeds); ranks and paired comparisons per
-leaderboard (`gsbench.report.stats`); the papers' orderings tested (`gsbench.report.claims`); twin scenes
-(what one factor of a scene costs each method, `gsbench.report.twins`); speed against error; captures without
-ground truth; sweeps (ablations, with paired tests against the first row); failed runs; protocols; environment.
-
-Runs with measures that need no ground truth (held-out PSNR/SSIM, mask IoU, the surface outside the
-masks' visual hull, mesh statistics) or with skipped evaluators get the section "Captures without
-ground truth"; it is left out when no run has either. A scene that cannot feed a dataset's ranking
-metric is left off that leaderboard (`gsbench.report.aggregate.unscored_scenes`) rather than shown
-as runs without a metric.
-
-The Markdown and CSV hold no timestamps or absolute paths, so they are byte-stable for the same
-records (golden tests); the HTML adds the generation time (``generated``, injectable), the runs
-folder, the warnings and the list of every run.
+The Markdown and CSV hold no time stamps or absolute paths, so they are byte-stable for the same records (golden
+tests); the page adds the generation time (``generated``, injectable), the source, and the list of every run.
 """
 
 from __future__ import annotations
@@ -23,11 +11,13 @@ import hashlib
 from datetime import datetime, timezone
 from pathlib import Path
 
+from gsbench.atomic import atomic_path
 from gsbench.errors import one_line
 from gsbench.report import plots as figures
+from gsbench.report import png
 from gsbench.report.aggregate import Board, ablations, leaderboard
 from gsbench.report.claims import evaluate_claims
-from gsbench.report.collect import label_variants, load_manifests, load_runs, unfinished_folders
+from gsbench.report.collect import Source, label_variants, load_manifests, load_runs, read_source, unfinished_folders
 from gsbench.report.html import document_html
 from gsbench.report.leaderboard_csv import leaderboard_csv
 from gsbench.report.metrics import COMPANIONS, PAPERS_METRIC, metric_specs, primary_metric, reported
@@ -57,43 +47,19 @@ from gsbench.report.views import (
 from gsbench.run_folder import RunFolder
 
 TITLE = "gsbench report"
-SURFACES_NOTE = ("Each row's mesh (the ok run of the lowest seed whose folder still holds it) from two fixed "
-                 "training views, beside the ground truth from the same views (the exact mesh of a synthetic scene, "
-                 "else the ground-truth points; the photo with its mask outline for a capture without ground truth) "
-                 f"and, on the DTU protocol, coloured by each vertex's distance to the ground truth, 0 to "
-                 f"{ERROR_SCALE_MM:g} mm on every picture (`gsbench render RUN_DIR` draws one run's).")
+# one line a section; what each shows is docs/report.md
+ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key that differs between its runs "
+             "on a scene (docs/report.md §2).")
 PROTOCOLS_NOTE = ("Each dataset is ranked by its official protocol (DTU: the DTUeval script's Chamfer; TnT: the "
-                  "official toolbox's F1 on the mesh vertices). Beside it: the same distances on area samples of "
-                  "the mesh (independent of how the surface is triangulated) and, for TnT, F1 on vertices plus face "
-                  "centroids, the point set of the 2DGS / GOF / RaDe-GS scripts that produced those papers' TnT "
-                  "numbers, so their reported values sit beside that board.")
-RANKS_NOTE = ("Which differences between rows the seeds and scenes can tell apart, for each dataset's ranking "
-              "leaderboard and the one in the papers' own metric: the rank of each row on each scene and on "
-              "average, a rank shared by rows whose paired differences are not significant, and every row "
-              "against every other, paired on the same scene and seed (`gsbench.report.stats` states the "
-              "formulas).")
-CLAIMS_NOTES = [
-    "The orderings the papers report (`gsbench.report.claims`, each with its source), split into claims between "
-    "two methods, or two rows of the sweep that repeats an ablation, and tested on these runs in the metric "
-    "the paper used: DTU the official script's Chamfer, TnT the F1 on vertices + face centroids (the 2DGS / "
-    "GOF / RaDe-GS scripts). The papers' numbers are on the real datasets (GPU, full schedules); here only "
-    "their order is checked, at these runs' budgets: the cost tables (Speed and size against error) say "
-    "which rows the Gaussian budget cut, and a verdict between rows cut at different steps is a verdict at "
-    "that budget, not on the methods as published.",
-    "Verdict, from the paired test of the claimed better side against the other: agrees (the claimed side "
-    "significantly better, p < 0.05); disagrees (the other side significantly better; for ≈ any significant "
-    "difference); not separable (p ≥ 0.05; for ≥ and ≈ that agrees with the claim: 'agrees (not "
-    "separable)'); not measured (a side has no runs with the metric, or the two share no (scene, seed) "
-    "pair). Not separable with few pairs is no evidence of equality. A method with several configurations "
-    "on a leaderboard is represented by the one with the most runs (named under rows compared).",
-]
-TWINS_NOTE = ("Scenes made from another scene with one factor changed (the glass scenes from their opaque twins, a "
-              "scene framed smaller, its relief smoothed off): per method, each metric on the twin and on the changed "
-              "scene and the paired change over seeds, so what the factor costs each method, and whether a method "
-              "made for it recovers it, can be read side by side (`gsbench.report.twins`).")
-ROWS_NOTE = ("Rows are configurations: a method, plus `key=value` for each config key whose value differs "
-             "between its runs on one scene (so different configs are never averaged as if they were seeds); "
-             "where presets differ, the keys a preset sets (one value per preset) are named by `preset=...` alone.")
+                  "official toolbox's F1 on the mesh vertices), other point sets beside it (docs/report.md §3).")
+SURFACES_NOTE = ("Each row's mesh (its ok run of the lowest seed whose mesh was there) from two training views, beside "
+                 f"the ground truth and, on DTU, coloured by the distance to it, 0 to {ERROR_SCALE_MM:g} mm "
+                 "(docs/report.md §4).")
+RANKS_NOTE = "Which differences between rows the seeds and scenes can tell apart (docs/report.md §5)."
+CLAIMS_NOTE = ("The papers' orderings, tested on these runs in the paper's metric; only the order is checked, at these "
+               "runs' budgets (docs/report.md §6).")
+TWINS_NOTE = "What one factor of a scene (glass, framing, relief) costs each method (docs/report.md §7)."
+WITHOUT_GT_NOTE = "What can be measured without ground-truth geometry (docs/report.md §8)."
 
 
 FILE_STEM_MAX = 100  # characters of a plot's file name stem; a longer one (a row label with many keys) is cut
@@ -115,31 +81,68 @@ class _Plots:
         self.enabled = enabled
         self.made: list[Plot] = []
 
-    def add(self, name: str, alt: str, draw, board: Board) -> list[Plot]:
-        if not self.enabled:
-            return []
-        png = draw(board)
-        if png is None:
-            return []
+    def file_name(self, name: str) -> str:
+        """The file the next figure called ``name`` gets."""
         taken = {p.name for p in self.made}
         stem, n = _file_stem(name), 1
         file = f"{stem}.png"
         while file in taken:
             n += 1
             file = f"{stem}-{n}.png"
-        plot = Plot(file, alt, png)
+        return file
+
+    def add(self, name: str, alt: str, draw, board: Board) -> list[Plot]:
+        if not self.enabled:
+            return []
+        data = draw(board)
+        if data is None:
+            return []
+        plot = Plot(self.file_name(name), alt, data)
         self.made.append(plot)
         return [plot]
 
-    def add_png(self, name: str, alt: str, png: bytes) -> list[Plot]:
+    def add_png(self, name: str, alt: str, data: bytes) -> list[Plot]:
         """A figure drawn elsewhere (the surfaces)."""
-        return self.add(name, alt, lambda _board: png, None)
+        return self.add(name, alt, lambda _board: data, None)
 
 
-def _surfaces(runs_dir: Path, boards: list[Board], made: _Plots, warnings: list[str]) -> Section | None:
-    """Per dataset and scene, each row's surface (`gsbench.report.surfaces`): the ok run of the lowest seed whose
-    folder below ``runs_dir`` still holds its mesh. None when no run folder has one (a report of records
-    only); a picture that cannot be drawn (the scene not on this machine) is a warning."""
+def _drawn_surface(source: Source, runs, title: str, warnings: list[str]) -> tuple[bytes, dict] | None:
+    """The picture of the first of ``runs`` whose run folder holds its mesh, tagged with its run id and seed."""
+    if source.runs_dir is None:
+        return None
+    for run in runs:
+        folder = source.runs_dir / Path(run.path).parent
+        if not RunFolder(folder).mesh.is_file():
+            continue
+        about = {"run_id": run.run_id, "seed": run.seed}
+        try:
+            picture = surface_picture(folder, title=f"{title}, seed {run.seed}")
+        except Exception as exc:  # noqa: BLE001  (one missing scene must not stop the report)
+            warnings.append(f"{folder.relative_to(source.runs_dir).as_posix()}: no surface picture "
+                            f"({type(exc).__name__}: {one_line(exc, 200)})")
+            return None
+        return png.with_text(picture.png, about), about
+    return None
+
+
+def _kept_surface(file: str, runs, earlier: list[Path]) -> tuple[bytes, dict] | None:
+    """An earlier report's picture ``file`` (`png.text` names its run) that shows one of ``runs``."""
+    ids = {run.run_id for run in runs}
+    for folder in earlier:
+        path = folder / file
+        if path.is_file():
+            data = path.read_bytes()
+            about = png.text(data, str(path))
+            if about.get("run_id") in ids:
+                return data, about
+    return None
+
+
+def _surfaces(source: Source, boards: list[Board], made: _Plots, earlier: list[Path],
+              warnings: list[str]) -> Section | None:
+    """Per dataset and scene, each row's surface (docs/report.md §4): drawn from the ok run of the lowest seed
+    whose mesh is there, else an earlier report's picture of one of its ok runs (in ``earlier`` folders); None
+    when no row has either."""
     if not made.enabled:
         return None
     blocks = []
@@ -148,19 +151,14 @@ def _surfaces(runs_dir: Path, boards: list[Board], made: _Plots, warnings: list[
             for row in board.rows:
                 runs = sorted((r for r in row.runs if r.ok and r.scene == scene),
                               key=lambda r: (r.seed if r.seed is not None else 1 << 30, r.run_id))
-                meshed = [(runs_dir / Path(r.path).parent, r.seed) for r in runs]
-                folder, seed = next(((f, s) for f, s in meshed if RunFolder(f).mesh.is_file()), (None, None))
-                if folder is None:
+                name = f"surface_{board.dataset}_{scene}_{row.name}"
+                picture = (_drawn_surface(source, runs, f"{row.name} on {scene}", warnings)
+                           or _kept_surface(made.file_name(name), runs, earlier))
+                if picture is None:
                     continue
-                try:
-                    picture = surface_picture(folder, title=f"{row.name} on {scene}, seed {seed}")
-                except Exception as exc:  # noqa: BLE001  (one missing scene must not stop the report)
-                    warnings.append(f"{folder.relative_to(runs_dir).as_posix()}: no surface picture "
-                                    f"({type(exc).__name__}: {one_line(exc, 200)})")
-                    continue
-                blocks += made.add_png(f"surface_{board.dataset}_{scene}_{row.name}",
-                                       f"{row.name} on {scene} (seed {seed}), {picture.width}x{picture.height} px",
-                                       picture.png)
+                data, about = picture
+                width, height = png.size(data)
+                blocks += made.add_png(name, f"{row.name} on {scene} (seed {about.get('seed')}), {width}x{height} px", data)
     if not blocks:
         return None
     return Section("surfaces", "Surfaces", [SURFACES_NOTE], blocks)
@@ -211,10 +209,7 @@ def _without_gt(runs) -> Section | None:
     table, skipped = nogt_table(runs, metric_specs()), skipped_table(runs)
     if not table.rows and not skipped.rows:
         return None
-    about = ("What can be measured without ground-truth geometry: renders of held-out views against their "
-             "photos, the mesh against the object masks, and the mesh itself. A capture without ground truth "
-             "is judged by these alone; runs with ground truth are listed too.")
-    return Section("without-ground-truth", "Captures without ground truth", [about], [table, skipped])
+    return Section("without-ground-truth", "Captures without ground truth", [WITHOUT_GT_NOTE], [table, skipped])
 
 
 def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict[str, list[str]]]:
@@ -242,20 +237,18 @@ def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict
     return section, labels
 
 
-def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = None, warn=None) -> list[Path]:
-    """Write the report of every record below ``runs_dir`` into ``out``; return the written files. PNGs in
-    ``out/plots`` that this report did not draw (an earlier report's) are removed.
-
-    ``plots=False`` skips matplotlib (no PNGs, no figures in the page); ``generated`` is the time shown
-    in the HTML (default: now, UTC); ``warn(message)`` is called with each warning the report carries
-    (damaged records left out, …), e.g. to print them on the console."""
-    runs_dir, out = Path(runs_dir), Path(out)
-    runs, warnings = load_runs(runs_dir)
-    unfinished = unfinished_folders(runs_dir)
+def write_report(source, out, *, plots: bool = True, self_contained: bool = False, generated: str | None = None,
+                 warn=None) -> list[Path]:
+    """Write the report of ``source`` (a runs folder, or a board's records file or folder) into ``out``; return
+    the written files (docs/report.md §1). ``plots=False`` draws nothing; ``self_contained`` embeds the pictures
+    in the page; ``generated`` is the page's time (default: now, UTC); ``warn(message)`` gets each warning."""
+    source, out = read_source(source), Path(out)
+    runs, warnings = load_runs(source)
+    unfinished = unfinished_folders(source)
     warnings += [f"{folder}: a run folder without a record (unfinished, listed under Failed and unfinished runs)"
                  for folder in unfinished]
     runs = label_variants(runs)
-    manifests, manifest_warnings = load_manifests(runs_dir)
+    manifests, manifest_warnings = load_manifests(source)
     warnings += manifest_warnings
     primary, boards, companions = _leaderboards(runs, warnings)
 
@@ -275,9 +268,10 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
         if board.spec.name in (primary[board.dataset].name, PAPERS_METRIC.get(board.dataset)):
             significance.blocks += [ranks_table(board, tests[id(board)]), paired_table(board, tests[id(board)])]
     specs = metric_specs()
-    claims = Section("papers-orderings", "The papers' orderings, tested", [*CLAIMS_NOTES, PAIRED_NOTE],
+    claims = Section("papers-orderings", "The papers' orderings, tested", [CLAIMS_NOTE, PAIRED_NOTE],
                      claims_tables(evaluate_claims(runs, manifests, specs), specs))
-    surfaces = _surfaces(runs_dir, boards, made, warnings)
+    earlier = list(dict.fromkeys(folder / "plots" for folder in (out, source.board_dir) if folder is not None))
+    surfaces = _surfaces(source, boards, made, earlier, warnings)
     twins = twin_tables(runs, specs)
     sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked),
                 *([surfaces] if surfaces else []), significance, claims,
@@ -292,25 +286,19 @@ def write_report(runs_dir, out, *, plots: bool = True, generated: str | None = N
         warn(message)
     intro = [_summary(runs)]
 
-    out.mkdir(parents=True, exist_ok=True)
     csv_boards = [*boards, *companions]
-    written = []
-    for name, text in (("leaderboard.md", document_markdown(TITLE, intro, sections, warnings)),
-                       ("leaderboard.csv", leaderboard_csv(csv_boards, [tests[id(b)] for b in csv_boards]))):
-        (out / name).write_text(text)
-        written.append(out / name)
-    if made.made:
-        (out / "plots").mkdir(exist_ok=True)
-    for plot in made.made:
-        (out / "plots" / plot.name).write_bytes(plot.png)
-        written.append(out / "plots" / plot.name)
-    # plots/ is the report's own: figures of an earlier report into the same folder that this one did not
-    # draw (a sweep no longer there, plots=False) would sit there as if they belonged to it
-    for stale in sorted(set((out / "plots").glob("*.png")) - set(written)):
-        stale.unlink()
     page_sections = sections + [Section("runs", "All runs", [], [runs_table(runs, primary, sweep_labels)])]
-    generated = generated or datetime.now(timezone.utc).isoformat(timespec="seconds")
-    page = document_html(TITLE, [*intro, f"Runs folder: {runs_dir}"], page_sections, warnings, generated)
-    (out / "index.html").write_text(page)
-    written.append(out / "index.html")
-    return written
+    page = document_html(TITLE, [*intro, f"Records: {source.name}"], page_sections, warnings,
+                         generated or datetime.now(timezone.utc).isoformat(timespec="seconds"), embed=self_contained)
+    files = {out / "leaderboard.md": document_markdown(TITLE, intro, sections, warnings).encode(),
+             out / "leaderboard.csv": leaderboard_csv(csv_boards, [tests[id(b)] for b in csv_boards]).encode(),
+             **{out / "plots" / plot.name: plot.png for plot in made.made},
+             out / "index.html": page.encode()}
+    for path, data in files.items():
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
+    # plots/ is the report's own: figures of an earlier report into the same folder that this one did not
+    # draw or keep (a sweep no longer there, plots=False) would sit there as if they belonged to it
+    for stale in sorted(set((out / "plots").glob("*.png")) - set(files)):
+        stale.unlink()
+    return list(files)

@@ -1,22 +1,16 @@
-"""Read what a runs folder holds: run records and sweep manifests, as plain immutable values.
+"""Read what a report is built from, a runs folder or a board's records file (`gsbench.report.records_file`):
+run records and sweep manifests, as plain immutable values.
 
-Records are found anywhere below the folder (``**/record.json``; the runner writes
-``<out>/<dataset>/<scene>/<method>/<run_id>/record.json``), so one report can cover several ``--out``
-folders. A file that cannot be read, or lacks the identity fields, becomes a warning, never a crash.
-The same run id found twice (one config run into two folders) is kept once, preferring an ``ok``
-record, then the newest, then the first path, and the others are named in a warning.
+In a runs folder, records are found anywhere below it (``**/record.json``), so one report can cover several
+``--out`` folders. A record that cannot be read, or lacks the identity fields, becomes a warning, never a crash.
+The same run id found twice is kept once, preferring an ``ok`` record, then the newest, then the first path.
 
-Rows of a leaderboard are configurations, not just methods: `label_variants` names each run by the
-config keys whose values differ between runs of the same method on the same scene (e.g.
-``method.knn_k=5``), so runs of different configs are never averaged together as if they were seeds; keys that
+Rows of a leaderboard are configurations, not just methods: `label_variants` names each run by the config keys
+whose values differ between runs of the same method on the same scene (e.g. ``method.knn_k=5``); keys that
 follow from the preset are named by ``preset=...`` alone.
 
-A record's ``skipped`` ({evaluator: reason}: the evaluators its scene could not feed, e.g. no ground
-truth) is kept as `Run.skipped`; records written before that field read as none skipped.
-
-Sweep manifests (``<out>/sweeps/<name>.json``, written by ``gsbench sweep``) give the row labels of
-ablations: ``{"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed",
-"dir", "status"}]}``; the status of a run comes from its record (an entry without one is missing).
+Sweep manifests (``sweeps/<name>.json``, written by ``gsbench sweep``; `gsbench.runs.sweep.Manifest`) give the
+row labels of ablations; a run's status comes from its record (an entry without one is missing).
 """
 
 from __future__ import annotations
@@ -28,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from gsbench.errors import GsbenchError
+from gsbench.report.records_file import board_file, read_board
 from gsbench.run_folder import RunFolder
 
 RECORD_NAME = RunFolder.RECORD
@@ -93,6 +88,49 @@ class Manifest:
     runs: tuple[ManifestRun, ...]
 
 
+@dataclass(frozen=True)
+class Source:
+    """What a report reads, as (path, JSON) pairs with the warnings of what could not be read. ``runs_dir`` is
+    the runs folder (its run folders hold meshes and unfinished runs), None for a records file, whose folder
+    (a board's, holding its earlier pictures) is ``board_dir``."""
+
+    name: str
+    records: list[tuple[str, object]]
+    manifests: list[tuple[str, object]]
+    record_warnings: list[str]
+    manifest_warnings: list[str]
+    runs_dir: Path | None = None
+    board_dir: Path | None = None
+
+
+def _read_json(folder: Path, pattern: str, what: str) -> tuple[list[tuple[str, object]], list[str]]:
+    found, warnings = [], []
+    for rel in sorted(path.relative_to(folder).as_posix() for path in folder.rglob(pattern)):
+        path = folder / rel
+        try:
+            found.append((rel, json.loads(path.read_text())))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            warnings.append(f"{rel}: unreadable {what} skipped ({type(exc).__name__}: {exc})")
+    return found, warnings
+
+
+def read_source(path) -> Source:
+    """The records and manifests of a runs folder or of a board's records file (or a folder holding one); a
+    GsbenchError when ``path`` does not exist."""
+    path = Path(path)
+    if not path.exists():
+        raise GsbenchError(f"runs folder '{path}' does not exist (expected the --out folder of gsbench run/sweep, or "
+                           "a board's records.jsonl.gz)")
+    file = board_file(path)
+    if file is not None:
+        board = read_board(file)
+        return Source(str(file), sorted(board.records.items()), sorted(board.manifests.items()), board.warnings, [],
+                      board_dir=file.parent)
+    records, record_warnings = _read_json(path, RECORD_NAME, "record")
+    manifests, manifest_warnings = _read_json(path, "sweeps/*.json", "sweep manifest")
+    return Source(str(path), records, manifests, record_warnings, manifest_warnings, runs_dir=path)
+
+
 def flatten(mapping: dict, prefix: str = "") -> dict:
     """Nested mappings -> ``{dotted.key: leaf}``."""
     flat = {}
@@ -146,11 +184,13 @@ def _keep_first(copies: list[Run]) -> list[Run]:
     return ordered
 
 
-def unfinished_folders(runs_dir: Path) -> list[str]:
-    """Run folders below ``runs_dir`` (relative paths) that hold a run's config or checkpoint but no record: runs
+def unfinished_folders(source: Source) -> list[str]:
+    """Run folders of a runs folder (relative paths) that hold a run's config or checkpoint but no record: runs
     killed before they wrote one (`gsbench run` with the same settings resumes them). A folder inside a run
     folder that has its record (a second stage's, SuGaR's ``refine/``) belongs to that finished run."""
-    runs_dir = Path(runs_dir)
+    runs_dir = source.runs_dir
+    if runs_dir is None:
+        return []
     folders = {p.parent for name in (RunFolder.CONFIG, RunFolder.CHECKPOINT, RunFolder.FINAL_CHECKPOINT)
                for p in runs_dir.rglob(name)}
 
@@ -162,23 +202,13 @@ def unfinished_folders(runs_dir: Path) -> list[str]:
                   if not RunFolder(f).record.is_file() and not finished_parent(f))
 
 
-def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
-    """Every readable record below ``runs_dir`` (one per run id), sorted; and the warnings.
-
-    A missing folder, or one without a readable record, is a GsbenchError naming the folder (and each
-    damaged record); a damaged record beside good ones is left out with a warning naming it."""
-    runs_dir = Path(runs_dir)
-    if not runs_dir.is_dir():
-        raise GsbenchError(f"runs folder '{runs_dir}' does not exist (expected the --out folder of gsbench run/sweep)")
+def load_runs(source) -> tuple[list[Run], list[str]]:
+    """Every readable record of ``source`` (a `Source`, or a path for `read_source`), one per run id, sorted; and
+    the warnings. A source without a readable record is a GsbenchError naming it (and each damaged record)."""
+    source = source if isinstance(source, Source) else read_source(source)
     found: dict[str, list[Run]] = {}
-    warnings = []
-    for path in sorted(runs_dir.rglob(RECORD_NAME)):
-        rel = path.relative_to(runs_dir).as_posix()
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            warnings.append(f"{rel}: unreadable record skipped ({type(exc).__name__}: {exc})")
-            continue
+    warnings = list(source.record_warnings)
+    for rel, data in source.records:
         missing = [k for k in REQUIRED if not isinstance(data, dict) or data.get(k) in (None, "")]
         if missing:
             warnings.append(f"{rel}: record without {', '.join(missing)} skipped")
@@ -191,12 +221,13 @@ def load_runs(runs_dir: Path) -> tuple[list[Run], list[str]]:
                             "missing; fix: look at that run's evaluation (eval.json) and re-run it")
         found.setdefault(run.run_id, []).append(run)
     if not found and warnings:
-        raise GsbenchError(f"no readable run record under '{runs_dir}': {len(warnings)} damaged: {'; '.join(warnings)} "
+        raise GsbenchError(f"no readable run record in '{source.name}': {len(warnings)} damaged: {'; '.join(warnings)} "
                            "(fix: re-run those runs; gsbench run resumes from their checkpoints)")
     if not found:
         raise GsbenchError(
-            f"no run records ({RECORD_NAME}) under '{runs_dir}'; expected "
-            f"<dataset>/<scene>/<method>/<run_id>/{RECORD_NAME} (fix: pass the --out folder of gsbench run/sweep)"
+            f"no run records ({RECORD_NAME}) under '{source.name}'; expected "
+            f"<dataset>/<scene>/<method>/<run_id>/{RECORD_NAME} (fix: pass the --out folder of gsbench run/sweep, or "
+            "a board's records.jsonl.gz)"
         )
     runs = []
     for run_id, copies in found.items():
@@ -257,23 +288,21 @@ def _follows_preset(runs: list[Run], key: str) -> bool:
     return all(len(values) == 1 for values in by_preset.values())
 
 
-def load_manifests(runs_dir: Path) -> tuple[list[Manifest], list[str]]:
-    """Every sweep manifest (``**/sweeps/*.json``) below ``runs_dir``, sorted by path; and warnings."""
-    runs_dir = Path(runs_dir)
-    manifests, warnings = [], []
-    for path in sorted(runs_dir.rglob("sweeps/*.json")):
-        rel = path.relative_to(runs_dir).as_posix()
+def load_manifests(source) -> tuple[list[Manifest], list[str]]:
+    """Every sweep manifest of ``source`` (a `Source` or a path), sorted by path; and warnings."""
+    source = source if isinstance(source, Source) else read_source(source)
+    manifests, warnings = [], list(source.manifest_warnings)
+    for rel, data in source.manifests:
         try:
-            data = json.loads(path.read_text())
             entries = tuple(
                 ManifestRun(run_id=str(r["run_id"]), label=str(r.get("label") or "base"),
                             method=str(r.get("method", "")), scene=Path(str(r.get("scene", "")).rstrip("/")).name)
                 for r in data["runs"]
             )
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, AttributeError) as exc:
+        except (KeyError, TypeError, AttributeError) as exc:
             warnings.append(f"{rel}: unreadable sweep manifest skipped ({type(exc).__name__}: {exc})")
             continue
-        manifests.append(Manifest(name=str(data.get("name") or path.stem),
+        manifests.append(Manifest(name=str(data.get("name") or Path(rel).stem),
                                   description=str(data.get("description") or ""), file=str(data.get("file") or ""),
                                   path=rel, runs=entries))
     return manifests, warnings

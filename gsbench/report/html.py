@@ -1,8 +1,6 @@
-"""The report as one self-contained HTML page: inline CSS, a small inline script that sorts any table
-by a click on its header, and plots embedded as ``data:image/png;base64`` URIs. The page loads nothing
-from anywhere (no external URLs), so it can be mailed or archived as a single file.
-
-Cells sort by their ``data-sort`` number when they have one, else by their text; empty keys sort last.
+"""The report as an HTML page: inline CSS and a small inline script that sorts any table by a click on its header
+(cells by their ``data-sort`` number when they have one, else by their text; empty keys last). The page loads
+nothing from the network; its pictures are linked (``plots/<name>`` beside it) or embedded as ``data:`` URIs.
 """
 
 from __future__ import annotations
@@ -89,13 +87,16 @@ def _table(table: Table) -> str:
             + "\n".join(body) + "\n</tbody></table></div>\n" + (f'<ul class="notes">{notes}</ul>\n' if notes else ""))
 
 
-def _plot(plot: Plot) -> str:
-    data = base64.b64encode(plot.png).decode("ascii")
-    return f'<p><img alt="{html.escape(plot.alt)}" src="data:image/png;base64,{data}"></p>\n'
+def _plot(plot: Plot, embed: bool) -> str:
+    source = f"data:image/png;base64,{base64.b64encode(plot.png).decode('ascii')}" if embed else \
+        f"plots/{html.escape(plot.name)}"
+    return f'<p><img alt="{html.escape(plot.alt)}" src="{source}"></p>\n'
 
 
-def document_html(title: str, intro: list[str], sections: list[Section], warnings: list[str], generated: str) -> str:
-    """The page: title, generation time, intro, a section index, the sections, the warnings."""
+def document_html(title: str, intro: list[str], sections: list[Section], warnings: list[str], generated: str, *,
+                  embed: bool = False) -> str:
+    """The page: title, generation time, intro, a section index, the sections, the warnings; ``embed`` puts the
+    pictures in the page."""
     nav = "".join(f'<a href="#{html.escape(s.anchor)}">{html.escape(s.title)}</a>' for s in sections)
     parts = [
         "<!DOCTYPE html>",
@@ -114,7 +115,7 @@ def document_html(title: str, intro: list[str], sections: list[Section], warning
     for section in sections:
         parts.append(f'<h2 id="{html.escape(section.anchor)}">{html.escape(section.title)}</h2>')
         parts += [f"<p>{_inline(p)}</p>" for p in section.paragraphs]
-        parts += [_table(b) if isinstance(b, Table) else _plot(b) for b in section.blocks]
+        parts += [_table(b) if isinstance(b, Table) else _plot(b, embed) for b in section.blocks]
     parts.append(f"<script>{SCRIPT}</script>")
     parts.append("</body></html>")
     return "\n".join(parts) + "\n"

@@ -16,6 +16,7 @@ import io
 from gsbench.errors import missing_dependency
 from gsbench.report.aggregate import Board
 from gsbench.report.pareto import COSTS, cost_points
+from gsbench.report.png import compact
 
 SCALE = {"train_rss": 1 / 2**20}  # bytes -> MiB on the memory axis
 LABEL_CHARS = 40
@@ -36,7 +37,7 @@ def _figure(width: float, height: float):
 def _png(figure) -> bytes:
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", metadata={"Software": None})
-    return buffer.getvalue()
+    return compact(buffer.getvalue())
 
 
 def _short(text: str) -> str:

@@ -55,6 +55,7 @@ from new scenes may spread more than the seeds of the scenes measured.
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 from dataclasses import dataclass
@@ -69,13 +70,18 @@ WILCOXON_ARE = 3 / math.pi  # Wilcoxon signed-rank vs t-test, normal differences
 MIN_WILCOXON = 6  # non-zero differences below which the sign test is used (module docstring)
 
 
+@functools.lru_cache(maxsize=None)
+def _t_quantile(q: float, df: int) -> float:
+    return float(t.ppf(q, df))
+
+
 def t_half_width(values, confidence: float = CONFIDENCE) -> float | None:
     """Half-width t_{(1+confidence)/2, n−1} · s / √n of the Student t-interval of the mean; None for n < 2."""
     values = [float(v) for v in values]
     n = len(values)
     if n < 2:
         return None
-    return float(t.ppf(0.5 + confidence / 2, n - 1)) * statistics.stdev(values) / math.sqrt(n)
+    return _t_quantile(0.5 + confidence / 2, n - 1) * statistics.stdev(values) / math.sqrt(n)
 
 
 @dataclass(frozen=True)

@@ -34,10 +34,12 @@ from gsbench.data.synthetic.generator import GT_MESH_NAME
 from gsbench.errors import GsbenchError, import_open3d, missing_dependency
 from gsbench.evaluators.gt_io import read_matrix4, read_points
 from gsbench.geometry.depth import world_rays
+from gsbench.report import png
 from gsbench.run_folder import RunFolder
 from gsbench.runs.runner import load_run_scene, resolve_run
 
-PICTURE_WIDTH = 320  # pixels across one panel
+PICTURE_WIDTH = 320  # pixels across one panel, as drawn
+STORED_SCALE = 0.75  # the stored PNG's size against the drawn figure's (with a palette: 10-75 KiB a picture)
 SECOND_VIEW_ANGLE = 90.0  # degrees between the two views' directions from the scene centre, as near as there is
 ERROR_SCALE_MM = 2.0  # the colour scale of the distance to the ground truth, 0 to this, in mm
 MESH_GREY, GT_GREY = np.array([0.72, 0.74, 0.78]), np.array([0.80, 0.76, 0.68])
@@ -246,4 +248,5 @@ def _compose(rows, labels, errors, vertices, faces, cameras, views, title) -> Pi
         bar.set_label(f"mm (0 to {ERROR_SCALE_MM:g}, clipped)", fontsize=8)
     buffer = io.BytesIO()
     figure.savefig(buffer, format="png", dpi=100, metadata={"Software": None})
-    return Picture(buffer.getvalue(), int(round(width_px)), int(round(height_px)))
+    stored = png.compact(buffer.getvalue(), STORED_SCALE)
+    return Picture(stored, *png.size(stored))
