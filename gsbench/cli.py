@@ -46,7 +46,8 @@ def cmd_list(args) -> int:
 
 
 def cmd_scene_make(args) -> int:
-    from gsbench.data.loader import check_scene, make_mesh_scene, make_scene
+    from gsbench.data.loader import check_scene
+    from gsbench.data.synthetic.make import make_mesh_scene, make_scene
 
     common = {"out": args.out, "res": args.res, "seed": args.seed, "supersample": args.supersample}
     if args.mesh:
@@ -151,6 +152,7 @@ def cmd_sweep(args) -> int:
 def cmd_eval(args) -> int:
     from gsbench.config.run_config import dataset_of
     from gsbench.data.loader import load_scene
+    from gsbench.data.synthetic.make import ensure_scene
     from gsbench.evaluators.api import evaluate_mesh_file, format_table
     from gsbench.evaluators.resolve import plan_evaluation, run_options
     from gsbench.runs.records import write_json_atomic
@@ -158,6 +160,7 @@ def cmd_eval(args) -> int:
     if not Path(args.mesh).is_file():
         raise DataError(f"{args.mesh}: mesh file not found; fix: --mesh names a .ply (a run folder's mesh.ply)")
     size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt}
+    ensure_scene(args.scene)
     header = load_scene(args.scene, load_images=False, **size)
     if args.out:
         check_writable(Path(args.out).parent, "--out")  # before the evaluation, not after it
