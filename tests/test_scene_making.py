@@ -7,8 +7,10 @@ import subprocess
 import sys
 
 import pytest
+import trimesh
 
 import gsbench.runs.runner as runner
+from gsbench.cli import main
 from gsbench.data.loader import load_scene
 from gsbench.data.synthetic import generator
 from gsbench.data.synthetic.make import ensure_scene, make_scene
@@ -69,3 +71,13 @@ def test_run_makes_the_scene_before_it_reads_it(tmp_path, monkeypatch):
     with pytest.raises(Stop):
         runner.run(cfg)
     assert steps == ["make synthetic/spot", "load"]
+
+
+def test_eval_makes_a_missing_builtin_scene_before_it_loads_it(tmp_path, monkeypatch, capsys):
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("GSBENCH_DATA", str(cache))
+    monkeypatch.setattr(generator, "DEFAULT_RES", TINY_RES)
+    mesh = tmp_path / "box.ply"
+    trimesh.creation.box(extents=(0.5, 0.5, 0.5)).export(mesh)
+    assert main(["eval", "--mesh", str(mesh), "--scene", "synthetic/spot", "--evaluator", "mesh_stats"]) == 0
+    assert "mesh_stats" in capsys.readouterr().out and (cache / "synthetic" / "spot" / "gsbench_scene.json").is_file()

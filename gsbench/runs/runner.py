@@ -150,9 +150,9 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     """Run (or resume) every stage of ``cfg``, write and return its record, print the metrics table.
 
     The configuration is checked (`gsbench.config.checks`), a missing built-in scene made (`make_run_scene`)
-    and the evaluation planned before anything else is read or written; the run folder is locked while this process works in it (`gsbench.runs.run_lock`). Ctrl-C or
-    SIGTERM records status ``interrupted`` (the run resumes from its last checkpoint), any other
-    exception ``failed`` with its traceback tail; both re-raise."""
+    and the evaluation planned before anything else is read or written; the run folder is locked while this
+    process works in it (`gsbench.runs.run_lock`). Ctrl-C or SIGTERM records status ``interrupted`` (the run
+    resumes from its last checkpoint), any other exception ``failed`` with its traceback tail; both re-raise."""
     check_run_config(cfg)
     check_writable(cfg.out, "--out (or out: in a config file)")
     threads = set_threads(cfg.threads)
