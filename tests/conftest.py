@@ -18,7 +18,7 @@ import gsbench  # noqa: E402, F401  (loads libusb-1.0 for open3d where the syste
 @pytest.fixture(scope="session")
 def tiny_spot(tmp_path_factory):
     """synthetic/spot at 64x48, generated once per session and shared by the method test files."""
-    from gsbench.data.loader import make_scene
+    from gsbench.data.synthetic.make import make_scene
 
     return make_scene("synthetic/spot", out=tmp_path_factory.getbasetemp() / "spot-64x48", res=(64, 48))
 

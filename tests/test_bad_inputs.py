@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 from bounded_call import bounded
 
-from gsbench.data.loader import check_scene, load_scene, make_scene
+from gsbench.data.loader import check_scene, load_scene
+from gsbench.data.synthetic.make import make_scene
 
 TIMEOUT = 10.0  # seconds a load may take before it counts as a hang
 SCAN = 1001

@@ -14,11 +14,12 @@ import trimesh
 from PIL import Image
 
 from gsbench.cli import main
-from gsbench.data.loader import load_scene, make_mesh_scene
+from gsbench.data.loader import load_scene
 from gsbench.data.meta import read_meta
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.framing import FRAMINGS, object_share, parse_framing
 from gsbench.data.synthetic.generator import plan_from_meta, plan_scene
+from gsbench.data.synthetic.make import make_mesh_scene
 from gsbench.data.synthetic.mesh_file import read_mesh_object, up_rotation
 from gsbench.data.synthetic.render import Renderer
 from gsbench.errors import DataError

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gsbench.data.loader import check_scene, load_scene, make_scene
+from gsbench.data.loader import check_scene, load_scene
 from gsbench.data.similarity import transform_points
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.generator import DTU_PLANE_ABOVE_TABLE, SCAN_BASE, plan_scene
+from gsbench.data.synthetic.make import make_scene
 
 DTU_SCENES = ["dtu-spot", "dtu-stool", "dtu-bowl", "dtu-blocks", "dtu-fine", "dtu-plain", "dtu-bunny", "dtu-face",
               "dtu-glass-orb", "dtu-glass-wine", "dtu-glass-bottle", "dtu-glass-orb-opaque",

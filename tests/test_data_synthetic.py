@@ -7,8 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from gsbench.data.loader import check_scene, load_scene, make_scene
+from gsbench.data.loader import check_scene, load_scene
 from gsbench.data.synthetic.generator import plan_scene
+from gsbench.data.synthetic.make import make_scene
 
 DTU_RES, TNT_RES = (64, 48), (64, 36)
 CASES = {  # key -> (built-in name, format, resolution)
@@ -216,8 +217,6 @@ def test_supersample_one_renders_pixel_centres_only(tmp_path):
 
     import numpy as np
     from PIL import Image
-
-    from gsbench.data.loader import make_scene
 
     area = make_scene("synthetic/spot", out=tmp_path / "area", res=(48, 36))
     point = make_scene("synthetic/spot", out=tmp_path / "point", res=(48, 36), supersample=1)

@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from gsbench.config.run_config import MeshConfig
-from gsbench.data.loader import load_scene, make_scene
+from gsbench.data.loader import load_scene
+from gsbench.data.synthetic.make import make_scene
 from gsbench.errors import EvaluationError
 from gsbench.evaluators.surface_offset import SurfaceOffset, gt_mesh_file, pixel_footprint
 from gsbench.mesh.tsdf import tsdf_fusion
@@ -103,7 +104,8 @@ def test_scene_floor_renders_the_surroundings(tmp_path):
     ground and the courtyard around the object, far beyond the GT crop, not the object alone."""
     import open3d as o3d
 
-    from gsbench.data.loader import load_scene, make_scene
+    from gsbench.data.loader import load_scene
+    from gsbench.data.synthetic.make import make_scene
     from gsbench.evaluators import gt_io
     from gsbench.mesh.floor import floor_report
 

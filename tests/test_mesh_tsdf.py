@@ -11,7 +11,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from gsbench.config.run_config import MeshConfig
-from gsbench.data.loader import load_scene, make_scene
+from gsbench.data.loader import load_scene
+from gsbench.data.synthetic.make import make_scene
 from gsbench.mesh import MeshError
 from gsbench.mesh.cleanup import canonical_order, keep_largest_clusters, to_trimesh
 from gsbench.mesh.tsdf import fusion_parameters, tsdf_fusion

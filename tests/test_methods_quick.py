@@ -10,7 +10,8 @@ import pytest
 import torch
 import trimesh
 
-from gsbench.data.loader import load_scene, make_scene
+from gsbench.data.loader import load_scene
+from gsbench.data.synthetic.make import make_scene
 from gsbench.registry import METHODS
 from gsbench.runs.runner import resolve_run
 from gsbench.training.strategies.default import DefaultStrategy

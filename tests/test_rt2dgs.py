@@ -14,7 +14,7 @@ import trimesh
 
 from gsbench.cli import main
 from gsbench.data.camera import Camera
-from gsbench.data.loader import make_scene
+from gsbench.data.synthetic.make import make_scene
 from gsbench.data.synthetic.primitives import Surface, box, merge
 from gsbench.data.synthetic.render import Renderer
 from gsbench.geometry.optics import fresnel, refract

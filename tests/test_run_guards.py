@@ -36,8 +36,9 @@ def test_bad_values_fail_before_anything_is_read_or_written(method, override, me
     import gsbench.runs.runner as runner
 
     def no_scene(*_args, **_kwargs):
-        raise AssertionError("the scene was read before the configuration was checked")
+        raise AssertionError("the scene was made or read before the configuration was checked")
 
+    monkeypatch.setattr(runner, "make_run_scene", no_scene)
     monkeypatch.setattr(runner, "load_run_scene", no_scene)
     out = tmp_path / "runs"
     assert main(["run", "--method", method, "--scene", "synthetic/spot", "--preset", "quick", "--out", str(out),

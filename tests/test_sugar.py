@@ -11,7 +11,8 @@ import torch
 import trimesh
 
 from gsbench.config.run_config import MeshConfig
-from gsbench.data.loader import load_scene, make_scene
+from gsbench.data.loader import load_scene
+from gsbench.data.synthetic.make import make_scene
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.losses.terms import Batch, active_terms
 from gsbench.mesh import MeshError

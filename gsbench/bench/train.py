@@ -54,7 +54,7 @@ import torch
 
 import gsbench.training.trainer as train
 from gsbench.data.cache import cache_dir
-from gsbench.data.loader import make_scene
+from gsbench.data.synthetic.make import make_scene
 from gsbench.errors import ConfigError
 from gsbench.losses.terms import Batch, active_terms, required_outputs
 from gsbench.raster import profiling
@@ -62,7 +62,7 @@ from gsbench.registry import METHODS
 from gsbench.resources import set_threads
 from gsbench.run_folder import RunFolder
 from gsbench.runs.finished_run import read_run_config
-from gsbench.runs.runner import load_run_scene, resolve_run
+from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
 
 WARMUP, STEPS, PROBE_STEPS = 10, 30, 5
 SCENE = "synthetic/spot"
@@ -164,6 +164,7 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
     scenes = {} if scenes is None else scenes
     key = (cfg.scene, tuple(cfg.data.max_size), cfg.data.downscale)
     if key not in scenes:
+        make_run_scene(cfg)
         scenes[key] = load_run_scene(cfg)
     scene = scenes[key]
     method = METHODS.get(workload.method)()
@@ -191,6 +192,7 @@ def bench_run_folder(folder, *, steps: int = STEPS, warmup: int = WARMUP, probe_
                                       (RunFolder.CHECKPOINT, RunFolder.FINAL_CHECKPOINT))
     cfg.threads = threads
     cfg.train.checkpoint_every = 0
+    make_run_scene(cfg)
     scene = load_run_scene(cfg)
     method = METHODS.get(cfg.method["name"])()
     set_threads(threads)

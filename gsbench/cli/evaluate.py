@@ -37,6 +37,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from gsbench.config.run_config import dataset_of
     from gsbench.data.loader import load_scene
+    from gsbench.data.synthetic.make import ensure_scene
     from gsbench.evaluators.api import evaluate_mesh_file, format_table
     from gsbench.evaluators.resolve import plan_evaluation, run_options
     from gsbench.runs.records import write_json_atomic
@@ -44,6 +45,7 @@ def run(args) -> int:
     if not Path(args.mesh).is_file():
         raise DataError(f"{args.mesh}: mesh file not found; fix: --mesh names a .ply (a run folder's mesh.ply)")
     size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt}
+    ensure_scene(args.scene)
     header = load_scene(args.scene, load_images=False, **size)
     if args.out:
         check_writable(Path(args.out).parent, "--out")  # before the evaluation, not after it

@@ -57,7 +57,8 @@ def add_parser(subparsers) -> None:
 
 
 def make(args) -> int:
-    from gsbench.data.loader import check_scene, make_mesh_scene, make_scene
+    from gsbench.data.loader import check_scene
+    from gsbench.data.synthetic.make import make_mesh_scene, make_scene
 
     common = {"out": args.out, "res": args.res, "seed": args.seed, "supersample": args.supersample}
     if args.mesh:

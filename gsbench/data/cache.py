@@ -10,3 +10,10 @@ from pathlib import Path
 def cache_dir() -> Path:
     """``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``."""
     return Path(os.environ.get("GSBENCH_DATA") or Path.home() / ".cache" / "gsbench" / "scenes")
+
+
+def scene_dir(name: str, choices=()) -> Path:
+    """The cache folder of generated scene ``name`` (``synthetic/<name>`` or ``mesh/<file stem>``):
+    ``<cache>/synthetic/<name>``, plus ``-<choice>`` for each choice it was made with other than the default."""
+    kind, short = name.split("/", 1)
+    return cache_dir() / kind / "-".join([short, *choices])

@@ -1,43 +1,25 @@
-"""One entry point for scenes: detect a folder's layout and load it, or generate a built-in scene.
+"""One entry point for scenes: detect a folder's layout and load it. It reads files and writes none.
 
 - `load_scene(path_or_name)`: a folder (layout detected by `detect_format`) or a built-in name
-  ``synthetic/<name>`` (generated into the cache on first use).
-- `make_scene(name, ...)`: generate a built-in scene (``gsbench scene make``); skipped when the folder
-  already holds the same scene (same ``gsbench_scene.json``); `make_mesh_scene(file, ...)` the same for
-  a scene made of any mesh file (``gsbench scene make --mesh FILE``).
+  ``synthetic/<name>``, read from its cache folder (`gsbench.data.cache.scene_dir`); a built-in scene not
+  made yet is an error naming ``gsbench scene make``. A run and the commands make it first
+  (`gsbench.data.synthetic.make.ensure_scene`).
 - `check_scene(path, gt_root)`: what a folder holds and what is wrong with it (``gsbench scene check``).
-
-Cache: ``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``; built-in scenes go to
-``<cache>/synthetic/<name>`` (plus ``-<format>``, ``-framing<share>``, ``-<W>x<H>``, ``-s<seed>`` for
-non-default choices), mesh-file scenes to ``<cache>/mesh/<file stem>`` (plus ``-<W>x<H>``, ``-s<seed>``).
-Generation is atomic: the scene is written into a temporary sibling folder which is then renamed.
-It imports the loaders and the generator (about 1 s: trimesh, scipy); `gsbench.data.synthetic.builtin` is the
-table of built-in scenes without them.
 """
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from pathlib import Path
 
-from gsbench.data.cache import cache_dir
+from gsbench.data.cache import scene_dir
 from gsbench.data.camera import Scene
 from gsbench.data.dtu import dtu_ground_truth, dtu_gt_paths, load_dtu, load_dtu_colmap, scan_number
 from gsbench.data.meta import read_meta
-from gsbench.data.synthetic.builtin import BUILTIN_SCENES
-from gsbench.data.synthetic.generator import (
-    DEFAULT_SUPERSAMPLE,
-    SPECS,
-    plan_mesh_scene,
-    plan_meta,
-    plan_scene,
-    write_scene,
-)
+from gsbench.data.synthetic.builtin import BUILTIN_SCENES, builtin_name
 from gsbench.data.tnt import gt_files, load_tnt, scene_gt_name
 from gsbench.errors import DataError, GsbenchError
 
-__all__ = ["BUILTIN_SCENES", "check_scene", "detect_format", "load_scene", "make_mesh_scene", "make_scene"]
+__all__ = ["BUILTIN_SCENES", "check_scene", "detect_format", "load_scene"]
 
 LAYOUTS = ("dtu: cameras.npz + image/ + mask/; tnt: sparse/0 + images/ (+ {scene}.ply, .json, _trans.txt, "
            "_COLMAP_SfM.log); dtu-colmap: sparse/0 + images/ + mask/")
@@ -71,8 +53,19 @@ def _not_a_folder(root: Path) -> DataError:
     return DataError(f"{root}: scene folder not found; fix: give a scene folder or a built-in name ({builtin})")
 
 
-def _is_builtin_name(name) -> bool:
-    return isinstance(name, str) and (name in BUILTIN_SCENES or name.startswith("synthetic/")) and not Path(name).is_dir()
+def _scene_folder(path_or_name) -> Path:
+    """The folder of a scene: a built-in name's cache folder (a DataError naming ``gsbench scene make`` when it
+    has not been made), else the path itself."""
+    name = builtin_name(path_or_name)
+    if name is None:
+        return Path(path_or_name)
+    if name not in BUILTIN_SCENES:
+        raise _not_a_folder(Path(name))
+    folder = scene_dir(name)
+    if not folder.is_dir():
+        raise DataError(f"{name}: built-in scene not made yet (no folder {folder}); fix: make it with "
+                        f"`gsbench scene make {name}` (gsbench run makes it before loading it)")
+    return folder
 
 
 def _check_gt_root(gt_root) -> None:
@@ -94,7 +87,7 @@ def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images
     if downscale < 1.0:
         raise DataError(f"downscale must be >= 1 (it divides the image size), got {downscale}")
     _check_gt_root(gt_root)
-    root = make_scene(path_or_name) if _is_builtin_name(path_or_name) else Path(path_or_name)
+    root = _scene_folder(path_or_name)
     fmt = detect_format(root)
     kwargs = {"downscale": downscale, "max_size": tuple(max_size or ()), "load_images": load_images,
               "gt_root": Path(gt_root) if gt_root else None}
@@ -105,7 +98,7 @@ def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images
 
 def has_ground_truth(path_or_name, gt_root=None) -> bool:
     """Whether a scene has its ground truth, from file checks only (built-in scenes always do)."""
-    if _is_builtin_name(path_or_name):
+    if builtin_name(path_or_name) is not None:
         return True
     root = Path(path_or_name)
     _check_gt_root(gt_root)
@@ -113,77 +106,6 @@ def has_ground_truth(path_or_name, gt_root=None) -> bool:
         folder = Path(gt_root) if gt_root else root
         return all(p.is_file() for p in gt_files(folder, scene_gt_name(root, read_meta(root))).values())
     return dtu_ground_truth(root, scan_number(root, read_meta(root)), Path(gt_root) if gt_root else None)[0] is not None
-
-
-def _default_folder(plan, custom_size: bool) -> Path:
-    cam = plan.cameras[0]
-    parts = [plan.short_name]
-    if plan.builtin and plan.fmt != plan.spec.fmt:
-        parts.append(plan.fmt)
-    if plan.builtin and plan.spec.framing != SPECS[plan.name].framing:
-        parts.append(f"framing{plan.spec.framing:g}")
-    if custom_size:
-        parts.append(f"{cam.width}x{cam.height}")
-    if plan.seed != 0:
-        parts.append(f"s{plan.seed}")
-    if plan.supersample != DEFAULT_SUPERSAMPLE:
-        parts.append(f"ss{plan.supersample}")
-    return cache_dir() / plan.name.split("/", 1)[0] / "-".join(parts)
-
-
-def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int = 0, supersample: int | None = None,
-               framing=None) -> Path:
-    """Generate built-in scene ``name`` (``synthetic/spot`` or ``spot``) and return its folder.
-
-    ``fmt``: ``dtu``, ``dtu-colmap`` or ``tnt`` (default: the scene's own). ``res``: None (0.25 of the
-    full size), a float factor of the full size, or ``(W, H)``. ``out``: the folder (default: the cache).
-    ``supersample``: rays per pixel side of the images (None: the default 2, area-sampled; 1: one ray
-    through each pixel centre, as the rasterizer samples). ``framing``: ``dtu``, ``small`` or an object
-    share (`gsbench.data.synthetic.framing`; None: the scene's own). Nothing is written when ``out``
-    already holds this exact scene.
-    """
-    return write_plan(plan_scene(name, fmt, res, seed, framing=framing), out, res is not None, supersample)
-
-
-def make_mesh_scene(mesh, *, out=None, fmt: str = "dtu-colmap", res=None, seed: int = 0, supersample: int | None = None,
-                    framing="dtu", up: str = "y", yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False,
-                    smooth: int = 0) -> Path:
-    """Generate a scene of the mesh file ``mesh`` (`gsbench.data.synthetic.generator.plan_mesh_scene`) and
-    return its folder (default: ``<cache>/mesh/<file stem>``...); the other arguments as `make_scene`'s."""
-    plan = plan_mesh_scene(mesh, fmt=fmt, res=res, seed=seed, framing=framing, up=up, yaw=yaw, albedo=albedo,
-                           largest_part=largest_part, smooth=smooth)
-    return write_plan(plan, out, res is not None, supersample)
-
-
-def write_plan(plan, out, custom_size: bool, supersample: int | None) -> Path:
-    """Write a planned scene into ``out`` (default: the cache) atomically, unless it already holds it."""
-    if supersample is not None:
-        if supersample < 1:
-            raise DataError(f"supersample must be >= 1 (rays per pixel side), got {supersample}; fix: e.g. --supersample 1")
-        plan.supersample = int(supersample)
-    meta = plan_meta(plan)
-    out = Path(out) if out else _default_folder(plan, custom_size)
-    if out.exists():
-        found = read_meta(out)
-        if found == meta:
-            return out
-        if not found and any(out.iterdir()):
-            raise DataError(f"{out}: folder exists and is not a gsbench-generated scene; fix: choose a new or empty --out")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
-        write_scene(plan, tmp)
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            out.rename(old / out.name)
-            shutil.rmtree(old)
-        tmp.rename(out)
-    except OSError:
-        if read_meta(out) != meta:  # not a concurrent generator that won the race
-            raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return out
 
 
 def _ground_truth_files(scene: Scene | None, root: Path, fmt: str, gt_root) -> dict[str, bool]:

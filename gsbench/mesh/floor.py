@@ -23,7 +23,7 @@ from gsbench.evaluators.api import evaluate_mesh_file
 from gsbench.evaluators.resolve import run_options
 from gsbench.mesh.cleanup import canonical_order
 from gsbench.mesh.tsdf import tsdf_fusion
-from gsbench.runs.runner import load_run_scene, plan_run_evaluation, resolve_run
+from gsbench.runs.runner import load_run_scene, make_run_scene, plan_run_evaluation, resolve_run
 
 
 def exact_depth_maps(scene: Scene, views=None) -> list[np.ndarray]:
@@ -41,6 +41,7 @@ def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Pat
     """Fuse the exact depth of ``scene_name`` and evaluate it (module docstring); the mesh goes to
     ``out/floor.ply``. Returns `gsbench.evaluators.api.evaluate_mesh_file`'s report plus the config."""
     cfg = resolve_run("3dgs", scene_name, preset=preset, overrides=overrides)
+    make_run_scene(cfg)
     scene = load_run_scene(cfg)
     depths = exact_depth_maps(scene)
     masks = scene.masks if cfg.data.use_masks and scene.masks is not None else None

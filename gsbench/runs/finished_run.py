@@ -13,7 +13,7 @@ import yaml
 from gsbench.errors import GsbenchError
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
-from gsbench.runs.runner import load_run_scene, resolve_run
+from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
 from gsbench.training.trainer import load_checkpoint
 
 
@@ -40,6 +40,7 @@ def load_finished_run(folder, command: str, *, load_images: bool = True):
     """``(cfg, scene, method)`` of the finished run in ``folder``, the method set up on the scene and
     loaded from the final checkpoint; ``command`` names the caller in the errors."""
     cfg, final = read_run_config(folder, command)
+    make_run_scene(cfg)
     scene = load_run_scene(cfg, load_images=load_images)
     method = METHODS.get(cfg.method["name"])()
     method.setup(scene, cfg)

@@ -48,7 +48,10 @@ import yaml
 from gsbench.atomic import check_writable
 from gsbench.config.checks import check_run_config
 from gsbench.config.run_config import RunConfig, dataset_of, resolve
+from gsbench.data.cache import scene_dir
 from gsbench.data.loader import load_scene
+from gsbench.data.synthetic.builtin import builtin_name
+from gsbench.data.synthetic.make import ensure_scene
 from gsbench.errors import Interrupted
 from gsbench.evaluators.api import evaluate_mesh_file, format_table
 from gsbench.evaluators.resolve import get_evaluator, plan_evaluation, run_options
@@ -71,8 +74,18 @@ def resolve_run(method: str, scene: str, *, preset: str = "cpu", user_files=(), 
                    method_config_cls=cls.Config, seed=seed, gt=gt)
 
 
+def make_run_scene(cfg: RunConfig) -> None:
+    """The step before loading: ``cfg``'s built-in scene made when its folder is missing or holds another version
+    of it (`ensure_scene`, what ``gsbench scene make`` runs), with a progress line on its first use."""
+    name = builtin_name(cfg.scene)
+    if name is not None and not scene_dir(name).is_dir():
+        stage(f"making {name} (first use; `gsbench scene make {name}` makes it ahead)")
+    ensure_scene(cfg.scene)
+
+
 def load_run_scene(cfg: RunConfig, *, load_images: bool = True):
-    """The scene of ``cfg`` at its resolution (``data.downscale``, ``data.max_size``) with its ``--gt``."""
+    """The scene of ``cfg`` at its resolution (``data.downscale``, ``data.max_size``) with its ``--gt``; a built-in
+    scene must have been made (`make_run_scene`)."""
     return load_scene(cfg.scene, downscale=cfg.data.downscale, max_size=cfg.data.max_size,
                       load_images=load_images, gt_root=cfg.gt or None, holdout_every=cfg.data.holdout_every)
 
@@ -136,13 +149,14 @@ def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
 def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     """Run (or resume) every stage of ``cfg``, write and return its record, print the metrics table.
 
-    The configuration is checked (`gsbench.config.checks`) and the evaluation planned before anything is read
-    or written; the run folder is locked while this process works in it (`gsbench.runs.run_lock`). Ctrl-C or
-    SIGTERM records status ``interrupted`` (the run resumes from its last checkpoint), any other
-    exception ``failed`` with its traceback tail; both re-raise."""
+    The configuration is checked (`gsbench.config.checks`), a missing built-in scene made (`make_run_scene`)
+    and the evaluation planned before anything else is read or written; the run folder is locked while this
+    process works in it (`gsbench.runs.run_lock`). Ctrl-C or SIGTERM records status ``interrupted`` (the run
+    resumes from its last checkpoint), any other exception ``failed`` with its traceback tail; both re-raise."""
     check_run_config(cfg)
     check_writable(cfg.out, "--out (or out: in a config file)")
     threads = set_threads(cfg.threads)
+    make_run_scene(cfg)
     stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
     header = load_run_scene(cfg, load_images=False)
     header.check_cameras_face_scene()

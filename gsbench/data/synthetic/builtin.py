@@ -5,13 +5,15 @@ layout a scene is written in is its spec's (``synthetic.SPECS``): the ``dtu-*`` 
 the 2DGS ``dtu-colmap`` layout. Scan numbers of DTU-like scenes are 1001 + the position in this table,
 so new scenes are appended at the end.
 
-The generator (`gsbench.data.synthetic.generator`) makes them on first use; this table is what `gsbench list`
-and the config layering (`dataset_of`) read without importing open3d or torch.
+`gsbench.data.synthetic.make` makes them into the cache (``gsbench scene make``, and a run's step before
+loading); this table is what `gsbench list`, the config layering (`dataset_of`) and the loader read without
+importing open3d or torch.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 
 @dataclass(frozen=True)
@@ -70,3 +72,11 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("synthetic/dtu-glass-bottle-opaque", "dtu", 0.340, "opaque twin of dtu-glass-bottle: the same bottle, glazed"),
     )
 }
+
+
+def builtin_name(path_or_name) -> str | None:
+    """``path_or_name`` when it is a built-in name (a string ``synthetic/<name>`` that is not an existing
+    folder), else None (a scene folder). The name may be unknown: the loader and the maker refuse it."""
+    if isinstance(path_or_name, str) and path_or_name.startswith("synthetic/") and not Path(path_or_name).is_dir():
+        return path_or_name
+    return None
