@@ -122,7 +122,7 @@ class _TermClock:
 def _term_backward_seconds(trainer, step: int) -> dict[str, float]:
     """Each active term's own backward at ``step`` (module docstring, ``bwd.<term>``); no parameter changes."""
     m = trainer.method
-    active = active_terms(trainer.losses, step, m.term_params(), m.loss_terms())
+    active = active_terms(trainer.losses, step, m.term_params())
     idx = trainer.views[step % len(trainer.views)]
     with torch.no_grad():
         render = m.render(trainer.scene.cameras[idx], required_outputs(active))
