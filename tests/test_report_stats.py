@@ -16,7 +16,7 @@ from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.errors import ConfigError
 from gsbench.report.aggregate import leaderboard
 from gsbench.report.build import write_report
-from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, load_findings, verdict
+from gsbench.report.claims import RELATIONS, evaluate_claims, load_claims, load_findings, verdict
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.metrics import PAPERS_METRIC, metric_specs, reported
 from gsbench.report.stats import (
@@ -247,7 +247,7 @@ def test_ablation_cells_differing_from_the_baseline_are_marked(tmp_path):
 def test_claims_use_the_papers_metric_and_name_their_source():
     from gsbench.config.files import config_root
 
-    for claim in CLAIMS:
+    for claim in load_claims():
         # a claim about one kind of scene (``factor``) is in the metric its paper used there: RT2DGS reports PSNR only
         assert claim.metric == ("psnr" if claim.factor == "transparent" else PAPERS_METRIC[claim.dataset]), claim
         assert claim.relation in RELATIONS and claim.source and " vs " in claim.paper, claim
@@ -259,7 +259,7 @@ def test_claims_use_the_papers_metric_and_name_their_source():
 def test_claims_between_methods_quote_the_methods_reported_means():
     """A claim's paper numbers are the two methods' reported means (one source, so they cannot drift apart); a claim
     about one kind of scene (``factor``) quotes its paper's own table, not a dataset's means."""
-    for claim in (c for c in CLAIMS if not c.sweep and not c.factor):
+    for claim in (c for c in load_claims() if not c.sweep and not c.factor):
         sides = [reported(name, claim.dataset, []) for name in (claim.better, claim.worse)]
         assert [float(x) for x in claim.paper.split(" vs ")] == [side.mean for side in sides], claim
 
