@@ -11,8 +11,12 @@ import re
 import tokenize
 from pathlib import Path
 
+import pytest
+
 from gsbench.bench.train import PAPER_METHODS
+from gsbench.config import files
 from gsbench.config.files import CLAIMS_KEY, config_root, declared_plugins, load_yaml, method_declaration, reported_numbers
+from gsbench.errors import ConfigError
 from gsbench.report.claims import GROUPS_FILE
 
 REPO = Path(__file__).resolve().parent.parent
@@ -125,3 +129,14 @@ def test_the_papers_methods_are_listed_only_in_their_files():
                     isinstance(e, ast.Constant) and e.value in methods for e in node.elts):
                 found.append(f"{path.relative_to(REPO)}:{node.lineno}")
     assert not found, f"lists of methods typed in the source (paper_benchmark: in their files): {found}"
+
+
+def test_a_place_among_the_papers_methods_is_taken_once(tmp_path, monkeypatch):
+    (tmp_path / "methods").mkdir()
+    for name, place in (("a", 2), ("b", 1), ("c", None)):
+        (tmp_path / "methods" / f"{name}.yaml").write_text("plugin: x:Y\n" + (f"paper_benchmark: {place}\n" if place else ""))
+    monkeypatch.setattr(files, "CONFIG_ROOT", tmp_path)
+    assert files.paper_methods() == ("b", "a")
+    (tmp_path / "methods" / "c.yaml").write_text("plugin: x:Y\npaper_benchmark: 2\n")
+    with pytest.raises(ConfigError, match="configs/methods/c.yaml: paper_benchmark must be a place"):
+        files.paper_methods()

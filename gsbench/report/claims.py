@@ -25,8 +25,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from gsbench.config.files import CLAIMS_KEY, config_root, declared_plugins, load_yaml, method_declaration, \
-    reported_numbers, suggest
+from gsbench.config.files import (
+    CLAIMS_KEY,
+    config_root,
+    declared_plugins,
+    load_yaml,
+    method_declaration,
+    reported_numbers,
+    suggest,
+)
 from gsbench.errors import ConfigError
 from gsbench.report.aggregate import Board, Row, ablations, leaderboard
 from gsbench.report.stats import PairedTest, compare_rows
@@ -94,8 +101,11 @@ def _entry_claims(where: str, entry, groups: dict) -> tuple[str, list[Claim]]:
     group = groups[name]
     texts = [entry["claim"]] if isinstance(entry["claim"], str) else entry["claim"]
     source = entry["source"] if isinstance(entry["source"], str) else "; ".join(entry["source"])
-    paper = {str(label): float(value) for label, value in (entry.get("paper") or {}).items()}
-    digits = int(entry.get("digits", DIGITS))
+    try:
+        paper = {str(label): float(value) for label, value in (entry.get("paper") or {}).items()}
+        digits = int(entry.get("digits", DIGITS))
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: paper must map sides to numbers and digits be an integer ({exc})") from exc
     claims = []
     for text in texts:
         better, relation, worse = _parse(where, text)
