@@ -1,9 +1,8 @@
-"""Lazy plugin registries for methods and evaluators.
+"""Lazy plugin registries: methods, evaluators and loss terms, all three declared alike.
 
-Built-ins are ``"module:Object"`` strings, so listing imports nothing heavy: each built-in method names its
-class in its own file, ``configs/methods/<method>.yaml`` (``plugin:``), the evaluators are listed here; third-party plugins come
-from the entry-point groups ``gsbench.methods`` and ``gsbench.evaluators``; `Registry.register` adds
-an object or a path at run time (tests, notebooks). Unknown names fail with "did you mean".
+A built-in is declared by its own file ``configs/<kind>/<name>.yaml`` (``plugin: "module:Object"``), so listing
+imports nothing heavy; third-party plugins come from the entry-point groups ``gsbench.<kind>``; `Registry.register`
+adds an object or a path at run time (tests, notebooks). Unknown names fail with "did you mean".
 """
 
 from __future__ import annotations
@@ -11,17 +10,18 @@ from __future__ import annotations
 import importlib
 from importlib import metadata
 
-from gsbench.config.files import declared_methods, suggest
+from gsbench.config.files import declared_plugins, suggest
 from gsbench.errors import RegistryError
 
 
 class Registry:
-    """Name -> ``"module:Object"`` string or object; objects are imported on first `get`."""
+    """Name -> ``"module:Object"`` string or object; a string's object is imported on first `get`."""
 
     def __init__(self, kind: str, builtins: dict[str, str], entry_point_group: str):
         self.kind = kind
         self.entry_point_group = entry_point_group
         self._entries: dict[str, object] = dict(builtins)
+        self._imported: dict[str, object] = {}
         self._entry_points_loaded = False
 
     def _load_entry_points(self) -> None:
@@ -39,13 +39,15 @@ class Registry:
     def register(self, name: str, target) -> None:
         """Add (or replace) ``name`` -> an object or a ``"module:Object"`` string."""
         self._entries[name] = target
+        self._imported.pop(name, None)
 
     def path(self, name: str) -> str:
-        """The ``"module:Object"`` string (or the object's qualified name) behind ``name``."""
+        """The ``"module:Object"`` string behind ``name`` (for an object registered as such: its qualified name,
+        its class's for an instance)."""
         target = self._lookup(name)
         if isinstance(target, str):
             return target
-        return f"{target.__module__}:{target.__qualname__}"
+        return f"{target.__module__}:{getattr(target, '__qualname__', type(target).__qualname__)}"
 
     def _lookup(self, name: str):
         self._load_entry_points()
@@ -61,27 +63,15 @@ class Registry:
         target = self._lookup(name)
         if not isinstance(target, str):
             return target
-        module_name, _, attr = target.partition(":")
-        try:
-            obj = getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError) as exc:
-            raise RegistryError(f"{self.kind} '{name}' points to '{target}', which cannot be imported: {exc}") from exc
-        self._entries[name] = obj
-        return obj
+        if name not in self._imported:
+            module_name, _, attr = target.partition(":")
+            try:
+                self._imported[name] = getattr(importlib.import_module(module_name), attr)
+            except (ImportError, AttributeError) as exc:
+                raise RegistryError(f"{self.kind} '{name}' points to '{target}', which cannot be imported: {exc}") from exc
+        return self._imported[name]
 
 
-METHODS = Registry("method", declared_methods(), "gsbench.methods")  # configs/methods/<method>.yaml
-
-EVALUATORS = Registry(
-    "evaluator",
-    {
-        "dtu_chamfer": "gsbench.evaluators.dtu_chamfer:DTUChamfer",
-        "tnt_f1": "gsbench.evaluators.tnt_f1:TnTF1",
-        "normal_similarity": "gsbench.evaluators.normal_similarity:NormalSimilarity",
-        "image": "gsbench.evaluators.image:ImageMetrics",
-        "surface_offset": "gsbench.evaluators.surface_offset:SurfaceOffset",
-        "silhouette": "gsbench.evaluators.silhouette:Silhouette",
-        "mesh_stats": "gsbench.evaluators.mesh_stats:MeshStats",
-    },
-    "gsbench.evaluators",
-)
+METHODS = Registry("method", declared_plugins("methods"), "gsbench.methods")
+EVALUATORS = Registry("evaluator", declared_plugins("evaluators"), "gsbench.evaluators")
+LOSS_TERMS = Registry("loss term", declared_plugins("loss_terms"), "gsbench.loss_terms")  # objects: TermSpec

@@ -60,7 +60,7 @@ from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.data.visual_hull import inside_visual_hull
 from gsbench.errors import ConfigError, DataError
-from gsbench.losses.terms import TermSpec, active_terms
+from gsbench.losses.terms import active_terms
 from gsbench.mesh.cleanup import canonical_order
 from gsbench.mesh.tets import MAX_POINTS, tetra_mesh
 from gsbench.mesh.tsdf import tsdf_fusion
@@ -193,7 +193,7 @@ class Method:
         loss term's name and the parameters the method binds to it (`gsbench.losses.terms.active_terms`)."""
         method = cls()
         method.configure(cfg)
-        active_terms(cfg.losses, 0, method.term_params(), method.loss_terms())
+        active_terms(cfg.losses, 0, method.term_params())
 
     @classmethod
     def gaussian_budget(cls, cfg: RunConfig) -> int:
@@ -319,10 +319,6 @@ class Method:
         own = {k: v for k, v in dataclasses.asdict(self.params).items() if k in names}
         return {**own, "white_background": self.cfg.data.white_background, "scene_extent": self.extent,
                 "max_gaussians": self.cfg.train.max_gaussians}
-
-    def loss_terms(self) -> dict[str, TermSpec]:
-        """The method's own terms not in the global registry (none for 3DGS/2DGS)."""
-        return {}
 
     def term_params(self) -> dict[str, dict]:
         """Parameters bound to registered terms (`gsbench.losses.terms.active_terms` ``params``)."""

@@ -35,7 +35,6 @@ from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError
 from gsbench.geometry.depth import pixel_rays
 from gsbench.losses.terms import Batch
-from gsbench.methods import gggs_terms  # noqa: F401  (registers the gggs_* terms)
 from gsbench.methods.base import ADAM_EPS, DEPTH_OUTPUTS, MethodInfo
 from gsbench.methods.filtered import FilteredConfig, FilteredMethod
 from gsbench.methods.multiview import NeighbourViews, check_multiview_params

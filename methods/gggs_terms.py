@@ -1,4 +1,4 @@
-"""GGGS's loss terms (docs/methods/gggs.md §3), registered in `gsbench.losses.terms` at import. They read the
+"""GGGS's loss terms (docs/methods/gggs.md §3), declared in configs/loss_terms/. They read the
 stochastic-solid depth D (the ``solid_depth`` output, camera z) and the rendered normal N = Σ wᵢnᵢ:
 
 - ``gggs_normal``: mean over all H×W pixels of 1 − n_r·n_d, n_r = N/α (GGGS divides the normal by 1 − T, not
@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from gsbench.geometry.depth import depth_to_normal
-from gsbench.losses.terms import Batch, register_term
+from gsbench.losses.terms import Batch, loss_term
 from gsbench.methods.pgsr_terms import multiview_context, multiview_geo, multiview_ncc
 from gsbench.raster.types import RenderOutput
 
@@ -50,6 +50,6 @@ def gggs_ncc_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tens
     return multiview_ncc(multiview_context(state, "gggs_ncc", render, batch), render.solid_depth.sum() * 0.0)
 
 
-register_term("gggs_normal", gggs_normal_term, {"solid_depth", "normal", "alpha"})
-register_term("gggs_geo", gggs_geo_term, {"solid_depth", "normal"})
-register_term("gggs_ncc", gggs_ncc_term, {"solid_depth", "normal"})
+GGGS_NORMAL = loss_term("gggs_normal", gggs_normal_term, {"solid_depth", "normal", "alpha"})
+GGGS_GEO = loss_term("gggs_geo", gggs_geo_term, {"solid_depth", "normal"})
+GGGS_NCC = loss_term("gggs_ncc", gggs_ncc_term, {"solid_depth", "normal"})

@@ -32,7 +32,6 @@ from dataclasses import dataclass
 
 import torch
 
-import gsbench.methods.ibgs_terms  # noqa: F401  (registers eigval and eigvec)
 from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError

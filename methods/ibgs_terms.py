@@ -1,5 +1,5 @@
 """IBGS loss terms ``eigval`` and ``eigvec`` (docs/methods/ibgs.md §5.2, §5.3, docs/methods/ibgs.md §5),
-registered in `gsbench.losses.terms` at import.
+declared in configs/loss_terms/.
 
 Both read ``state["local_geometry"]`` (a `gsbench.geometry.local_geometry.LocalGeometry` of this step) and
 ``state["scene_radius"]``; Gaussians whose neighbourhood is a single point (``valid`` false) are skipped.
@@ -22,7 +22,7 @@ import torch
 from gsbench.errors import ConfigError
 from gsbench.geometry.local_geometry import LocalGeometry
 from gsbench.geometry.neighbours import rows
-from gsbench.losses.terms import Batch, register_term
+from gsbench.losses.terms import Batch, loss_term
 from gsbench.raster.types import RenderOutput
 
 
@@ -58,5 +58,5 @@ def eigvec_term(render: RenderOutput, batch: Batch, state: dict, min_planarity: 
     return (weight * (1.0 - similarity)).mean().float()
 
 
-register_term("eigval", eigval_term)
-register_term("eigvec", eigvec_term, params={"min_planarity": 1e-3})
+EIGVAL = loss_term("eigval", eigval_term)
+EIGVEC = loss_term("eigvec", eigvec_term, params={"min_planarity": 1e-3})

@@ -37,7 +37,7 @@ from gsbench.data.camera import Scene
 from gsbench.data.tnt import gt_bounding_sphere
 from gsbench.errors import ConfigError, import_open3d
 from gsbench.geometry.depth import world_rays
-from gsbench.losses.terms import Batch, TermSpec
+from gsbench.losses.terms import Batch, loss_term, method_state
 from gsbench.mesh import MeshError
 from gsbench.mesh.cleanup import canonical_order, keep_largest_clusters, to_trimesh
 from gsbench.methods.base import ADAM_EPS, GSConfig, Method, MethodInfo, _export_atomic
@@ -146,11 +146,6 @@ class NeuSG(Method):
                 group["lr"] = p.field_lr * factor
 
     # ---- the terms ------------------------------------------------------------------------------
-    def loss_terms(self) -> dict[str, TermSpec]:
-        return {name: TermSpec(name, fn, frozenset(), (fn.__doc__ or "").strip()) for name, fn in
-                (("neus_rgb", neus_rgb_term), ("eikonal", eikonal_term), ("sdf_points", sdf_points_term),
-                 ("sdf_align", sdf_align_term))}
-
     def loss_state(self) -> dict:
         return {"gaussians": self.gaussians, "neusg": self}
 
@@ -264,13 +259,13 @@ def sdf_mesh(sdf_fn, radius: float, voxel: float):
 
 def neus_rgb_term(render, batch: Batch, state: dict) -> torch.Tensor:
     """L_rgb of the SDF (NeuSG eq. 14, NeuS): mean |C_NeuS − C_gt| over the step's sampled pixels and channels."""
-    out, target = state["neusg"].rays(batch)
+    out, target = method_state(state, "neusg", "neus_rgb").rays(batch)
     return (out.colour - target).abs().mean()
 
 
 def eikonal_term(render, batch: Batch, state: dict) -> torch.Tensor:
     """L_eik = mean (|∇f(x)| − 1)² over the NeuS samples inside the sphere (NeuSG eq. 14); 0 without samples."""
-    grad = state["neusg"].rays(batch)[0].gradients
+    grad = method_state(state, "neusg", "eikonal").rays(batch)[0].gradients
     if grad.shape[0] == 0:
         return grad.sum()
     return ((grad.norm(dim=-1) - 1) ** 2).mean()
@@ -278,7 +273,7 @@ def eikonal_term(render, batch: Batch, state: dict) -> torch.Tensor:
 
 def sdf_points_term(render, batch: Batch, state: dict) -> torch.Tensor:
     """L_pt = mean |f(μ_i)| over a sample of Gaussian centres (NeuSG eq. 14; centres held fixed); 0 if none."""
-    method = state["neusg"]
+    method = method_state(state, "neusg", "sdf_points")
     _, means = method.centre_sample()
     if len(means) == 0:
         return method.field.variance * 0
@@ -288,7 +283,7 @@ def sdf_points_term(render, batch: Batch, state: dict) -> torch.Tensor:
 def sdf_align_term(render, batch: Batch, state: dict) -> torch.Tensor:
     """L_align = mean |1 − |n_wᵀ ∇f̂(μ_i)|| over a sample of Gaussians, n_w the rotation column of the smallest
     scale, ∇f̂ the SDF's unit normal held fixed (NeuSG eq. 15); 0 if none."""
-    method = state["neusg"]
+    method = method_state(state, "neusg", "sdf_align")
     g = method.gaussians
     index, means = method.centre_sample()
     if len(index) == 0:
@@ -301,3 +296,7 @@ def sdf_align_term(render, batch: Batch, state: dict) -> torch.Tensor:
     return (1 - (axis * normal).sum(-1).abs()).abs().mean()
 
 
+NEUS_RGB = loss_term("neus_rgb", neus_rgb_term)
+EIKONAL = loss_term("eikonal", eikonal_term)
+SDF_POINTS = loss_term("sdf_points", sdf_points_term)
+SDF_ALIGN = loss_term("sdf_align", sdf_align_term)

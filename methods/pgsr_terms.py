@@ -1,4 +1,4 @@
-"""PGSR's geometry and loss terms (docs/methods/pgsr.md §3, §4), registered in `gsbench.losses.terms` at import.
+"""PGSR's geometry and loss terms (docs/methods/pgsr.md §3, §4); the terms are declared in configs/loss_terms/.
 
 Geometry (camera space, the pixel-centre convention of docs/design.md §2.1, r̃ = K⁻¹(u, v, 1)):
 
@@ -42,7 +42,7 @@ from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
 from gsbench.geometry.depth import depth_to_normal, pixel_centres, pixel_rays
 from gsbench.losses.ssim import ssim
-from gsbench.losses.terms import Batch, image_map, register_term
+from gsbench.losses.terms import Batch, image_map, loss_term
 from gsbench.raster.types import RenderOutput
 
 GRAY = (0.299, 0.587, 0.114)  # PGSR process_image: the grey image of the NCC (ITU-R 601 luma)
@@ -336,8 +336,8 @@ def pgsr_ncc_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tens
     return multiview_ncc(multiview_context(state, "pgsr_ncc", render, batch), render.plane_distance.sum() * 0.0)
 
 
-register_term("min_scale", min_scale_term)
-register_term("l1_exposure", l1_exposure_term, {"rgb"}, params={"ssim_gate": True})
-register_term("pgsr_normal", pgsr_normal_term, {"plane_distance", "normal", "alpha"})
-register_term("pgsr_geo", pgsr_geo_term, {"plane_distance", "normal"})
-register_term("pgsr_ncc", pgsr_ncc_term, {"plane_distance", "normal"})
+MIN_SCALE = loss_term("min_scale", min_scale_term)
+L1_EXPOSURE = loss_term("l1_exposure", l1_exposure_term, {"rgb"}, params={"ssim_gate": True})
+PGSR_NORMAL = loss_term("pgsr_normal", pgsr_normal_term, {"plane_distance", "normal", "alpha"})
+PGSR_GEO = loss_term("pgsr_geo", pgsr_geo_term, {"plane_distance", "normal"})
+PGSR_NCC = loss_term("pgsr_ncc", pgsr_ncc_term, {"plane_distance", "normal"})

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from gsbench.errors import ConfigError
 from gsbench.geometry.neighbours import NeighbourIndex, rows
 from gsbench.geometry.optics import fresnel, reflect, refract
-from gsbench.losses.terms import Batch, TermSpec
+from gsbench.losses.terms import Batch, loss_term, method_state
 from gsbench.methods.base import ADAM_EPS, DEPTH_OUTPUTS, MethodInfo
 from gsbench.methods.gs2d import GS2D, GS2DConfig
 from gsbench.raster import rasterize
@@ -254,10 +254,6 @@ class RT2DGS(GS2D):
         return torch.where(candidates[..., None], filled, light), traced
 
     # ---- losses, schedules, checkpoints --------------------------------------------------------
-    def loss_terms(self) -> dict[str, TermSpec]:
-        return {"normal_smoothness": TermSpec("normal_smoothness", normal_smoothness_term, frozenset(),
-                                              (normal_smoothness_term.__doc__ or "").strip())}
-
     def loss_state(self) -> dict:
         return {"gaussians": self.gaussians, "rt2dgs": self}
 
@@ -339,7 +335,7 @@ def trace_interface(x: torch.Tensor, view: torch.Tensor, normal: torch.Tensor, i
 def normal_smoothness_term(render, batch: Batch, state: dict) -> torch.Tensor:
     """L_smooth = mean over the kNN pairs (i, j) of log(2 / (|n_i·n_j| + 1)) / (d_ij + ε) (the paper's eq.;
     n the surfel normals, d_ij the centres' distance, ε = ``smooth_epsilon`` x scene radius)."""
-    method = state["rt2dgs"]
+    method = method_state(state, "rt2dgs", "normal_smoothness")
     g = method.gaussians
     index = method.neighbour_index()
     if index.shape[1] == 0:
@@ -349,4 +345,7 @@ def normal_smoothness_term(render, batch: Batch, state: dict) -> torch.Tensor:
     distance = (g.means[:, None, :] - rows(g.means, index)).norm(dim=-1).detach()
     eps = method.params.smooth_epsilon * method.scene_radius
     return (torch.log(2.0 / (cos + 1.0)) / (distance + eps)).mean()
+
+
+NORMAL_SMOOTHNESS = loss_term("normal_smoothness", normal_smoothness_term)
 

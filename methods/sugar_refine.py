@@ -30,7 +30,7 @@ import torch.nn.functional as F
 import trimesh
 
 from gsbench.errors import ConfigError
-from gsbench.losses.terms import Batch, TermSpec
+from gsbench.losses.terms import Batch, loss_term, method_state
 from gsbench.methods.base import ADAM_EPS, Method, MethodInfo, _export_atomic
 from gsbench.methods.sugar_binding import barycentric, bound_gaussians, initial_log_scales, usable_faces
 from gsbench.raster.sh import C0 as SH_C0
@@ -139,10 +139,6 @@ class SugarRefinement(Method):
     def _sugar_steps_per_step(self) -> float:
         return REFINEMENT_STEPS[self.params.refinement] / max(self.cfg.train.iterations, 1)
 
-    def loss_terms(self) -> dict[str, TermSpec]:
-        return {"mesh_normal_consistency": TermSpec("mesh_normal_consistency", mesh_normal_consistency_term, frozenset(),
-                                                    (mesh_normal_consistency_term.__doc__ or "").strip())}
-
     def loss_state(self) -> dict:
         return {"gaussians": self.gaussians, "refinement": self}
 
@@ -190,7 +186,7 @@ def _face_pairs(faces: np.ndarray) -> torch.Tensor:
 def mesh_normal_consistency_term(render, batch: Batch, state: dict) -> torch.Tensor:
     """L_nc = mean over pairs of faces sharing an edge of 1 − cos(n_i, n_j) (pytorch3d mesh_normal_consistency,
     SuGaR refinement weight 0.1); 0 without pairs."""
-    method = state["refinement"]
+    method = method_state(state, "refinement", "mesh_normal_consistency")
     g = method.gaussians
     pairs = method._edge_pairs
     v = g.params["vertices"][g.faces]
@@ -198,6 +194,9 @@ def mesh_normal_consistency_term(render, batch: Batch, state: dict) -> torch.Ten
     if len(pairs) == 0:
         return v.sum() * 0
     return (1 - (normal[pairs[:, 0]] * normal[pairs[:, 1]]).sum(-1)).mean()
+
+
+MESH_NORMAL_CONSISTENCY = loss_term("mesh_normal_consistency", mesh_normal_consistency_term)
 
 
 def check_refinement(params, cfg) -> None:

@@ -1,6 +1,4 @@
-"""SuGaR's coarse-stage regularisers as registered loss terms (docs/methods/sugar.md §3, §5).
-
-Importing this module registers two terms in `gsbench.losses.terms`:
+"""SuGaR's coarse-stage regularisers as loss terms (docs/methods/sugar.md §3, §5), declared in configs/loss_terms/:
 
 - ``sugar_sdf``  — SuGaR's "SDF estimation" loss (``estimation_factor`` 0.2), parameter ``mode``:
   ``density`` (``coarse_density.py``, the default) or ``sdf`` (``coarse_sdf.py``);
@@ -57,7 +55,7 @@ import torch.nn.functional as F
 
 from gsbench.errors import ConfigError
 from gsbench.geometry.neighbours import nearest_other, rows
-from gsbench.losses.terms import Batch, register_term
+from gsbench.losses.terms import Batch, loss_term
 from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
 from gsbench.raster.payload import quat_to_rotmat
 from gsbench.raster.types import RenderOutput
@@ -317,6 +315,6 @@ def _sdf_requires(params: Mapping) -> frozenset:
     return frozenset({"depth", "alpha"} if check_mode(params["mode"]) == "sdf" else ())
 
 
-register_term("sugar_sdf", sdf_term, params={"mode": "density", "num_samples": NUM_SAMPLES, "extent": 1.0, "near": 0.0},
-              requires_fn=_sdf_requires)
-register_term("sugar_normal", normal_term, params={"mode": "density", "num_samples": NUM_SAMPLES})
+SUGAR_SDF = loss_term("sugar_sdf", sdf_term, params={"mode": "density", "num_samples": NUM_SAMPLES, "extent": 1.0, "near": 0.0},
+                      requires_fn=_sdf_requires)
+SUGAR_NORMAL = loss_term("sugar_normal", normal_term, params={"mode": "density", "num_samples": NUM_SAMPLES})

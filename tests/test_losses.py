@@ -9,6 +9,7 @@ import pytest
 import torch
 from scipy import ndimage
 
+from gsbench.config.files import config_root
 from gsbench.errors import ConfigError
 from gsbench.geometry.depth import depth_to_normal, pixel_rays
 from gsbench.losses import terms as losses
@@ -16,6 +17,7 @@ from gsbench.losses.ssim import C1, C2, gaussian_window, ssim, ssim_map
 from gsbench.losses.terms import Batch, active_terms, get_term, required_outputs, total_loss
 from gsbench.raster.reference import render
 from gsbench.raster.types import RasterSettings, RenderOutput
+from gsbench.registry import LOSS_TERMS
 from gsbench.training.gaussians import Gaussians
 from tests.raster_scenes import make_camera, random_gaussians
 
@@ -102,16 +104,32 @@ def test_params_change_requires():
         assert active[0].spec.requires == {"normal", "alpha"} | depth
 
 
-def test_extra_and_register_term():
-    spec = losses.TermSpec("mine", lambda r, b, s: torch.tensor(2.0), frozenset())
-    active = active_terms({"mine": {"weight": 3.0}}, 0, extra={"mine": spec})
+def test_terms_are_registered_like_methods(monkeypatch):
+    """A term is a `TermSpec` in `gsbench.registry.LOSS_TERMS`: declared in configs/loss_terms/<name>.yaml (every
+    built-in, listed without importing it) or added at run time; a registered object that is no TermSpec of that
+    name is an error naming it."""
+    declared = {path.stem for path in (config_root() / "loss_terms").glob("*.yaml")}
+    assert declared == set(LOSS_TERMS.names()) and {"l1", "eigval", "neus_rgb", "normal_smoothness"} <= declared
+    assert LOSS_TERMS.path("pgsr_ncc") == "gsbench.methods.pgsr_terms:PGSR_NCC"
+    monkeypatch.setattr(LOSS_TERMS, "_entries", dict(LOSS_TERMS._entries))  # registrations below end with the test
+    LOSS_TERMS.register("mine", losses.loss_term("mine", lambda r, b, s: torch.tensor(2.0)))
+    active = active_terms({"mine": {"weight": 3.0}}, 0)
     total, values = total_loss(active, RenderOutput(), None, {})
     assert float(total) == 6.0 and values == {"mine": 2.0}
-    with pytest.raises(ConfigError, match="already registered"):
-        losses.register_term("l1", losses.l1_term)
     with pytest.raises(ConfigError, match="unknown render outputs"):
-        losses.register_term("bad", losses.l1_term, {"rgbd"})
+        losses.loss_term("bad", losses.l1_term, {"rgbd"})
+    LOSS_TERMS.register("misnamed", losses.L1)
+    with pytest.raises(ConfigError, match="not a TermSpec named 'misnamed'"):
+        get_term("misnamed")
     assert get_term("l1").requires == {"rgb"}
+
+
+def test_a_methods_term_under_another_method_names_the_fix():
+    """A term that reads its method's state (NeuSG's SDF, RT2DGS's neighbours, SuGaR's refinement) fails clearly
+    when another method's loss config lists it."""
+    for name in ("neus_rgb", "eikonal", "sdf_points", "sdf_align", "normal_smoothness", "mesh_normal_consistency"):
+        with pytest.raises(ConfigError, match=f"remove losses.{name} for this method"):
+            get_term(name)(RenderOutput(), None, {"gaussians": None})
 
 
 def test_no_active_term_is_zero():
@@ -230,7 +248,7 @@ def test_total_loss_gradients_finite_through_reference_render():
     g = random_gaussians(12, "surfel", seed=3, camera=cam, dtype=torch.float64)
     params = {k: getattr(g, k).clone().requires_grad_(True) for k in ("means", "scales", "opacities")}
     g.means, g.scales, g.opacities = params["means"], params["scales"], params["opacities"]
-    builtin = [name for name in losses.term_names() if losses.get_term(name).fn.__module__ == "gsbench.losses.terms"]
+    builtin = [name for name in LOSS_TERMS.names() if LOSS_TERMS.path(name).startswith("gsbench.losses.terms:")]
     cfg = {name: {"weight": 1.0} for name in builtin}  # method plugins' terms are tested with their methods
     active = active_terms(cfg, 0, params={"normal_consistency": {"depth_ratio": 0.5}})
     out = render(g, cam, kernel="surfel", outputs=required_outputs(active), settings=RasterSettings())

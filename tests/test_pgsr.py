@@ -263,8 +263,8 @@ def test_declared_info_matches_the_configs_and_papers():
 
 def test_requested_outputs_follow_the_schedule(tiny_spot):
     m, scene, cfg = setup_method("pgsr", tiny_spot)
-    early = required_outputs(active_terms(cfg.losses, 1, m.term_params(), m.loss_terms()))
-    late = required_outputs(active_terms(cfg.losses, 7000, m.term_params(), m.loss_terms()))
+    early = required_outputs(active_terms(cfg.losses, 1, m.term_params()))
+    late = required_outputs(active_terms(cfg.losses, 7000, m.term_params()))
     assert early == {"rgb"} and late == {"rgb", "alpha", "normal", "plane_distance"}
     with pytest.raises(Exception, match="exposure_compensation"):
         setup_method("pgsr", tiny_spot, "train.optimizer=visible_adam", "method.exposure_compensation=true")

@@ -5,15 +5,16 @@ import sys
 
 import pytest
 
+from gsbench.config.files import declared_plugins
 from gsbench.errors import RegistryError
-from gsbench.registry import EVALUATORS, Registry
+from gsbench.registry import EVALUATORS, LOSS_TERMS, METHODS, Registry
 
 
 def test_listing_imports_nothing_heavy():
     code = (
-        "import sys; from gsbench.registry import METHODS, EVALUATORS; "
+        "import sys; from gsbench.registry import METHODS, EVALUATORS, LOSS_TERMS; "
         "from gsbench.data.synthetic.builtin import BUILTIN_SCENES; "
-        "METHODS.names(); EVALUATORS.names(); "
+        "METHODS.names(); EVALUATORS.names(); LOSS_TERMS.names(); "
         "heavy = [m for m in ('torch', 'open3d', 'trimesh', 'pymeshlab', 'pycolmap', 'scipy') if m in sys.modules]; "
         "print(','.join(heavy))"
     )
@@ -38,3 +39,13 @@ def test_lazy_string_entries_and_register():
     reg.register("broken", "no_such_module_xyz:Thing")
     with pytest.raises(RegistryError, match="cannot be imported"):
         reg.get("broken")
+
+
+def test_every_builtin_is_declared_by_its_own_file():
+    """Methods, evaluators and loss terms are declared alike: configs/<kind>/<name>.yaml names the object
+    (``plugin:``), whose own name is the file's."""
+    for kind, registry in (("methods", METHODS), ("evaluators", EVALUATORS), ("loss_terms", LOSS_TERMS)):
+        declared = declared_plugins(kind)
+        assert declared and set(declared) <= set(registry.names()), kind
+        for name in declared:
+            assert registry.get(name).name == name, (kind, name)

@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gsbench.config import files
 from gsbench.config.suites import load_suite, suite_names
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.errors import ConfigError
 from gsbench.report.aggregate import leaderboard
 from gsbench.report.build import write_report
-from gsbench.report.claims import CLAIMS, RELATIONS, evaluate_claims, load_findings, verdict
+from gsbench.report.claims import RELATIONS, evaluate_claims, load_claims, load_findings, verdict
 from gsbench.report.collect import label_variants, load_manifests, load_runs
 from gsbench.report.metrics import PAPERS_METRIC, metric_specs, reported
 from gsbench.report.stats import (
@@ -247,7 +248,7 @@ def test_ablation_cells_differing_from_the_baseline_are_marked(tmp_path):
 def test_claims_use_the_papers_metric_and_name_their_source():
     from gsbench.config.files import config_root
 
-    for claim in CLAIMS:
+    for claim in load_claims():
         # a claim about one kind of scene (``factor``) is in the metric its paper used there: RT2DGS reports PSNR only
         assert claim.metric == ("psnr" if claim.factor == "transparent" else PAPERS_METRIC[claim.dataset]), claim
         assert claim.relation in RELATIONS and claim.source and " vs " in claim.paper, claim
@@ -259,9 +260,39 @@ def test_claims_use_the_papers_metric_and_name_their_source():
 def test_claims_between_methods_quote_the_methods_reported_means():
     """A claim's paper numbers are the two methods' reported means (one source, so they cannot drift apart); a claim
     about one kind of scene (``factor``) quotes its paper's own table, not a dataset's means."""
-    for claim in (c for c in CLAIMS if not c.sweep and not c.factor):
+    for claim in (c for c in load_claims() if not c.sweep and not c.factor):
         sides = [reported(name, claim.dataset, []) for name in (claim.better, claim.worse)]
         assert [float(x) for x in claim.paper.split(" vs ")] == [side.mean for side in sides], claim
+
+
+def _configs(tmp_path, monkeypatch, claims: str, order: str = "") -> Path:
+    """A configs folder with methods a and b (DTU Chamfer means 0.5 and 0.75) and one group, as the shipped one."""
+    (tmp_path / "methods").mkdir(parents=True)
+    for name, mean in (("a", 0.5), ("b", 0.75)):
+        (tmp_path / "methods" / f"{name}.yaml").write_text(
+            f"plugin: x:Y\nreported: {{dtu: {{metric: chamfer, mean: {mean}, source: 'paper {name}'}}}}\n")
+    (tmp_path / "methods" / "a.yaml").write_text((tmp_path / "methods" / "a.yaml").read_text() + claims)
+    (tmp_path / "claim_groups.yaml").write_text(f"groups:\n  g: {{heading: 'A > B', dataset: dtu, metric: chamfer{order}}}\n")
+    monkeypatch.setattr(files, "CONFIG_ROOT", tmp_path)
+    return tmp_path
+
+
+def test_claims_are_read_from_the_method_files(tmp_path, monkeypatch):
+    """A side's number is its reported mean unless the entry's paper: gives it; a malformed entry is a ConfigError
+    naming the file, the entry and the fix."""
+    _configs(tmp_path, monkeypatch, "claims:\n  - {group: g, claim: [a > b, b ≈ x], source: [s1, s2], paper: {x: 1.0},"
+                                    " digits: 3}\n", ", order: [b ≈ x, a > b]")
+    assert [(c.text, c.paper, c.source, c.group) for c in load_claims()] == [
+        ("b as good as x", "0.750 vs 1.000", "s1; s2", "A > B"), ("a better than b", "0.500 vs 0.750", "s1; s2", "A > B")]
+    for case, (claims, order, message) in enumerate((
+            ("{group: h, claim: a > b, source: s}", "", "a.yaml: claims.0.: unknown group 'h'"),
+            ("{group: g, claim: a > y, source: s}", "", "no paper number for 'y'.*give it under paper:"),
+            ("{group: g, claim: a >> b, source: s}", "", "claim 'a >> b' must read 'better RELATION worse'"),
+            ("{group: g, claim: a > b}", "", "a.yaml: claims.0.: a claims entry is a mapping with group, claim and source"),
+            ("{group: g, claim: a > b, source: s}", ", order: [b > a]", "order must list each of the group's claims once"))):
+        _configs(tmp_path / f"case{case}", monkeypatch, f"claims:\n  - {claims}\n", order)
+        with pytest.raises(ConfigError, match=message):
+            load_claims()
 
 
 # ---------------------------------------------------------------- suites

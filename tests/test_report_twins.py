@@ -11,7 +11,7 @@ import pytest
 
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.report.build import write_report
-from gsbench.report.claims import CLAIMS, evaluate_claims
+from gsbench.report.claims import evaluate_claims, load_claims
 from gsbench.report.collect import Run, label_variants
 from gsbench.report.metrics import metric_specs
 from gsbench.report.twins import twin_pairs, twin_tables
@@ -113,7 +113,7 @@ def test_a_claim_about_transparent_objects_pairs_only_the_glass_scenes():
                      _run("rt2dgs", f"dtu-glass-{name}", seed, 1.0, psnr=26.0 + seed),
                      _run("2dgs", f"dtu-glass-{name}-opaque", seed, 1.0, psnr=30.0 + seed),
                      _run("rt2dgs", f"dtu-glass-{name}-opaque", seed, 1.0, psnr=29.0 + seed)]
-    claims = [c for c in CLAIMS if c.factor == "transparent" and not c.sweep]  # the methods' claims, not rt2dgs_light's
+    claims = [c for c in load_claims() if c.factor == "transparent" and not c.sweep]  # the methods' claims, not rt2dgs_light's
     assert {(c.better, c.worse, c.metric) for c in claims} == {("rt2dgs", "2dgs", "psnr"), ("rt2dgs", "3dgs", "psnr")}
     outcomes = {o.claim.worse: o for o in evaluate_claims(label_variants(runs), [], metric_specs(), claims, {})}
     assert outcomes["2dgs"].verdict == "agrees"

@@ -53,6 +53,7 @@ from pathlib import Path
 import torch
 
 import gsbench.training.trainer as train
+from gsbench.config.files import paper_methods
 from gsbench.data.cache import cache_dir
 from gsbench.data.synthetic.make import make_scene
 from gsbench.errors import ConfigError
@@ -87,7 +88,7 @@ class Workload:
 
 
 PAPER_SCENE = "synthetic/dtu-bunny"  # scanned, framed as DTU
-PAPER_METHODS = ("3dgs", "sugar", "2dgs", "gof", "radegs", "ibgs", "pgsr", "gggs", "neusg", "rt2dgs")
+PAPER_METHODS = paper_methods()  # paper_benchmark: in configs/methods/<method>.yaml
 PAPER_SIZES = {"800x600-300k": ((800, 600), 300_000), "800x600-1m": ((800, 600), 1_000_000)}
 
 
@@ -122,7 +123,7 @@ class _TermClock:
 def _term_backward_seconds(trainer, step: int) -> dict[str, float]:
     """Each active term's own backward at ``step`` (module docstring, ``bwd.<term>``); no parameter changes."""
     m = trainer.method
-    active = active_terms(trainer.losses, step, m.term_params(), m.loss_terms())
+    active = active_terms(trainer.losses, step, m.term_params())
     idx = trainer.views[step % len(trainer.views)]
     with torch.no_grad():
         render = m.render(trainer.scene.cameras[idx], required_outputs(active))

@@ -1,7 +1,10 @@
-"""The loss-term registry: named, weighted, scheduled terms (docs/design.md §3.2).
+"""Loss terms: named, weighted, scheduled (docs/design.md §3.2).
 
-A term is ``fn(render, batch, state, **params) -> scalar tensor`` registered as a `TermSpec` with the
-render outputs it reads (``requires``) and its parameters with their defaults (``params``).
+A term is ``fn(render, batch, state, **params) -> scalar tensor`` wrapped in a module-level `TermSpec`
+(`loss_term`) with the render outputs it reads (``requires``) and its parameters with their defaults
+(``params``), and registered like a method: ``configs/loss_terms/<name>.yaml`` names it (``plugin:``,
+`gsbench.registry.LOSS_TERMS`, imported on first use), a plugin package through the ``gsbench.loss_terms``
+entry points.
 
 - ``render``: the `gsbench.raster.RenderOutput` of this step.
 - ``batch``: a `Batch` (GT image, optional mask, camera, step).
@@ -17,8 +20,6 @@ Term parameters (e.g. which depth ``normal_consistency`` differentiates) are met
 not schedule: the method passes ``params={name: {key: value}}`` to `active_terms`, which binds them
 (`TermSpec.bind`, unknown keys are errors) so ``requires`` follows them (``depth_ratio`` 1 needs
 ``median_depth``, 0 needs ``depth``). The bound spec is called as ``spec(render, batch, state)``.
-Methods with their own terms (IBGS ``eigval``, SuGaR ``sdf``) either `register_term` them or pass
-them as ``extra`` to `active_terms`.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from gsbench.errors import ConfigError
 from gsbench.losses.normal_consistency import normal_consistency
 from gsbench.losses.ssim import ssim
 from gsbench.raster.types import ALL_OUTPUTS, RenderOutput
+from gsbench.registry import LOSS_TERMS
 
 ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), docs/methods/sugar.md §3.2, docs/methods/sugar.md §3.2, §5
 
@@ -93,47 +95,44 @@ class ActiveTerm(NamedTuple):
     spec: TermSpec
 
 
-_REGISTRY: dict[str, TermSpec] = {}
-
-
-def register_term(name: str, fn: Callable[..., torch.Tensor], requires=(), doc: str | None = None,
-                  params: Mapping | None = None, requires_fn: Callable[[Mapping], frozenset] | None = None,
-                  *, replace: bool = False) -> TermSpec:
-    """Add a term to the registry; the doc defaults to ``fn``'s docstring. Re-registering needs ``replace``."""
+def loss_term(name: str, fn: Callable[..., torch.Tensor], requires=(), params: Mapping | None = None,
+              requires_fn: Callable[[Mapping], frozenset] | None = None) -> TermSpec:
+    """The `TermSpec` of ``fn`` (its doc: ``fn``'s docstring); ``requires`` must name render outputs."""
     requires = frozenset(requires)
     unknown = requires - set(ALL_OUTPUTS)
     if unknown:
         raise ConfigError(f"loss term '{name}' requires unknown render outputs {sorted(unknown)}; "
                           f"valid outputs: {', '.join(ALL_OUTPUTS)}")
-    if name in _REGISTRY and not replace:
-        raise ConfigError(f"loss term '{name}' is already registered; pass replace=True to override it")
-    spec = TermSpec(name, fn, requires, doc if doc is not None else (fn.__doc__ or "").strip(),
-                    MappingProxyType(dict(params or {})), requires_fn)
-    if requires_fn is not None:
-        spec = spec.bind()
-    _REGISTRY[name] = spec
+    spec = TermSpec(name, fn, requires, (fn.__doc__ or "").strip(), MappingProxyType(dict(params or {})), requires_fn)
+    return spec.bind() if requires_fn is not None else spec
+
+
+def get_term(name: str) -> TermSpec:
+    """The spec registered as ``name`` (`gsbench.registry.LOSS_TERMS`); unknown names are ConfigError."""
+    known = LOSS_TERMS.names()
+    if name not in known:
+        raise ConfigError(f"unknown loss term '{name}'{suggest(name, known)}; known terms: {', '.join(known)}")
+    spec = LOSS_TERMS.get(name)
+    if not isinstance(spec, TermSpec) or spec.name != name:
+        found = f"the TermSpec of '{spec.name}'" if isinstance(spec, TermSpec) else type(spec).__name__
+        raise ConfigError(f"loss term '{name}' is registered as {found}, not a TermSpec named '{name}' "
+                          f"(gsbench.losses.terms.loss_term)")
     return spec
 
 
-def term_names() -> list[str]:
-    """Names of the registered terms, sorted."""
-    return sorted(_REGISTRY)
-
-
-def get_term(name: str, extra: Mapping[str, TermSpec] | None = None) -> TermSpec:
-    """The spec of ``name`` (``extra`` first, then the registry); unknown names are ConfigError."""
-    table = {**_REGISTRY, **(extra or {})}
-    if name not in table:
-        raise ConfigError(f"unknown loss term '{name}'{suggest(name, table)}; known terms: {', '.join(sorted(table))}")
-    return table[name]
+def method_state(state: dict, key: str, term: str):
+    """``state[key]``, which only the method that owns ``term`` provides; else a ConfigError naming the fix."""
+    if key not in state:
+        raise ConfigError(f"loss term '{term}' reads state['{key}'], which this method does not provide; "
+                          f"remove losses.{term} for this method")
+    return state[key]
 
 
 def _schedule_value(cfg, key: str, default):
     return cfg.get(key, default) if isinstance(cfg, Mapping) else getattr(cfg, key, default)
 
 
-def active_terms(loss_cfg: Mapping, step: int, params: Mapping[str, Mapping] | None = None,
-                 extra: Mapping[str, TermSpec] | None = None) -> list[ActiveTerm]:
+def active_terms(loss_cfg: Mapping, step: int, params: Mapping[str, Mapping] | None = None) -> list[ActiveTerm]:
     """The terms in use at ``step``: ``loss_cfg`` maps name -> {weight, start, end} (dict or LossTerm).
 
     Every name and parameter is checked (also of inactive terms), so a typo fails at the first step. Weight 0 removes
@@ -147,7 +146,7 @@ def active_terms(loss_cfg: Mapping, step: int, params: Mapping[str, Mapping] | N
                               f"{suggest(name, loss_cfg)}; configured terms: {', '.join(loss_cfg) or '(none)'}")
     active = []
     for name, cfg in loss_cfg.items():
-        spec = get_term(name, extra).bind(**params.get(name, {}))
+        spec = get_term(name).bind(**params.get(name, {}))
         weight = float(_schedule_value(cfg, "weight", 0.0))
         start = int(_schedule_value(cfg, "start", 0))
         end = int(_schedule_value(cfg, "end", -1))
@@ -363,11 +362,12 @@ def opacity_entropy_term(render: RenderOutput, batch: Batch, state: dict) -> tor
     return (-o * torch.log(o + ENTROPY_EPS) - (1 - o) * torch.log(1 - o + ENTROPY_EPS)).mean()
 
 
-register_term("l1", l1_term, {"rgb"}, params={"use_mask": False})
-register_term("dssim", dssim_term, {"rgb"}, params={"use_mask": False})
-register_term("depth_distortion", depth_distortion_term, params={"normalize": False, "edge_aware": False},
-              requires_fn=_depth_distortion_requires)
-register_term("normal_consistency", normal_consistency_term,
-              params={"depth_ratio": 1.0, "normalize": False, "mix": "depth"}, requires_fn=_normal_consistency_requires)
-register_term("flatten", flatten_term)
-register_term("opacity_entropy", opacity_entropy_term)
+L1 = loss_term("l1", l1_term, {"rgb"}, params={"use_mask": False})
+DSSIM = loss_term("dssim", dssim_term, {"rgb"}, params={"use_mask": False})
+DEPTH_DISTORTION = loss_term("depth_distortion", depth_distortion_term, params={"normalize": False, "edge_aware": False},
+                             requires_fn=_depth_distortion_requires)
+NORMAL_CONSISTENCY = loss_term("normal_consistency", normal_consistency_term,
+                               params={"depth_ratio": 1.0, "normalize": False, "mix": "depth"},
+                               requires_fn=_normal_consistency_requires)
+FLATTEN = loss_term("flatten", flatten_term)
+OPACITY_ENTROPY = loss_term("opacity_entropy", opacity_entropy_term)

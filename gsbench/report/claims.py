@@ -1,46 +1,49 @@
-"""The orderings the papers claim, as data, and what the runs measured for each.
+"""The orderings the papers claim, and what the runs measured for each.
 
-Each `Claim` says that one method (or one sweep row) is better than another on one dataset's metric,
-with the paper that says so and its numbers. The metric is the one the paper used: DTU the official
-script's Chamfer (``chamfer``, mm, lower is better); Tanks and Temples the F1 on mesh vertices plus
-face centroids (``f1_centroids``), the point set of the 2DGS / GOF / RaDe-GS evaluation scripts that
-produced those papers' TnT numbers (`gsbench.report.metrics.COMPANIONS`). Claims between methods are
-measured on the leaderboard of that dataset and metric (runs of a method with several configurations:
-the row with the most runs with the metric, named in the table); claims about an ablation are
-measured on the rows of the sweep that repeats it (its manifest, by sweep name and row label).
+The claims are data: each stands in a method's file (``configs/methods/<method>.yaml``, ``claims:``) and names its
+group in ``configs/claim_groups.yaml`` (the report's table: its heading, dataset, metric, and for an ablation the
+sweep whose rows are the sides); a side's number is its method's ``reported:`` mean unless the entry's ``paper:``
+gives it, so each paper number is written once. The metric is the one the paper used: DTU the official script's
+Chamfer (``chamfer``, mm, lower is better); Tanks and Temples the F1 on mesh vertices plus face centroids
+(``f1_centroids``, `gsbench.report.metrics.COMPANIONS`). Claims between methods are measured on the leaderboard of
+that dataset and metric (of a method's several configurations, the row with the most runs with the metric); claims
+about an ablation on the rows of the sweep that repeats it (its manifest, by sweep name and row label).
 
-A claim is checked with the paired test of `gsbench.report.stats` over the (scene, seed) pairs both
-sides share. Verdicts (`verdict`):
+A claim is checked with the paired test of `gsbench.report.stats` over the (scene, seed) pairs both sides share:
 
-- relation ``>`` (strictly better): *agrees* when the claimed side is significantly better
-  (p < 0.05), *disagrees* when the other side is, *not separable* otherwise;
-- ``≥`` (at least as good): *agrees* when the claimed side is significantly better, *agrees (not
-  separable)* when the test cannot separate them, *disagrees* when the other side is significantly
-  better;
-- ``≈`` (about equal): *agrees (not separable)* when the test cannot separate them, *disagrees* when
-  it can;
+- ``>``: *agrees* when the claimed side is significantly better (p < 0.05), *disagrees* when the other side is,
+  *not separable* otherwise;
+- ``≥``: as ``>``, but *agrees (not separable)* when the test cannot separate them;
+- ``≈``: *agrees (not separable)* when the test cannot separate them, *disagrees* when it can;
 - *not measured*: a side has no runs with the metric, or the two share no (scene, seed) pair.
 
-"Not separable" with few pairs is no evidence of equality: the p-value and the number of pairs are
-shown beside every verdict.
-
-A claim the runs contradict gets a **cause** (`Outcome.cause`): the measured one from
-``configs/findings.yaml`` (`load_findings`: claim text and dataset -> what an experiment showed, with
-where it is written up), or ``unexplained``.
+A claim the runs contradict gets a **cause** (`Outcome.cause`): the measured one from ``configs/findings.yaml``
+(`load_findings`), or ``unexplained``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from gsbench.config.files import config_root, load_yaml
+from gsbench.config.files import (
+    CLAIMS_KEY,
+    config_root,
+    declared_plugins,
+    load_yaml,
+    method_declaration,
+    reported_numbers,
+    suggest,
+)
 from gsbench.errors import ConfigError
 from gsbench.report.aggregate import Board, Row, ablations, leaderboard
 from gsbench.report.stats import PairedTest, compare_rows
 from gsbench.report.twins import changed_scenes
 
-DTU_TABLES = "2DGS paper, Table 1"
 RELATIONS = {">": "better than", "≥": "at least as good as", "≈": "as good as"}
+GROUPS_FILE = "claim_groups.yaml"
+GROUP_KEYS = {"heading", "dataset", "metric", "sweep", "factor", "order"}
+ENTRY_KEYS = {"group", "claim", "source", "paper", "digits"}
+DIGITS = 2  # decimals of the paper's numbers as the report quotes them, unless an entry says otherwise
 
 
 @dataclass(frozen=True)
@@ -69,89 +72,77 @@ class Claim:
         return f"{self.better} {RELATIONS[self.relation]} {self.worse}"
 
 
-def _ordering(group, dataset, metric, chain) -> list[Claim]:
-    return [Claim(group, dataset, metric, better, worse, paper, source, relation)
-            for better, relation, worse, paper, source in chain]
+def _parse(where: str, text) -> tuple[str, str, str]:
+    parts = str(text).split()
+    if len(parts) != 3 or parts[1] not in RELATIONS:
+        raise ConfigError(f"{where}: claim {text!r} must read 'better RELATION worse' with RELATION one of "
+                          f"{', '.join(RELATIONS)}, e.g. 'gof > 2dgs'")
+    return parts[0], parts[1], parts[2]
 
 
-K_PAPER = {2: 0.701, 3: 0.709, 4: 0.684, 5: 0.674, 6: 0.678, 7: 0.686, 8: 0.684, 9: 0.688, 10: 0.692}
-K_SOURCE = "IBGS OpenReview discussion, K table (docs/methods/ibgs.md §11.2)"
-LOSS_SOURCE = "IBGS OpenReview discussion, screen-space loss table (docs/methods/ibgs.md §11.2)"
-LS_SOURCE = "IBGS OpenReview discussion, L_s / L_eigval table (docs/methods/ibgs.md §11.2)"
-KERNEL_SOURCE = "IBGS OpenReview discussion, other rasterizers (docs/methods/ibgs.md §11.2)"
-GGGS_SOURCE = "GGGS paper (arXiv 2601.17835), DTU mean and TnT Table 2 (docs/methods/gggs.md §4)"
-NEUSG_SOURCE = "NeuSG paper v2, ablation table (as summarised; docs/methods/neusg.md §7)"
-RT2DGS_SOURCE = "RT2DGS paper, Table 2 (its own transparent captures, 30 000 steps; docs/methods/rt2dgs.md §1)"
-RT2DGS_LIGHT_SOURCE = ("RT2DGS paper, Tables 2 and 3 ('Ours' 32.57, 'Ours (with RT)' 30.59, 2DGS 31.06; 'Ours' read as "
-                       "not tracing; docs/methods/rt2dgs.md §1)")
+def _number(where: str, side: str, paper: dict, dataset: str, metric: str) -> float:
+    if side in paper:
+        return paper[side]
+    entry = reported_numbers(side).get(dataset) or {}
+    if entry.get("metric") != metric or entry.get("mean") is None:
+        raise ConfigError(f"{where}: no paper number for '{side}': it has no reported {dataset} {metric} mean "
+                          f"(configs/methods/{side}.yaml); give it under paper:")
+    return float(entry["mean"])
 
-CLAIMS: tuple[Claim, ...] = (
-    # DTU mean Chamfer (mm): 3DGS 1.96 > SuGaR 1.33 > 2DGS 0.80 > GOF 0.74 > RaDe-GS 0.68 >= IBGS 0.67
-    *_ordering("DTU Chamfer (mm) 3DGS > SuGaR > 2DGS > GOF > RaDe-GS ≥ IBGS: 3DGS worst, IBGS best", "dtu", "chamfer", (
-        ("sugar", ">", "3dgs", "1.33 vs 1.96", f"{DTU_TABLES} (SuGaR and 3DGS rows)"),
-        ("2dgs", ">", "sugar", "0.80 vs 1.33", f"{DTU_TABLES} (2DGS and SuGaR rows)"),
-        ("gof", ">", "2dgs", "0.74 vs 0.80", "GOF paper, DTU table (as quoted by PGSR, MILo); 2DGS paper, Table 1"),
-        ("radegs", ">", "gof", "0.68 vs 0.74", "RaDe-GS paper v1, DTU table (as quoted by MILo); GOF paper, DTU table (as quoted by PGSR, MILo)"),
-        ("ibgs", "≥", "radegs", "0.67 vs 0.68", "IBGS OpenReview discussion; RaDe-GS paper v1, DTU table"),
-    )),
-    # TnT mean F1 (vertices + centroids): GOF 0.46 > RaDe-GS 0.40 ~ IBGS 0.40 > 2DGS 0.32 > SuGaR 0.19 > 3DGS 0.09
-    *_ordering("TnT F1 GOF > RaDe-GS ≈ IBGS > 2DGS > SuGaR > 3DGS: GOF best, 3DGS worst", "tnt", "f1_centroids", (
-        ("gof", ">", "radegs", "0.46 vs 0.40", "GOF paper, TnT table (as quoted by MILo); RaDe-GS as quoted by MILo and the IBGS discussion"),
-        ("gof", ">", "ibgs", "0.46 vs 0.40", "GOF paper, TnT table (as quoted by MILo); IBGS OpenReview discussion, TnT table"),
-        ("ibgs", "≈", "radegs", "0.40 vs 0.40", "IBGS OpenReview discussion, TnT table"),
-        ("radegs", ">", "2dgs", "0.40 vs 0.32", "RaDe-GS as quoted in the IBGS discussion; 2DGS paper v3, Table 2"),
-        ("ibgs", ">", "2dgs", "0.40 vs 0.32", "IBGS OpenReview discussion, TnT table; 2DGS paper v3, Table 2"),
-        ("2dgs", ">", "sugar", "0.32 vs 0.19", "2DGS paper v3, Table 2 (2DGS and SuGaR rows)"),
-        ("sugar", ">", "3dgs", "0.19 vs 0.09", "2DGS paper, Table 2 (SuGaR and 3DGS rows)"),
-    )),
-    # GGGS against the two methods its paper re-ran (DTU mean Chamfer 0.47 vs PGSR 0.53, RaDe-GS 0.68; TnT F1 0.60 vs
-    # PGSR 0.50, RaDe-GS 0.40 as RaDe-GS reports it; GGGS's own re-run of RaDe-GS gives 0.45, docs/methods/gggs.md §4)
-    *_ordering("GGGS > PGSR, RaDe-GS (DTU Chamfer, mm)", "dtu", "chamfer", (
-        ("gggs", ">", "pgsr", "0.47 vs 0.53", f"{GGGS_SOURCE}; PGSR paper, Table II, PGSR(DS) row"),
-        ("gggs", ">", "radegs", "0.47 vs 0.68", f"{GGGS_SOURCE}; RaDe-GS paper v1, DTU table (as quoted by MILo)"),
-    )),
-    *_ordering("GGGS > PGSR, RaDe-GS (TnT F1)", "tnt", "f1_centroids", (
-        ("gggs", ">", "pgsr", "0.6 vs 0.5", f"{GGGS_SOURCE}; PGSR paper, Table III"),
-        ("gggs", ">", "radegs", "0.6 vs 0.4", f"{GGGS_SOURCE}; RaDe-GS v1, TnT table (as quoted by MILo)"),
-    )),
-    # RT2DGS against the methods it compares with on transparent objects (PSNR only; the glass scenes alone)
-    *(Claim("RT2DGS > 2DGS, 3DGS on transparent objects (PSNR)", "dtu", "psnr", "rt2dgs", worse, numbers,
-            RT2DGS_SOURCE, factor="transparent") for worse, numbers in (("2dgs", "32.57 vs 31.06"),
-                                                                     ("3dgs", "32.57 vs 30.21"))),
-    # the same paper's ablation: its gain without the ray tracing, which its Table 3 puts below 2DGS
-    *(Claim("RT2DGS: its ray tracing (the paper's 'Ours' read as not tracing)", "dtu", "psnr", "rt2dgs_untraced",
-            worse, numbers, RT2DGS_LIGHT_SOURCE, sweep="rt2dgs_light", factor="transparent")
-      for worse, numbers in (("rt2dgs", "32.57 vs 30.59"), ("2dgs", "32.57 vs 31.06"))),
-    # IBGS K: best at K = 5 (DTU mean Chamfer for K = 2..10)
-    *(Claim("IBGS: K = 5 best", "dtu", "chamfer", "method.knn_k=5", f"method.knn_k={k}",
-            f"{K_PAPER[5]} vs {K_PAPER[k]}", K_SOURCE, sweep="ibgs_k") for k in K_PAPER if k != 5),
-    # IBGS loss terms (DTU mean Chamfer)
-    Claim("IBGS losses: each one's effect", "dtu", "chamfer", "ibgs", "ibgs_without_Ld_Ln", "0.67 vs 1.28",
-          LOSS_SOURCE, sweep="ibgs_losses"),
-    Claim("IBGS losses: each one's effect", "dtu", "chamfer", "radegs_v1", "radegs_v1_without_Ld_Ln", "0.69 vs 1.31",
-          LOSS_SOURCE, sweep="ibgs_losses"),
-    Claim("IBGS losses: each one's effect", "dtu", "chamfer", "ibgs", "radegs_v1", "0.67 vs 0.69",
-          LOSS_SOURCE, sweep="ibgs_losses"),
-    Claim("IBGS losses: each one's effect", "dtu", "chamfer", "ibgs_without_Ld_Ln", "radegs_v1_without_Ld_Ln",
-          "1.28 vs 1.31", LOSS_SOURCE, sweep="ibgs_losses"),
-    Claim("IBGS losses: each one's effect", "dtu", "chamfer", "ibgs", "ibgs_Ls_instead_of_eigval", "0.674 vs 0.689",
-          LS_SOURCE, sweep="ibgs_losses"),
-    Claim("IBGS losses: each one's effect", "dtu", "chamfer", "ibgs", "ibgs_Ls_and_eigval", "0.674 vs 0.685",
-          LS_SOURCE, sweep="ibgs_losses"),
-    # NeuSG's ablation (Tanks and Temples F1 on one scene, Barn by its full-model value): raw 3DGS centres as the
-    # point prior 0.59, + L_s 0.69, + L_s + L_align 0.73 (docs/methods/neusg.md §7)
-    Claim("NeuSG: the Gaussian regularisers", "tnt", "f1_centroids", "neusg", "without_sdf_align", "0.73 vs 0.69",
-          NEUSG_SOURCE, sweep="neusg_ablation"),
-    Claim("NeuSG: the Gaussian regularisers", "tnt", "f1_centroids", "without_sdf_align",
-          "without_flatten_and_sdf_align", "0.69 vs 0.59", NEUSG_SOURCE, sweep="neusg_ablation"),
-    # The IBGS additions on other kernels (DTU mean Chamfer)
-    Claim("IBGS on other kernels", "dtu", "chamfer", "ibgs-2dgs", "2dgs", "0.72 vs 0.75", KERNEL_SOURCE,
-          sweep="ibgs_rasterizers"),
-    Claim("IBGS on other kernels", "dtu", "chamfer", "ibgs-gof", "gof", "0.70 vs 0.72", KERNEL_SOURCE,
-          sweep="ibgs_rasterizers"),
-    Claim("IBGS on other kernels", "dtu", "chamfer", "ibgs", "radegs_v1", "0.67 vs 0.69", KERNEL_SOURCE,
-          sweep="ibgs_rasterizers"),
-)
+
+def _entry_claims(where: str, entry, groups: dict) -> tuple[str, list[Claim]]:
+    """(group name, the claims of one ``claims:`` entry)."""
+    if not isinstance(entry, dict) or set(entry) - ENTRY_KEYS or not {"group", "claim", "source"} <= set(entry):
+        raise ConfigError(f"{where}: a claims entry is a mapping with group, claim and source (optional: paper, "
+                          f"digits), got {entry!r}")
+    name = entry["group"]
+    if name not in groups:
+        raise ConfigError(f"{where}: unknown group {name!r}{suggest(name, groups)}; groups: configs/{GROUPS_FILE}")
+    group = groups[name]
+    texts = [entry["claim"]] if isinstance(entry["claim"], str) else entry["claim"]
+    source = entry["source"] if isinstance(entry["source"], str) else "; ".join(entry["source"])
+    try:
+        paper = {str(label): float(value) for label, value in (entry.get("paper") or {}).items()}
+        digits = int(entry.get("digits", DIGITS))
+    except (AttributeError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: paper must map sides to numbers and digits be an integer ({exc})") from exc
+    claims = []
+    for text in texts:
+        better, relation, worse = _parse(where, text)
+        a, b = (_number(where, side, paper, group["dataset"], group["metric"]) for side in (better, worse))
+        claims.append(Claim(group["heading"], group["dataset"], group["metric"], better, worse,
+                            f"{a:.{digits}f} vs {b:.{digits}f}", source, relation, group.get("sweep", ""),
+                            group.get("factor", "")))
+    return name, claims
+
+
+def _in_order(where: str, order, claims: list[Claim]) -> list[Claim]:
+    by_sides = {(c.better, c.relation, c.worse): c for c in claims}
+    wanted = [_parse(where, text) for text in order]
+    if len(by_sides) != len(claims) or sorted(by_sides) != sorted(wanted):
+        declared = sorted(f"{b} {r} {w}" for b, r, w in by_sides)
+        raise ConfigError(f"{where}: order must list each of the group's claims once; the method files declare "
+                          f"{declared}, order lists {list(order)}")
+    return [by_sides[sides] for sides in wanted]
+
+
+def load_claims() -> tuple[Claim, ...]:
+    """Every claim of the method files, group by group in the order of ``configs/claim_groups.yaml``; within a
+    group in its ``order`` or, without one, as declared (method files by name). Errors name the file and key."""
+    path = config_root() / GROUPS_FILE
+    groups = load_yaml(path).get("groups") or {}
+    for name, group in groups.items():
+        if not isinstance(group, dict) or set(group) - GROUP_KEYS or not {"heading", "dataset", "metric"} <= set(group):
+            raise ConfigError(f"{path}: groups.{name} must map heading, dataset, metric (optional: sweep, factor, "
+                              f"order), got {group!r}")
+    found: dict[str, list[Claim]] = {name: [] for name in groups}
+    for method in declared_plugins("methods"):
+        for i, entry in enumerate(method_declaration(method, CLAIMS_KEY) or []):
+            name, claims = _entry_claims(f"configs/methods/{method}.yaml: claims[{i}]", entry, groups)
+            found[name] += claims
+    return tuple(claim for name, group in groups.items()
+                 for claim in (_in_order(f"{path}: groups.{name}.order", group["order"], found[name])
+                               if "order" in group else found[name]))
 
 
 @dataclass(frozen=True)
@@ -223,7 +214,7 @@ def load_findings(path=None) -> dict[tuple[str, str], str]:
     (``causes: {dataset: {claim text: cause}}``); unknown claim texts are an error naming them."""
     path = path or config_root() / FINDINGS_FILE
     causes = load_yaml(path).get("causes") or {}
-    known = {(c.dataset, c.text) for c in CLAIMS}
+    known = {(c.dataset, c.text) for c in load_claims()}
     found = {(dataset, text): str(cause) for dataset, entries in causes.items() for text, cause in (entries or {}).items()}
     unknown = sorted(f"{d}: {t}" for d, t in found if (d, t) not in known)
     if unknown:
@@ -232,10 +223,11 @@ def load_findings(path=None) -> dict[tuple[str, str], str]:
     return found
 
 
-def evaluate_claims(runs, manifests, specs, claims=CLAIMS, findings=None) -> list[Outcome]:
-    """Every claim against the runs (`gsbench.report.collect.Run`, labelled) and sweep manifests;
-    ``specs``: metric name -> `MetricSpec` (`gsbench.report.metrics.metric_specs`); ``findings``: the causes of
-    contradicted claims (`load_findings`, read when None)."""
+def evaluate_claims(runs, manifests, specs, claims=None, findings=None) -> list[Outcome]:
+    """The claims (`load_claims` when None) against the runs (`gsbench.report.collect.Run`, labelled) and sweep
+    manifests; ``specs``: metric name -> `MetricSpec` (`gsbench.report.metrics.metric_specs`); ``findings``: the
+    causes of contradicted claims (`load_findings`, read when None)."""
+    claims = load_claims() if claims is None else claims
     findings = load_findings() if findings is None else findings
     boards: dict[tuple, Board] = {}
     sweep_boards: dict[tuple, list[Board]] = {}

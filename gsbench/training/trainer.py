@@ -223,7 +223,7 @@ class Trainer:
         self.phases = dict.fromkeys(STEP_PHASES, 0.0)
         if progress_interval is not None:
             self.progress_interval = float(progress_interval)
-        active_terms(self.losses, 0, method.term_params(), method.loss_terms())  # validate names now
+        active_terms(self.losses, 0, method.term_params())  # validate names now
 
     # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -263,7 +263,7 @@ class Trainer:
         m.update_schedules(step, self.scale)
         idx = self.sampler.next()
         camera = self.scene.cameras[idx]
-        active = active_terms(self.losses, step, m.term_params(), m.loss_terms())
+        active = active_terms(self.losses, step, m.term_params())
         if not active:
             raise ConfigError(f"step {step}: no loss term is active (all weights 0 or outside start/end); "
                               f"configured: {self.losses}")
