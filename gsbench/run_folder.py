@@ -3,9 +3,10 @@
 `gsbench run` writes ``<out>/<dataset>/<scene>/<method>/<run_id>/``: ``config.yaml`` (the resolved
 configuration), ``checkpoint.pt`` (the latest resumable state, removed when training ends),
 ``checkpoint-final.pt``, ``metrics.jsonl`` (the training log), ``mesh.ply``, ``eval.json``, ``stages.json``
-(per stage: seconds and peak memory), ``record.json`` (the run record, written last) and ``.lock`` (one
-process at a time). Training, the runner, sweeps, diagnostics and the report all reach these files through
-`RunFolder`.
+(per stage: seconds and peak memory), ``switches.json`` (the result-changing ``GSBENCH_*`` switches its
+outputs were made with, `gsbench.runs.records.check_folder_switches`), ``record.json`` (the run record, written
+last) and ``.lock`` (one process at a time). Training, the runner, sweeps, diagnostics and the report all reach
+these files through `RunFolder`.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ class RunFolder:
     EVAL = "eval.json"
     STAGES = "stages.json"
     RECORD = "record.json"
+    SWITCHES = "switches.json"
     LOCK = ".lock"
 
     def __post_init__(self):
@@ -64,6 +66,10 @@ class RunFolder:
     @property
     def record(self) -> Path:
         return self.path / self.RECORD
+
+    @property
+    def switches(self) -> Path:
+        return self.path / self.SWITCHES
 
     @property
     def lock(self) -> Path:

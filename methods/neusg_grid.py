@@ -33,11 +33,9 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
+from gsbench.switches import NEUSG_GRID
 
-GRID_ENV = "GSBENCH_NEUSG_GRID"
-IMPLS = ("fused", "reference")
-
-__all__ = ["GRID_ENV", "IMPLS", "grid_features", "grid_features_reference"]
+__all__ = ["grid_features", "grid_features_reference"]
 
 _i64, _ptr = ctypes.c_int64, ctypes.c_void_p
 SIGNATURES = {
@@ -51,7 +49,7 @@ def grid_features(grids, unit: torch.Tensor, impl: str | None = None) -> torch.T
     one per level) (module docstring). ``impl``: None → fused unless ``GSBENCH_NEUSG_GRID=reference`` (and the
     reference for inputs the kernel cannot take); "fused" or "reference" to choose."""
     grids = list(grids)
-    choice = choose_impl(impl, GRID_ENV, IMPLS, lambda: _unsupported(grids, unit), name="grid_features")
+    choice = choose_impl(impl, NEUSG_GRID, lambda: _unsupported(grids, unit), name="grid_features")
     if choice == "reference":
         return grid_features_reference(grids, unit)
     return _FusedGrid.apply(unit, *grids)

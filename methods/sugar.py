@@ -49,13 +49,13 @@ every method on the same views, ``data.holdout_every``), the mesh decimation tar
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from gsbench.config.run_config import LATER_SWITCH, RunConfig
+from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
 from gsbench.errors import ConfigError, NumericalError
 from gsbench.mesh.levelset import levelset_mesh
@@ -84,11 +84,11 @@ class SugarConfig(GSConfig):
     knn_every: int = 1000
     regularizer: str = "density"
     num_samples: int = sugar_terms.NUM_SAMPLES
-    # the refinement stage (docs/methods/sugar.md §6), added after the suites' records: at their defaults they are
-    # left out of the resolved config, so the coarse-only runs keep their run ids
-    refinement: str = field(default="none", metadata={LATER_SWITCH: True})
-    refine_gaussians_per_triangle: int = field(default=1, metadata={LATER_SWITCH: True})
-    refine_triangles: int = field(default=50_000, metadata={LATER_SWITCH: True})
+    # the refinement stage (docs/methods/sugar.md §6), added after the suites' records: at these defaults they are
+    # left out of the run id (gsbench.config.run_config.ADDED_AFTER_RECORDS), so the coarse-only runs keep theirs
+    refinement: str = "none"
+    refine_gaussians_per_triangle: int = 1
+    refine_triangles: int = 50_000
 
 
 class SuGaR(Method):

@@ -44,11 +44,9 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
+from gsbench.switches import SUGAR_FIELD
 
-FIELD_ENV = "GSBENCH_SUGAR_FIELD"
-IMPLS = ("fused", "reference")
-
-__all__ = ["FIELD_ENV", "IMPLS", "neighbour_field", "neighbour_field_reference", "neighbour_normals",
+__all__ = ["neighbour_field", "neighbour_field_reference", "neighbour_normals",
            "neighbour_normals_reference"]
 
 
@@ -111,7 +109,7 @@ def neighbour_normals_reference(normals: torch.Tensor, points: torch.Tensor, mea
 
 def _fused(impl: str | None, tensors, idx: torch.Tensor, n: int) -> bool:
     """Whether to run the kernel: ``impl``/the environment choose, and inputs it cannot take fall back."""
-    return choose_impl(impl, FIELD_ENV, IMPLS, lambda: _unsupported(tensors, idx, n), "sugar field") == "fused"
+    return choose_impl(impl, SUGAR_FIELD, lambda: _unsupported(tensors, idx, n), "sugar field") == "fused"
 
 
 def _unsupported(tensors, idx: torch.Tensor, n: int) -> str | None:
@@ -131,7 +129,6 @@ def _unsupported(tensors, idx: torch.Tensor, n: int) -> str | None:
 
 def _index(idx: torch.Tensor) -> torch.Tensor:
     return idx.to(torch.int64).contiguous()
-
 
 
 _i64, _ptr, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double

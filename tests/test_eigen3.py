@@ -12,9 +12,10 @@ import pytest
 import torch
 
 from gsbench.errors import ConfigError, NumericalError
-from gsbench.geometry.eigen3 import EIGEN_ENV, _ReferenceSym3Eigh, sym3_eigh, sym3_eigh_reference
+from gsbench.geometry.eigen3 import _ReferenceSym3Eigh, sym3_eigh, sym3_eigh_reference
+from gsbench.switches import EIGEN
 
-IMPLS = ("fast", "reference")
+IMPLS = EIGEN.values
 N = 200
 ROUNDING_TOL = 1e-13  # eigenvalues and residuals relative to max|λ|; orthonormality; det − 1
 VECTOR_TOL = 1e-13  # ‖v − v_numpy‖ <= VECTOR_TOL / (relative gap of v's eigenvalue)
@@ -220,14 +221,14 @@ def test_bad_arguments():
 def test_environment_selects_the_implementation(monkeypatch):
     calls = []
     monkeypatch.setattr(_ReferenceSym3Eigh, "apply", lambda C, gap_eps: calls.append(gap_eps))
-    monkeypatch.setenv(EIGEN_ENV, "reference")
+    monkeypatch.setenv(EIGEN.name, "reference")
     sym3_eigh(torch.eye(3), gap_eps=0.5)
     assert calls == [0.5]
-    monkeypatch.setenv(EIGEN_ENV, "fast")
+    monkeypatch.setenv(EIGEN.name, "fast")
     sym3_eigh(torch.eye(3))
     assert calls == [0.5]
-    monkeypatch.setenv(EIGEN_ENV, "lapack")
-    with pytest.raises(ConfigError, match=EIGEN_ENV):
+    monkeypatch.setenv(EIGEN.name, "lapack")
+    with pytest.raises(ConfigError, match=EIGEN.name):
         sym3_eigh(torch.eye(3))
 
 

@@ -11,6 +11,7 @@ import torch
 from gsbench.errors import ConfigError
 from gsbench.geometry import local_geometry as lg
 from gsbench.geometry.local_geometry import local_covariance, local_covariance_reference
+from gsbench.switches import LOCAL_COVARIANCE
 
 
 def _cloud(n=40, k=5, dtype=torch.float64, seed=0, scale=1.0):
@@ -70,7 +71,7 @@ def test_an_index_out_of_range_is_an_error_and_the_environment_selects_the_refer
     means, index = _cloud(8, 3)
     with pytest.raises(ValueError, match="out of range"):
         local_covariance(means, index + 8, 1.0)
-    monkeypatch.setenv(lg.COVARIANCE_ENV, "reference")
+    monkeypatch.setenv(LOCAL_COVARIANCE.name, "reference")
     C = local_covariance(means, index, 1.0)
     assert "Fused" not in type(C.grad_fn).__name__
 
@@ -83,6 +84,6 @@ def test_impl_choice_typos_and_inputs_the_kernel_cannot_take(monkeypatch):
     assert "Fused" not in type(local_covariance(half, index, 1.0).grad_fn).__name__
     with pytest.raises(ValueError, match="local_covariance impl='fused' cannot take these inputs: means on cpu as torch.float16"):
         local_covariance(half, index, 1.0, impl="fused")
-    monkeypatch.setenv(lg.COVARIANCE_ENV, "refrence")
-    with pytest.raises(ConfigError, match=lg.COVARIANCE_ENV):
+    monkeypatch.setenv(LOCAL_COVARIANCE.name, "refrence")
+    with pytest.raises(ConfigError, match=LOCAL_COVARIANCE.name):
         local_covariance(means, index, 1.0)

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from gsbench.errors import ConfigError
-from gsbench.methods.neusg_grid import GRID_ENV, grid_features, grid_features_reference
+from gsbench.methods.neusg_grid import grid_features, grid_features_reference
+from gsbench.switches import NEUSG_GRID
 
 TOL = {torch.float32: 1e-6, torch.float64: 1e-12}
 
@@ -90,12 +91,12 @@ def test_non_finite_points_stay_inside_the_grid():
 def test_environment_and_fallbacks(monkeypatch):
     grids, unit = grids_and_points(points=30)
     assert type(grid_features(grids, unit).grad_fn).__name__ == "_FusedGridBackward"
-    monkeypatch.setenv(GRID_ENV, "reference")
+    monkeypatch.setenv(NEUSG_GRID.name, "reference")
     assert type(grid_features(grids, unit).grad_fn).__name__ != "_FusedGridBackward"
-    monkeypatch.setenv(GRID_ENV, "fast")
-    with pytest.raises(ConfigError, match=GRID_ENV):
+    monkeypatch.setenv(NEUSG_GRID.name, "fast")
+    with pytest.raises(ConfigError, match=NEUSG_GRID.name):
         grid_features(grids, unit)
-    monkeypatch.delenv(GRID_ENV)
+    monkeypatch.delenv(NEUSG_GRID.name)
     moving = unit.clone().requires_grad_()
     with pytest.raises(ValueError, match="require a gradient"):
         grid_features(grids, moving, impl="fused")

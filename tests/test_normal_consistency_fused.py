@@ -10,8 +10,8 @@ import torch
 
 from gsbench.data.camera import Camera
 from gsbench.errors import ConfigError
-from gsbench.losses import normal_consistency as nc
 from gsbench.losses.normal_consistency import normal_consistency, normal_consistency_reference
+from gsbench.switches import NORMAL_CONSISTENCY
 
 # (weights, normalize, alpha): 2DGS (one map, alpha), GOF (one map, normalised), RaDe-GS (two maps, normalised)
 MODES = [([1.0], False, True), ([1.0], True, False), ([0.4, 0.6], True, False), ([0.3, 0.7], False, True)]
@@ -98,11 +98,11 @@ def test_a_map_without_interior_is_all_border():
 def test_environment_selects_the_reference_and_rejects_unknown_values(monkeypatch):
     normal, d1, _, _ = _inputs(6, 7, torch.float64)
     camera = _camera(6, 7)
-    monkeypatch.setenv(nc.ENV, "reference")
+    monkeypatch.setenv(NORMAL_CONSISTENCY.name, "reference")
     out = normal_consistency(normal, [d1], [1.0], camera, True)
     assert out.grad_fn is not None and "Fused" not in type(out.grad_fn).__name__
-    monkeypatch.setenv(nc.ENV, "fast")
-    with pytest.raises(ConfigError, match=nc.ENV):
+    monkeypatch.setenv(NORMAL_CONSISTENCY.name, "fast")
+    with pytest.raises(ConfigError, match=NORMAL_CONSISTENCY.name):
         normal_consistency(normal, [d1], [1.0], camera, True)
 
 

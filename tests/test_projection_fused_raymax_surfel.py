@@ -27,6 +27,7 @@ from gsbench.raster import RasterGaussians, RasterSettings, projection, rasteriz
 from gsbench.raster.payload import NUM_PARAMS
 from gsbench.raster.projection import project_fused, project_torch  # noqa: E402
 from gsbench.raster.projection_fused import FUSED_KERNELS  # noqa: E402
+from gsbench.switches import PROJECTION  # noqa: E402
 from tests.projection_checks import (  # noqa: E402
     DETACHED,
     PARAMS,
@@ -191,16 +192,13 @@ def test_hard_cases_float32_finite_and_close(kernel):
 
 
 def test_selection_switch_raymax_surfel(monkeypatch):
-    monkeypatch.setattr(projection, "IMPL", None)
-    monkeypatch.delenv("GSBENCH_PROJECTION", raising=False)
+    monkeypatch.delenv(PROJECTION.name, raising=False)
     for k in ("ewa", "rade", "raymax", "surfel"):
         assert projection.projection_impl(k) == "fused"
-    monkeypatch.setenv("GSBENCH_PROJECTION", "torch")
+    monkeypatch.setenv(PROJECTION.name, "torch")
     assert projection.projection_impl("raymax") == "torch" and projection.projection_impl("surfel") == "torch"
-    monkeypatch.setattr(projection, "IMPL", "fused")
+    monkeypatch.setenv(PROJECTION.name, "fused")
     assert projection.projection_impl("surfel") == "fused"
-    monkeypatch.setattr(projection, "IMPL", "torch")
-    assert projection.projection_impl("raymax") == "torch"
 
 
 @pytest.mark.parametrize("kernel", KERNELS)
@@ -214,7 +212,7 @@ def test_rasterize_same_with_either_projection(kernel, posed, monkeypatch):
     outs = ("rgb", "alpha", "depth", "median_depth", "normal", "distortion")
     res = {}
     for impl in ("torch", "fused"):
-        monkeypatch.setattr(projection, "IMPL", impl)
+        monkeypatch.setenv(PROJECTION.name, impl)
         gg = with_grad(g)
         out = rasterize(gg, cam, kernel=kernel, outputs=outs, settings=settings)
         sum((getattr(out, o) * (k + 1)).sum() for k, o in enumerate(outs)).backward()

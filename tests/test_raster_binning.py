@@ -1,6 +1,6 @@
 """Exact ellipse/tile overlap binning (ewa, rade, surfel): fewer tile pairs, bit-identical images and gradients.
 
-`gsbench.raster.binning.EXACT_OVERLAP` (default on, env GSBENCH_EXACT_OVERLAP) switches between the exact test and
+``GSBENCH_EXACT_OVERLAP`` (`gsbench.switches.EXACT_OVERLAP`, default on) switches between the exact test and
 the old binning (every tile of the Gaussian's bounding rectangle). A tile is dropped only if no pixel
 centre in it can get alpha >= 1/255, so every output and gradient must be bit-identical (torch.equal).
 """
@@ -18,20 +18,18 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from raster_scenes import concat, make_camera, random_gaussians, random_quats, single_gaussian, with_grad  # noqa: E402
 
-from gsbench.raster import (  # noqa: E402
-    OUTPUTS,
-    RasterSettings,
-    binning,  # noqa: E402
-    rasterize,
-)
+from gsbench.raster import OUTPUTS, RasterSettings, rasterize  # noqa: E402
+from gsbench.switches import EXACT_OVERLAP  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 
 
 def _render(g, cam, kernel, exact, outputs=OUTPUTS, settings=RasterSettings(), seed=0):
-    old = binning.EXACT_OVERLAP
-    binning.EXACT_OVERLAP = exact
-    try:
+    """Outputs and gradients of one render with the exact overlap on (True), off (False) or as the environment
+    says (None), and its tile pair and pair counts."""
+    with pytest.MonkeyPatch.context() as env:
+        if exact is not None:
+            env.setenv(EXACT_OVERLAP.name, "on" if exact else "off")
         gg = with_grad(g)
         out = rasterize(gg, cam, kernel=kernel, outputs=outputs, settings=settings)
         gen = torch.Generator().manual_seed(seed)
@@ -48,8 +46,6 @@ def _render(g, cam, kernel, exact, outputs=OUTPUTS, settings=RasterSettings(), s
         res["grad_means2d"] = out.means2d.grad.clone()
         res["absgrad"] = out.extras["absgrad"].clone()
         return res, int(out.extras["tile_pairs"]), int(out.extras["pairs"])
-    finally:
-        binning.EXACT_OVERLAP = old
 
 
 def _assert_identical(kernel, g, cam, outputs=OUTPUTS, settings=RasterSettings()):
@@ -193,10 +189,10 @@ def test_elongated_scene_strictly_fewer_pairs_and_env_switch(monkeypatch):
     _, pa, _ = _render(g, cam, "ewa", True, ("rgb",))
     _, pb, _ = _render(g, cam, "ewa", False, ("rgb",))
     assert pa < pb
-    monkeypatch.setenv("GSBENCH_EXACT_OVERLAP", "0")
+    monkeypatch.setenv(EXACT_OVERLAP.name, "0")
     _, pc, _ = _render(g, cam, "ewa", None, ("rgb",))
     assert pc == pb
-    monkeypatch.setenv("GSBENCH_EXACT_OVERLAP", "1")
+    monkeypatch.setenv(EXACT_OVERLAP.name, "1")
     _, pd, _ = _render(g, cam, "ewa", None, ("rgb",))
     assert pd == pa
 
@@ -223,15 +219,14 @@ def test_tile_lists_are_depth_ordered_subsequences_at_any_thread_count(kernel):
                random_gaussians(100, kernel, seed=12, dtype=torch.float32, camera=cam))
 
     def lists(exact, threads, outputs=("rgb",)):
-        old_t, old_e = torch.get_num_threads(), binning.EXACT_OVERLAP
+        old_t = torch.get_num_threads()
         torch.set_num_threads(threads)
-        binning.EXACT_OVERLAP = exact
         try:
-            with torch.no_grad():
+            with torch.no_grad(), pytest.MonkeyPatch.context() as env:
+                env.setenv(EXACT_OVERLAP.name, "on" if exact else "off")
                 out = rasterize(g, cam, kernel=kernel, outputs=outputs)
         finally:
             torch.set_num_threads(old_t)
-            binning.EXACT_OVERLAP = old_e
         offsets, tile_list = out.extras["state"].bufs[2:4]
         assert int(offsets[-1]) == out.extras["tile_pairs"]
         return [tile_list[offsets[t]:offsets[t + 1]].tolist() for t in range(offsets.numel() - 1)]

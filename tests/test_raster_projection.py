@@ -18,9 +18,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from raster_scenes import concat, make_camera, random_gaussians, single_gaussian, with_grad  # noqa: E402
 
+from gsbench.errors import ConfigError  # noqa: E402
 from gsbench.raster import RasterGaussians, RasterSettings, projection, rasterize  # noqa: E402
 from gsbench.raster.projection import project_fused  # noqa: E402
-from gsbench.raster.projection_fused import FUSED_KERNELS
+from gsbench.raster.projection_fused import FUSED_KERNELS  # noqa: E402
+from gsbench.switches import PROJECTION  # noqa: E402
 from tests.projection_checks import PARAMS, compare_projections, posed_camera  # noqa: E402
 
 KERNELS = ("ewa", "rade")
@@ -119,16 +121,15 @@ def test_gradcheck_fused_projection(kernel, n, fast_mode):
 
 
 def test_selection_switch(monkeypatch):
-    monkeypatch.setattr(projection, "IMPL", None)
-    monkeypatch.delenv("GSBENCH_PROJECTION", raising=False)
+    monkeypatch.delenv(PROJECTION.name, raising=False)
     assert projection.projection_impl("ewa") == "fused" and projection.projection_impl("rade") == "fused"
     assert projection.projection_impl("raymax") == "fused" and projection.projection_impl("surfel") == "fused"
-    monkeypatch.setenv("GSBENCH_PROJECTION", "torch")
+    monkeypatch.setenv(PROJECTION.name, "torch")
     assert projection.projection_impl("ewa") == "torch"
-    monkeypatch.setattr(projection, "IMPL", "fused")
+    monkeypatch.setenv(PROJECTION.name, "Fused")
     assert projection.projection_impl("ewa") == "fused"
-    monkeypatch.setattr(projection, "IMPL", "bogus")
-    with pytest.raises(ValueError, match="fused"):
+    monkeypatch.setenv(PROJECTION.name, "bogus")
+    with pytest.raises(ConfigError, match=f"{PROJECTION.name}='bogus' is not one of .*fused"):
         projection.projection_impl("ewa")
 
 
@@ -141,7 +142,7 @@ def test_rasterize_same_with_either_projection(kernel, monkeypatch):
     outs = ("rgb", "alpha", "depth", "normal", "distortion")
     res = {}
     for impl in ("torch", "fused"):
-        monkeypatch.setattr(projection, "IMPL", impl)
+        monkeypatch.setenv(PROJECTION.name, impl)
         gg = with_grad(g)
         out = rasterize(gg, cam, kernel=kernel, outputs=outs, settings=settings)
         sum((getattr(out, o) * (k + 1)).sum() for k, o in enumerate(outs)).backward()

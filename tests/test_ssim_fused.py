@@ -21,7 +21,6 @@ from gsbench.losses import terms as losses
 from gsbench.losses.ssim import (
     C1,
     C2,
-    SSIM_ENV,
     gaussian_window,
     ssim,
     ssim_map,
@@ -30,6 +29,7 @@ from gsbench.losses.ssim import (
 )
 from gsbench.losses.terms import Batch
 from gsbench.raster.types import RenderOutput
+from gsbench.switches import SSIM
 
 TOL = 1e-6
 TOL64 = 1e-12
@@ -244,7 +244,7 @@ def test_dssim_term_differentiates_the_render_through_the_fused_kernel(monkeypat
         assert calls, "dssim_term did not use the fused kernel"
         calls.clear()
         with monkeypatch.context() as m:
-            m.setenv(SSIM_ENV, "reference")
+            m.setenv(SSIM.name, "reference")
             v_ref, g_ref = run(use_mask)
         assert not calls
         assert v == pytest.approx(v_ref, abs=TOL)
@@ -259,13 +259,13 @@ def test_environment_switch_and_impl_argument(monkeypatch):
     x = a.clone().requires_grad_(True)
     assert type(ssim_map(x, b).grad_fn).__name__.startswith("_FusedSSIMMap")
     assert not type(ssim_map(x, b, impl="reference").grad_fn).__name__.startswith("_FusedSSIMMap")
-    monkeypatch.setenv(SSIM_ENV, "reference")
+    monkeypatch.setenv(SSIM.name, "reference")
     assert not type(ssim_map(x, b).grad_fn).__name__.startswith("_FusedSSIMMap")
     assert type(ssim_map(x, b, impl="fused").grad_fn).__name__.startswith("_FusedSSIMMap")
-    monkeypatch.setenv(SSIM_ENV, "fast")
-    with pytest.raises(ConfigError, match=SSIM_ENV):
+    monkeypatch.setenv(SSIM.name, "fast")
+    with pytest.raises(ConfigError, match=SSIM.name):
         ssim_map(x, b)
-    monkeypatch.delenv(SSIM_ENV)
+    monkeypatch.delenv(SSIM.name)
     with pytest.raises(ValueError, match="impl"):
         ssim(x, b, impl="cuda")
     with pytest.raises(ValueError, match="float32 or float64"):

@@ -15,6 +15,7 @@ import torch
 import trimesh
 
 from gsbench.cli import main
+from gsbench.config.run_config import run_id
 from gsbench.errors import ConfigError
 from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
 from gsbench.mesh import MeshError
@@ -141,10 +142,15 @@ def test_a_refinement_over_the_budget_is_refused_before_training():
                                                       overrides=["method.refinement=forever"]))
 
 
-def test_the_refinement_switches_leave_coarse_runs_ids_unchanged():
-    """Off, the refinement's fields are left out of the resolved config, so a coarse-only run keeps the run id its
-    committed records have (docs/results/dtu_framed: sugar on dtu-bunny, seed 0); on, they are in it."""
+def test_the_refinement_fields_are_shown_and_leave_coarse_runs_ids_unchanged():
+    """Off, the refinement's fields are in the resolved config but not in the run id
+    (`gsbench.config.run_config.ADDED_AFTER_RECORDS`), so a coarse-only run keeps the run id its committed records
+    have (docs/results/dtu_framed: sugar on dtu-bunny, seed 0), as does their config, which lacks the fields; on,
+    they are in it."""
     off = resolve_run("sugar", "synthetic/dtu-bunny", preset="cpu", overrides=["eval.evaluators=[dtu_chamfer, normal_similarity, surface_offset]"])
-    assert "refinement" not in off.method and off.run_id == "5e97394a19c0"
+    assert off.method["refinement"] == "none" and off.run_id == "5e97394a19c0"
+    later = ("refinement", "refine_gaussians_per_triangle", "refine_triangles")
+    recorded = {**off.to_dict(), "method": {k: v for k, v in off.method.items() if k not in later}}
+    assert run_id(recorded) == off.run_id
     on = resolve_run("sugar", "synthetic/dtu-bunny", preset="cpu", overrides=["method.refinement=short"])
     assert on.method["refinement"] == "short" and on.run_id != off.run_id

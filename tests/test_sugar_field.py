@@ -8,8 +8,9 @@ import torch
 
 from gsbench.errors import ConfigError
 from gsbench.methods import sugar_field
-from gsbench.methods.sugar_field import FIELD_ENV, neighbour_field, neighbour_normals
+from gsbench.methods.sugar_field import neighbour_field, neighbour_normals
 from gsbench.raster.payload import quat_to_rotmat
+from gsbench.switches import SUGAR_FIELD
 
 TOL = {torch.float32: 1e-6, torch.float64: 1e-10}
 
@@ -120,12 +121,12 @@ def test_gradients_do_not_depend_on_the_thread_count(restore_threads):
 def test_environment_and_fallbacks(monkeypatch):
     *inputs, idx = field_inputs(4, 3, 5)
     assert type(neighbour_field(*inputs, idx, 1e8).grad_fn).__name__ == "_FusedFieldBackward"
-    monkeypatch.setenv(FIELD_ENV, "reference")
+    monkeypatch.setenv(SUGAR_FIELD.name, "reference")
     assert type(neighbour_field(*inputs, idx, 1e8).grad_fn).__name__ != "_FusedFieldBackward"
-    monkeypatch.setenv(FIELD_ENV, "fast")
-    with pytest.raises(ConfigError, match=FIELD_ENV):
+    monkeypatch.setenv(SUGAR_FIELD.name, "fast")
+    with pytest.raises(ConfigError, match=SUGAR_FIELD.name):
         neighbour_field(*inputs, idx, 1e8)
-    monkeypatch.delenv(FIELD_ENV)
+    monkeypatch.delenv(SUGAR_FIELD.name)
     mixed = [inputs[0].float(), *inputs[1:]]
     with pytest.raises(ValueError, match="mixed dtypes"):
         neighbour_field(*mixed, idx, 1e8, impl="fused")

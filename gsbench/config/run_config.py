@@ -19,7 +19,10 @@ The ``method`` section holds the method name plus its hyper-parameters; a plain 
 ``losses`` maps a loss-term name to ``{weight, start, end}``; the term names are checked against the
 loss registry when training starts.
 The run id is the first 12 hex digits of sha1 over the canonical JSON of the resolved config without
-execution-only fields (``threads``, ``out``), so the same experiment always has the same id.
+execution-only fields (``threads``, ``out``, ``gt``) and without the fields `ADDED_AFTER_RECORDS` lists when
+they hold the default stated there, so the same experiment always has the same id, and adding a field keeps
+the ids of the runs recorded before it. The resolved config itself (shown by ``gsbench config``, saved in
+a run's folder and record) holds every field.
 """
 
 from __future__ import annotations
@@ -42,9 +45,16 @@ from gsbench.data.loader import BUILTIN_SCENES, detect_format, has_ground_truth
 from gsbench.errors import ConfigError
 
 EXECUTION_ONLY_KEYS = ("threads", "out", "gt")
-LATER_SWITCH = "later_switch"  # method Config field metadata: left out of the resolved config (and the run id) at its default
+# (method, dotted key, default) of the fields added after records of that method existed, the default being the value
+# those records ran with (kept here should the field's own default change): at that value a field is left out of the
+# run id, so those records keep theirs (`completed_config` fills it into their configs). SuGaR's refinement stage
+# (docs/methods/sugar.md §6) came after the suites' records.
+ADDED_AFTER_RECORDS = (
+    ("sugar", "method.refinement", "none"),
+    ("sugar", "method.refine_gaussians_per_triangle", 1),
+    ("sugar", "method.refine_triangles", 50_000),
+)
 HOLDOUT_WITHOUT_GT = 8  # data.holdout_every "auto" (-1) on a scene without ground truth: 3DGS --eval
-
 
 
 @dataclass
@@ -167,12 +177,38 @@ class RunConfig:
 
 
 def run_id(resolved: dict) -> str:
-    """sha1 of the canonical JSON (sorted keys, no whitespace) minus execution-only keys, 12 hex."""
-    identity = {k: v for k, v in resolved.items() if k not in EXECUTION_ONLY_KEYS}
+    """sha1 of the canonical JSON (sorted keys, no whitespace) of ``resolved`` minus the execution-only keys and
+    the `ADDED_AFTER_RECORDS` fields at their defaults, 12 hex."""
+    identity = copy.deepcopy({k: v for k, v in resolved.items() if k not in EXECUTION_ONLY_KEYS})
+    for section, name, default in _added_fields(identity):
+        if section.get(name, default) == default:
+            section.pop(name, None)
     canonical = json.dumps(identity, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha1(canonical.encode()).hexdigest()[:12]
 
 
+def completed_config(recorded: dict) -> dict:
+    """A copy of the resolved config ``recorded`` (a record's or a run folder's), with the `ADDED_AFTER_RECORDS` fields
+    its method has and it predates at their defaults: what it was run with."""
+    completed = copy.deepcopy(recorded)
+    for section, name, default in _added_fields(completed):
+        section.setdefault(name, default)
+    return completed
+
+
+def _added_fields(config: dict) -> list[tuple[dict, str, Any]]:
+    """(the section of ``config`` holding it, its name, its default) of each `ADDED_AFTER_RECORDS` field of the
+    config's method whose section ``config`` has."""
+    method = config.get("method", {}).get("name") if isinstance(config.get("method"), dict) else None
+    found = []
+    for owner, key, default in ADDED_AFTER_RECORDS:
+        *parents, name = key.split(".")
+        section = config
+        for part in parents:
+            section = section.get(part) if isinstance(section, dict) else None
+        if owner == method and isinstance(section, dict):
+            found.append((section, name, default))
+    return found
 
 
 def parse_override(text: str) -> dict:
@@ -270,12 +306,7 @@ def _build_method(data: dict, method_config_cls) -> dict:
     params = {k: v for k, v in data.items() if k != "name"}
     if method_config_cls is None:
         return {"name": name, **params}
-    built = _build(method_config_cls, params, "method.")
-    values = dataclasses.asdict(built)
-    for f in dataclasses.fields(method_config_cls):  # a switch added after records exist, off: the run id stays
-        if f.metadata.get(LATER_SWITCH) and values[f.name] == f.default:
-            del values[f.name]
-    return {"name": name, **values}
+    return {"name": name, **dataclasses.asdict(_build(method_config_cls, params, "method."))}
 
 
 def dataset_of(scene: str) -> str:

@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
+
+from gsbench.switches import DATA
 
 
 def cache_dir() -> Path:
     """``$GSBENCH_DATA`` or ``~/.cache/gsbench/scenes``."""
-    return Path(os.environ.get("GSBENCH_DATA") or Path.home() / ".cache" / "gsbench" / "scenes")
+    return Path(DATA.value()).expanduser()
 
 
 def scene_dir(name: str, choices=()) -> Path:

@@ -22,7 +22,7 @@ after the resize (``image00000``, ...) and the bool masks (``mask00000``, ...), 
 bit-identical to a decoded one. A cache file that cannot be read or does not match (view count,
 shapes, dtypes) is ignored and rewritten; a cache that cannot be written is skipped. The header
 checks (image sizes vs cameras, mask sizes) always run first; ``load_images=False`` never touches
-the cache. ``GSBENCH_IMAGE_CACHE=0`` (or ``false``/``no``/``off``) turns the cache off. Stale
+the cache. ``GSBENCH_IMAGE_CACHE=off`` (or ``0``/``false``/``no``) turns the cache off. Stale
 entries are not removed: delete ``<cache>/decoded/`` to reclaim the space.
 """
 
@@ -39,10 +39,10 @@ from PIL import Image, UnidentifiedImageError
 from gsbench.atomic import atomic_path
 from gsbench.data.cache import cache_dir
 from gsbench.errors import DataError
+from gsbench.switches import IMAGE_CACHE
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 DECODED_CACHE_VERSION = 1
-IMAGE_CACHE_ENV = "GSBENCH_IMAGE_CACHE"
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -160,8 +160,8 @@ def write_mask(path: Path, mask: np.ndarray) -> None:
 
 
 def image_cache_enabled() -> bool:
-    """False when ``$GSBENCH_IMAGE_CACHE`` is ``0``/``false``/``no``/``off``."""
-    return os.environ.get(IMAGE_CACHE_ENV, "1").strip().lower() not in ("0", "false", "no", "off")
+    """False when ``$GSBENCH_IMAGE_CACHE`` is ``off`` (`gsbench.switches`)."""
+    return IMAGE_CACHE.value() == "on"
 
 
 def decoded_cache_path(image_paths, mask_paths, downscale: float) -> Path:

@@ -29,9 +29,8 @@ from torch.autograd.function import once_differentiable
 from gsbench.errors import NumericalError
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
+from gsbench.switches import EIGEN
 
-EIGEN_ENV = "GSBENCH_EIGEN"
-IMPLS = ("fast", "reference")
 # Absolute part of the gap regulariser ε (docs/methods/ibgs.md §3.3); keeps F finite for C = 0. It dominates ε, and so
 # damps eigenvector gradients, when max|λ| < GAP_EPS_FLOOR/gap_eps (1e-9 at the default gap_eps).
 GAP_EPS_FLOOR = 1e-12
@@ -92,7 +91,7 @@ def sym3_eigh(C: torch.Tensor, gap_eps: float = 1e-3, impl: str | None = None) -
     ``GSBENCH_EIGEN``.
     """
     _check_input(C, gap_eps)
-    if choose_impl(impl, EIGEN_ENV, IMPLS) == "reference":
+    if choose_impl(impl, EIGEN) == "reference":
         return _ReferenceSym3Eigh.apply(C, float(gap_eps))
     return _FastSym3Eigh.apply(C, float(gap_eps))
 

@@ -32,9 +32,8 @@ from gsbench.geometry.rotations import frames_library
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
 from gsbench.phase_timer import PhaseTimer
+from gsbench.switches import LOCAL_COVARIANCE
 
-COVARIANCE_ENV = "GSBENCH_LOCAL_COVARIANCE"  # "reference": the PyTorch covariance instead of the fused kernel
-IMPLS = ("fused", "reference")
 COVARIANCE_JITTER = 1e-10  # δ = 1e-10·radius² added to C (docs/methods/ibgs.md §3.4); λ1 <= 2δ: coincident points
 
 PERMUTATIONS_3D = tuple(itertools.permutations(range(3)))
@@ -94,7 +93,7 @@ def local_covariance(means: torch.Tensor, index: torch.Tensor, radius: float,
             return f"means on {means.device.type} as {means.dtype} (the kernel takes CPU float32 / float64)"
         return None
 
-    if choose_impl(impl, COVARIANCE_ENV, IMPLS, unsupported, "local_covariance") == "reference":
+    if choose_impl(impl, LOCAL_COVARIANCE, unsupported, "local_covariance") == "reference":
         return local_covariance_reference(means, index, radius, include_self)
     return _FusedLocalCovariance.apply(means, index, COVARIANCE_JITTER * radius**2, include_self)
 

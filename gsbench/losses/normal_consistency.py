@@ -33,10 +33,7 @@ from gsbench.data.camera import Camera
 from gsbench.geometry.depth import depth_to_normal
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
-
-IMPLS = ("fused", "reference")
-ENV = "GSBENCH_NORMAL_CONSISTENCY"
-
+from gsbench.switches import NORMAL_CONSISTENCY
 
 _i64, _ptr, _dbl = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
 _MAPS = [_i64] * 3 + [_ptr] * 4 + [_dbl] * 2 + [_i64] + [_dbl] * 4
@@ -58,7 +55,8 @@ def normal_consistency(normal: torch.Tensor, depths: list[torch.Tensor], weights
     if not 1 <= len(depths) <= 2 or len(weights) != len(depths):
         raise ValueError(f"normal_consistency takes one or two depth maps with one weight each, got "
                          f"{len(depths)} maps and {len(weights)} weights")
-    if choose_impl(impl, ENV, IMPLS, lambda: _unsupported(normal, depths, alpha), "normal_consistency") == "reference":
+    if choose_impl(impl, NORMAL_CONSISTENCY, lambda: _unsupported(normal, depths, alpha),
+                   "normal_consistency") == "reference":
         return normal_consistency_reference(normal, depths, weights, camera, normalize, alpha)
     d2 = depths[1] if len(depths) == 2 else None
     w2 = float(weights[1]) if d2 is not None else 0.0

@@ -64,16 +64,15 @@ from torch.autograd.function import once_differentiable
 
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
+from gsbench.switches import SSIM
 
 WINDOW_SIZE = 11
 SIGMA = 1.5
 C1 = 0.01**2
 C2 = 0.03**2
-SSIM_ENV = "GSBENCH_SSIM"
-IMPLS = ("fused", "reference")
 
 __all__ = [
-    "C1", "C2", "IMPLS", "SIGMA", "SSIM_ENV", "WINDOW_SIZE", "gaussian_window", "ssim", "ssim_map",
+    "C1", "C2", "SIGMA", "WINDOW_SIZE", "gaussian_window", "ssim", "ssim_map",
     "ssim_map_reference", "ssim_reference",
 ]
 
@@ -122,7 +121,7 @@ def ssim_map(img1: torch.Tensor, img2: torch.Tensor, impl: str | None = None) ->
     does not take); ``"fused"`` (``ValueError`` for such inputs) or ``"reference"`` to force one.
     """
     _check(img1, img2)
-    if choose_impl(impl, SSIM_ENV, IMPLS, lambda: _unsupported(img1, img2), "ssim") == "reference":
+    if choose_impl(impl, SSIM, lambda: _unsupported(img1, img2), "ssim") == "reference":
         return ssim_map_reference(img1, img2)
     if torch.is_grad_enabled() and img1.requires_grad:
         return _FusedSSIMMap.apply(img1, img2)

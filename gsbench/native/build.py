@@ -26,6 +26,7 @@ from pathlib import Path
 import torch
 
 from gsbench.errors import BuildError
+from gsbench.switches import CACHE
 
 CFLAGS = [
     "-O3",
@@ -54,9 +55,7 @@ _libraries: dict[str, ctypes.CDLL] = {}
 
 def cache_dir() -> Path:
     """``$GSBENCH_CACHE/native`` (default ``~/.cache/gsbench/native``)."""
-    root = os.environ.get("GSBENCH_CACHE")
-    base = Path(root) if root else Path.home() / ".cache" / "gsbench"
-    return base / "native"
+    return Path(CACHE.value()).expanduser() / "native"
 
 
 def _cpu_tag() -> str:

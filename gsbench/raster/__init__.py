@@ -8,7 +8,8 @@
 `torch.autograd.Function` connects projection and compositing. ``integrate(...)``
 (`gsbench.raster.opacity_field`) evaluates GOF's opacity field at 3D points (no gradient).
 
-``GSBENCH_RASTER=reference`` switches to the slow dense reference (`gsbench.raster.reference`).
+``GSBENCH_RASTER=reference`` switches to the slow dense reference (`gsbench.raster.reference`; the switches:
+docs/switches.md).
 """
 
 from gsbench.raster.opacity_field import integrate

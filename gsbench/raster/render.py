@@ -8,7 +8,6 @@ depth on the same tile lists (`gsbench.raster.solid_depth`), each phase timed by
 
 from __future__ import annotations
 
-import os
 import time
 import warnings
 from collections.abc import Iterable
@@ -27,12 +26,9 @@ from gsbench.raster.projection import project
 from gsbench.raster.solid_depth import SolidFn, inverse_ray_norms, ray_inv_sigma
 from gsbench.raster.types import OUTPUTS, RasterGaussians, RasterSettings, RenderOutput
 from gsbench.raster.validation import background_color, check_kernel_outputs, validate_gaussians
+from gsbench.switches import RASTER
 
 KERNEL_ID = {"ewa": 0, "rade": 1, "raymax": 2, "surfel": 3}  # the kernel ids of csrc/composite.cpp
-
-
-def _use_reference() -> bool:
-    return os.environ.get("GSBENCH_RASTER", "").strip().lower() == "reference"
 
 
 def rasterize(
@@ -54,7 +50,7 @@ def rasterize(
     validate_gaussians(gaussians, kernel)
     if camera.width < 1 or camera.height < 1:
         raise ValueError(f"camera image size must be >= 1x1, got {camera.width}x{camera.height}")
-    if _use_reference():
+    if RASTER.value() == "reference":
         warnings.warn("GSBENCH_RASTER=reference: using the slow dense PyTorch rasterizer", stacklevel=2)
         return reference.render(gaussians, camera, kernel=kernel, outputs=outs, settings=_with_bg(settings, background))
 

@@ -1,6 +1,6 @@
 """Run records: one JSON per run, written atomically, with the environment that produced it.
 
-Schema (docs/design.md §8.2, docs/design.md §8.2), version `SCHEMA_VERSION`:
+Schema (docs/design.md §8.2), version `SCHEMA_VERSION`:
 identity (method, scene, dataset, seed, run_id, status — ok, failed, interrupted (Ctrl-C or SIGTERM,
 resumable), … — and error_tail), resolved config and effective loss
 terms, ``inputs`` (what was trained on: the resolution and the size on disk, the downscale factor, the
@@ -13,7 +13,11 @@ of method-specific phases inside them, e.g. IBGS ``train.knn``; gsbench/training
 densification candidates out, null if never, ``candidates_cut``; gsbench/training/trainer.py "Budget"; empty in
 records of runs trained before it was tracked), peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
-threads, OS, host, UTC start/end).
+threads, OS, host, UTC start/end, and ``switches``: the value of every result-changing ``GSBENCH_*`` switch,
+defaults included, `gsbench.switches`; records made before it was tracked lack it and ran at the defaults).
+
+A run folder keeps the switches its outputs were made with in ``switches.json``; a run resumed under other
+values is refused (`check_folder_switches`), so a record never mixes them.
 """
 
 from __future__ import annotations
@@ -32,6 +36,9 @@ from pathlib import Path
 
 import gsbench
 from gsbench.atomic import atomic_path
+from gsbench.errors import ConfigError
+from gsbench.run_folder import RunFolder
+from gsbench.switches import SWITCHES, result_switches
 
 SCHEMA_VERSION = 1
 STATUSES = ("ok", "failed", "interrupted", "running")  # running: a record in memory until the run ends
@@ -156,4 +163,25 @@ def capture_environment(threads: int | None = None) -> dict:
         "os": f"{platform.system()} {platform.release()}",
         "hostname": socket.gethostname(),
         "time_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "switches": result_switches(),
     }
+
+
+def check_folder_switches(files: RunFolder) -> None:
+    """Refuse to add to the run folder ``files`` (existing, locked) when its outputs were made under other
+    result-changing switches; else store this process's in its ``switches.json``. A folder with outputs but no
+    such file predates it: its outputs were made at the defaults."""
+    now = result_switches()
+    made = {entry.name for entry in files.path.iterdir()} - {files.CONFIG, files.LOCK, files.SWITCHES}
+    if made:
+        stored = json.loads(files.switches.read_text()) if files.switches.is_file() else {}
+        before = {s.name: stored.get(s.name, s.default) for s in SWITCHES if s.name in now}
+        changed = [name for name in now if now[name] != before[name]]
+        if changed:
+            was = ", ".join(f"{name}={before[name]}" for name in changed)
+            raise ConfigError(f"{files.path} was run with {was} and this process has "
+                              f"{', '.join(f'{name}={now[name]}' for name in changed)}: resuming would mix them in one "
+                              f"record; fix: set {was} again to resume it, or remove the folder (or choose another "
+                              "--out) to run it afresh with these switches")
+    if not made or not files.switches.is_file():
+        write_json_atomic(files.switches, now)

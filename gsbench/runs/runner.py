@@ -58,8 +58,9 @@ from gsbench.evaluators.resolve import get_evaluator, plan_evaluation, run_optio
 from gsbench.registry import METHODS
 from gsbench.resources import peak_rss_bytes, set_threads
 from gsbench.run_folder import RunFolder
-from gsbench.runs.records import RunRecord, capture_environment, sha256_file, write_json_atomic
+from gsbench.runs.records import RunRecord, capture_environment, check_folder_switches, sha256_file, write_json_atomic
 from gsbench.runs.run_lock import run_lock
+from gsbench.switches import departures
 from gsbench.training.progress import stage
 from gsbench.training.trainer import Trainer, load_checkpoint, scaled_losses, schedule_scale
 
@@ -156,6 +157,8 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     check_run_config(cfg)
     check_writable(cfg.out, "--out (or out: in a config file)")
     threads = set_threads(cfg.threads)
+    for warning in departures():
+        stage(f"warning: {warning}")
     make_run_scene(cfg)
     stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
     header = load_run_scene(cfg, load_images=False)
@@ -170,6 +173,7 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
 
 def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) -> RunRecord:
     """`run` once it holds the folder's lock: the record, the stages, the status."""
+    check_folder_switches(RunFolder(folder))
     RunFolder(folder).config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     record = RunRecord(run_id=cfg.run_id, method=cfg.method["name"], scene=cfg.scene, dataset=dataset_of(cfg.scene),
                        seed=cfg.seed, config=cfg.to_dict(),
