@@ -1,5 +1,5 @@
 """What GOF and RaDe-GS (and IBGS on top of RaDe-GS) share: the Mip-Splatting 3D filter and the
-abs-gradient densification (docs/methods/gof.md §2, docs/methods/gof.md §5, docs/methods/radegs.md §2.1, docs/methods/radegs.md §2.2).
+abs-gradient densification (docs/methods/gof.md §2, §5, docs/methods/radegs.md §2.1, §2.2).
 
 - `FilteredConfig`: `GSConfig` (3DGS learning rates, init, schedule: docs/methods/gof.md §4.4
   defaults") with prune opacity 0.05 (docs/methods/gof.md §5.3) and ``use_filter3d`` (RaDe ``--disable_filter3D``, docs/methods/radegs.md §2.1).

@@ -10,7 +10,7 @@ Differences from 3DGS:
   step 15000; L_d the distortion divided by stopgrad(alpha)² with detached weights (``depth_distortion``
   normalize, `RasterSettings.detach_distortion_weights`), λ_d = 100 (code default, TnT) or 1000 (DTU
   script) from step 15000. Weights in ``configs/methods/gof.yaml`` and ``gof.dtu.yaml``;
-- mesh (docs/methods/gof.md §7, docs/methods/gof.md §8): TSDF of the median depth on DTU (depth_max 6.0; the voxel is the dataset's, see
+- mesh (docs/methods/gof.md §7, §8): TSDF of the median depth on DTU (depth_max 6.0; the voxel is the dataset's, see
   ``configs/methods/gof.dtu.yaml``), marching tetrahedra (``mesh.extractor: tets``, 8 bisection steps,
   level 0.5) on TnT (``gof.tnt.yaml``).
 
@@ -29,7 +29,7 @@ from gsbench.raster import RasterSettings
 
 @dataclass
 class GOFConfig(FilteredConfig):
-    """GOF's hyper-parameters are `FilteredConfig`'s (3DGS values, prune opacity 0.05, docs/methods/gof.md §5.3, docs/methods/gof.md §4.4)."""
+    """GOF's hyper-parameters are `FilteredConfig`'s (3DGS values, prune opacity 0.05, docs/methods/gof.md §5.3, §4.4)."""
 
 
 class GOF(FilteredMethod):
@@ -45,7 +45,7 @@ class GOF(FilteredMethod):
         return dataclasses.replace(super().raster_settings(), detach_distortion_weights=True)
 
     def term_params(self) -> dict[str, dict]:
-        """L_n on the median depth with the normalised rendered normal; L_d normalised by alpha² (docs/methods/gof.md §4.3, docs/methods/gof.md §4.2)."""
+        """L_n on the median depth with the normalised rendered normal; L_d normalised by alpha² (docs/methods/gof.md §4.3, §4.2)."""
         params = {"normal_consistency": {"depth_ratio": 1.0, "normalize": True, "mix": "depth"},
                   "depth_distortion": {"normalize": True}}
         return {k: v for k, v in params.items() if k in self.cfg.losses}

@@ -4,7 +4,7 @@ is the reconstruction of docs/methods/ibgs.md §10, every assumption a config fi
 
 `IBGSMixin` adds to a base method (its kernel, losses, filter and mesh):
 
-- orientation from the neighbourhood (docs/methods/ibgs.md §4.1, docs/methods/ibgs.md §2, §3, §4): a `gsbench.geometry.neighbours.NeighbourIndex`
+- orientation from the neighbourhood (docs/methods/ibgs.md §4.1, §2, §3, §4): a `gsbench.geometry.neighbours.NeighbourIndex`
   of the ``knn_k`` nearest other means (default 5), refreshed every ``knn_refresh_every`` steps (100,
   like the refinement interval not scaled with the run length) and after every densify/prune; every
   step the local covariance of the neighbour means and its eigenvectors V (`gsbench.geometry.local_geometry`,
@@ -19,7 +19,7 @@ is the reconstruction of docs/methods/ibgs.md §10, every assumption a config fi
 - densification: `gsbench.training.strategies.sparsity.SparsityAwareStrategy` — the abs-gradient criterion plus SADC
   (``sadc``, ``sparsity``, ``min_gap``).
 
-Registered variants, one per kernel (the authors' RaDe-GS, GOF and 2DGS variants, docs/methods/ibgs.md §1.3, docs/methods/ibgs.md §11.2): ``ibgs``
+Registered variants, one per kernel (the authors' RaDe-GS, GOF and 2DGS variants, docs/methods/ibgs.md §1.3, §11.2): ``ibgs``
 (RaDe-GS v1 on ``rade``: λ_d 100, L_n, TSDF of the median depth), ``ibgs-gof`` (GOF on ``raymax``) and
 ``ibgs-2dgs`` (2DGS on ``surfel``). Each variant's yaml ``extends`` its base method's, so it keeps the
 base's losses, schedule and per-dataset settings and adds only the IBGS terms.

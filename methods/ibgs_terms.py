@@ -1,4 +1,4 @@
-"""IBGS loss terms ``eigval`` and ``eigvec`` (docs/methods/ibgs.md §5.2, §5.3, docs/methods/ibgs.md §5),
+"""IBGS loss terms ``eigval`` and ``eigvec`` (docs/methods/ibgs.md §5.2, §5.3, §5),
 declared in configs/loss_terms/.
 
 Both read ``state["local_geometry"]`` (a `gsbench.geometry.local_geometry.LocalGeometry` of this step) and

@@ -4,7 +4,7 @@ Differences from 3DGS:
 
 - ``rade`` kernel: the 3DGS α with the ray-space depth plane t = l + p·δ, depth t/‖r‖ (camera z) and the
   per-Gaussian normal −normalize(Σ⁻¹μ) (docs/methods/radegs.md §3), with the Mip-Splatting 3D filter and GOF's
-  abs-gradient densification (docs/methods/radegs.md §2, docs/methods/radegs.md §2.2, `gsbench.methods.filtered`); prune opacity 0.05;
+  abs-gradient densification (docs/methods/radegs.md §2, §2.2, `gsbench.methods.filtered`); prune opacity 0.05;
 - L = 0.8·L1 + 0.2·(1 − SSIM) + λ_n·L_n (HEAD, docs/methods/radegs.md §4.1), λ_n = 0.05 from step 15000, with
   L_n = (1 − r)·mean(1 − n·N(expected)) + r·mean(1 − n·N(median)), r = ``depth_ratio`` = 0.6 and n the
   normalised rendered normal (``normal_consistency`` with mix "normal", normalize);

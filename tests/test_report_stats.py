@@ -30,6 +30,7 @@ from gsbench.report.stats import (
     t_half_width,
 )
 from gsbench.runs.sweep import expand, load_sweep, with_suite
+from sweep_files import sweep_file
 
 SCENES = ("scan1", "scan2", "scan3")
 SEEDS = (0, 1, 2)
@@ -246,14 +247,12 @@ def test_ablation_cells_differing_from_the_baseline_are_marked(tmp_path):
 
 
 def test_claims_use_the_papers_metric_and_name_their_source():
-    from gsbench.config.files import config_root
-
     for claim in load_claims():
         # a claim about one kind of scene (``factor``) is in the metric its paper used there: RT2DGS reports PSNR only
         assert claim.metric == ("psnr" if claim.factor == "transparent" else PAPERS_METRIC[claim.dataset]), claim
         assert claim.relation in RELATIONS and claim.source and " vs " in claim.paper, claim
         if claim.sweep:  # the labels are rows of the shipped sweep that repeats the ablation
-            labels = {r.label for r in expand(load_sweep(config_root() / "sweeps" / f"{claim.sweep}.yaml"))}
+            labels = {r.label for r in expand(load_sweep(sweep_file(claim.sweep)))}
             assert {claim.better, claim.worse} <= labels, claim
 
 

@@ -1,5 +1,5 @@
 """Local covariance of neighbour means, its eigen-decomposition, and frame continuity (IBGS,
-docs/methods/ibgs.md §3, §4, docs/methods/ibgs.md §7.
+docs/methods/ibgs.md §3, §4, §7.
 
 - Covariance (paper Eq. 4): with P_i = {μ_i} ∪ {μ_j : j ∈ N(i)} (n = K + 1 points; without μ_i when
   ``include_self`` is false), μ̄_i = mean(P_i), ``C_i = (1/n) Σ_{p∈P_i} (p − μ̄_i)(p − μ̄_i)ᵀ + δI`` with

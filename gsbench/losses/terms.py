@@ -42,7 +42,7 @@ from gsbench.losses.ssim import ssim
 from gsbench.raster.types import ALL_OUTPUTS, RenderOutput
 from gsbench.registry import LOSS_TERMS
 
-ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), docs/methods/sugar.md §3.2, docs/methods/sugar.md §3.2, §5
+ENTROPY_EPS = 1e-10  # SuGaR coarse_*.py log(x + 1e-10), docs/methods/sugar.md §3.2, §5
 
 
 @dataclass
@@ -353,7 +353,7 @@ def flatten_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tenso
 
 def opacity_entropy_term(render: RenderOutput, batch: Batch, state: dict) -> torch.Tensor:
     """SuGaR entropy: mean over visible Gaussians of −o log(o + ε) − (1−o) log(1 − o + ε), ε = 1e-10
-    (SuGaR coarse stage, docs/methods/sugar.md docs/methods/sugar.md §3.2; "visible" = radii > 0 in this render); 0 if none is visible."""
+    (SuGaR coarse stage, docs/methods/sugar.md §3.2; "visible" = radii > 0 in this render); 0 if none is visible."""
     o = _gaussians(state, "opacity_entropy").opacities
     if render.visible is not None:
         o = o[render.visible]

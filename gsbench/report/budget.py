@@ -3,7 +3,7 @@
 A budget caps the Gaussian count; a run that reaches it early spends it on whatever it densified
 first, so two methods compared under a binding budget are compared at that budget, not as the papers
 ran them. A run was *cut* when its record's ``densify_budget.first_cut_step`` is set: a refinement
-left densification candidates out (gsbench/training/trainer.py, "Budget"). Records written before that was
+left densification candidates out (docs/training.md §6). Records written before that was
 tracked have no ``densify_budget``; of them only the final count is known, and the report says how
 many *ended* at `NEAR` · ``max_gaussians`` or more, a different statement: a method that prunes hard
 after its densification (SuGaR) can have been cut and still end far below the budget.

@@ -17,13 +17,14 @@ A claim is checked with the paired test of `gsbench.report.stats` over the (scen
 - ``≈``: *agrees (not separable)* when the test cannot separate them, *disagrees* when it can;
 - *not measured*: a side has no runs with the metric, or the two share no (scene, seed) pair.
 
-A claim the runs contradict gets a **cause** (`Outcome.cause`): the measured one from ``configs/findings.yaml``
+A claim the runs contradict gets a **cause** (`Outcome.cause`): the measured one from ``experiments/findings.yaml``
 (`load_findings`), or ``unexplained``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from gsbench.config.files import (
     CLAIMS_KEY,
@@ -205,14 +206,17 @@ def _measure(claim: Claim, board: Board | None, better: Row | None, worse: Row |
     return Outcome(claim, better.name, worse.name, test, verdict(claim.relation, test), why)
 
 
-FINDINGS_FILE = "findings.yaml"
+FINDINGS_FILE = Path("experiments") / "findings.yaml"  # the repository's, read from its root; not installed
 UNEXPLAINED = "unexplained"
 
 
 def load_findings(path=None) -> dict[tuple[str, str], str]:
-    """(dataset, claim text) -> the measured cause of the runs contradicting it, from ``configs/findings.yaml``
-    (``causes: {dataset: {claim text: cause}}``); unknown claim texts are an error naming them."""
-    path = path or config_root() / FINDINGS_FILE
+    """(dataset, claim text) -> the measured cause of the runs contradicting it, from ``path`` (default
+    ``experiments/findings.yaml`` under the working folder; none there: no causes, every contradiction
+    "unexplained") as ``causes: {dataset: {claim text: cause}}``; unknown claim texts are an error naming them."""
+    if path is None and not FINDINGS_FILE.is_file():
+        return {}
+    path = path or FINDINGS_FILE
     causes = load_yaml(path).get("causes") or {}
     known = {(c.dataset, c.text) for c in load_claims()}
     found = {(dataset, text): str(cause) for dataset, entries in causes.items() for text, cause in (entries or {}).items()}

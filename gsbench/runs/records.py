@@ -8,9 +8,9 @@ views trained and held out, masks, the initial Gaussian count), eval protocols, 
 evaluators with the reason each could not score the scene, timings per stage in seconds (``load``, ``train``, ``extract``,
 ``evaluate``, ``total``; training excludes the others; ``train.<phase>``: seconds of each part of
 the training step, ``render``, ``loss``, ``backward``, ``densify``, ``optimizer``, ``checks``, and
-of method-specific phases inside them, e.g. IBGS ``train.knn``; gsbench/training/trainer.py "Phases"), iterations/s, Gaussian count,
+of method-specific phases inside them, e.g. IBGS ``train.knn``; docs/training.md §5), iterations/s, Gaussian count,
 ``densify_budget`` (``max_gaussians``, ``first_cut_step``: the first step at which the budget left
-densification candidates out, null if never, ``candidates_cut``; gsbench/training/trainer.py "Budget"; empty in
+densification candidates out, null if never, ``candidates_cut``; docs/training.md §6; empty in
 records of runs trained before it was tracked), peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
 threads, OS, host, UTC start/end, and ``switches``: the value of every result-changing ``GSBENCH_*`` switch,

@@ -32,7 +32,7 @@ class BuiltinScene:
     factor: str = ""
 
 
-FAR = "framed at 12.6% of the image, not 34%"  # the framing of the first suite against DTU's (docs/measurements.md)
+FAR = "framed at 12.6% of the image, not 34%"  # the framing of the first suite against DTU's (experiments/suite_vs_papers/README.md)
 GLASS = "transparent"  # a glass scene against its opaque twin (issue 41)
 
 BUILTIN_SCENES: dict[str, BuiltinScene] = {

@@ -20,7 +20,7 @@
 // The list prefetch reads a clamped index, not `if (k + PF < end)`: with that branch GCC 12 splits the
 // list loop in two (-fsplit-loops, on at -O3) and its copy for the last PF entries keeps the lane loops
 // scalar. Those are the tile's front-most Gaussians, often the largest on screen, so the scalar copy
-// took about 30% of the backward (docs/measurements.md, "The scalar copy of the list loop").
+// took about 30% of the backward (experiments/papers_size/README.md, "The scalar copy of the list loop").
 
 #include "raster_common.h"
 

@@ -149,7 +149,7 @@ inline void scatter(T* base, const int64_t* rows, int64_t stride, int64_t k, V x
 
 // The raw SH colour Σ_k b_k c_k (k < nb, in order) of each lane: row k of sh for k < sh_k, else row k − sh_k of
 // sh_rest. Each lane reads its own rows, which are contiguous; a gather across the lanes per coefficient made
-// the forward 1.4 times as slow (docs/measurements.md, "The projection in vector lanes"). Explicit fused
+// the forward 1.4 times as slow (experiments/papers_size/README.md, "The projection in vector lanes"). Explicit fused
 // multiply-adds: the same rounding whichever loop a row falls in (sh kept apart or not, lanes or one Gaussian).
 template <typename V, typename T>
 inline void sh_colour(const ProjArgs& A, const int64_t* rows, int nb, const V* bs, V* raw) {
@@ -634,7 +634,7 @@ inline void cross_bwd(const V* a, const V* b, const V* g, V* ga, V* gb) {
 }
 
 // Whether the P payload gradients of a Gaussian are all 0: those of the Gaussians no pixel reached (outside the
-// view, or behind pixels that stopped), 60-66% of them at a trained papers'-size state (docs/measurements.md).
+// view, or behind pixels that stopped), 60-66% of them at a trained papers'-size state (experiments/papers_size/README.md).
 template <typename T, int P>
 inline bool zero_row(const T* gp) {
     bool zero = true;
