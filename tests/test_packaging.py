@@ -23,7 +23,7 @@ def test_the_built_package_holds_no_experiment(tmp_path):
                     "egg_info", "--egg-base", str(tmp_path), "build_py", "--build-lib", str(built)],
                    cwd=REPO, check=True, capture_output=True, text=True)
     files = sorted(p.relative_to(built).as_posix() for p in built.rglob("*") if p.is_file())
-    assert "gsbench/cli.py" in files and "gsbench/configs/presets/cpu.yaml" in files  # the build ran
+    assert "gsbench/cli/__init__.py" in files and "gsbench/configs/presets/cpu.yaml" in files  # the build ran
     assert not [f for f in files if "experiments" in f or f.endswith(("findings.yaml", ".md"))]
     shipped = sorted(f.removeprefix("gsbench/configs/sweeps/") for f in files if f.startswith("gsbench/configs/sweeps/"))
     assert shipped == [p.name for p in SHIPPED]

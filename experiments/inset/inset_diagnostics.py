@@ -28,6 +28,7 @@ import yaml
 from scipy.spatial import cKDTree
 
 from gsbench.data.loader import load_scene
+from gsbench.data.synthetic.make import ensure_scene
 from gsbench.evaluators import pointsets
 from gsbench.evaluators.surface_offset import gt_mesh_file, pixel_footprint, signed_distances
 from gsbench.run_folder import RunFolder
@@ -40,6 +41,7 @@ MESH_SAMPLES, CURVATURE_POINTS, EXACT_SAMPLES = 40_000, 6_000, 300_000
 
 def _run_scene(run: Path):
     cfg = yaml.safe_load((run / "config.yaml").read_text())
+    ensure_scene(cfg["scene"])
     scene = load_scene(cfg["scene"], downscale=cfg["data"]["downscale"], max_size=cfg["data"].get("max_size", ()),
                        load_images=False)
     gt = trimesh.load(gt_mesh_file(scene), process=False)
