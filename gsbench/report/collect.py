@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gsbench.config.run_config import completed_config
 from gsbench.errors import GsbenchError
 from gsbench.report.records_file import board_file, read_board
 from gsbench.run_folder import RunFolder
@@ -170,7 +171,7 @@ def _run(data: dict, rel: str) -> Run:
         num_gaussians=_number(data.get("num_gaussians")), train_peak_rss_bytes=train_rss,
         threads=threads, iterations=iterations,
         eval_protocol=data.get("eval_protocol") if isinstance(data.get("eval_protocol"), dict) else {},
-        environment=environment, error_tail=str(data.get("error_tail") or ""), config=flatten(config),
+        environment=environment, error_tail=str(data.get("error_tail") or ""), config=flatten(completed_config(config)),
         skipped={str(k): " ".join(str(v).split()) for k, v in skipped.items()}, densify_budget=budget,
     )
 
