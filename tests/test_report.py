@@ -94,7 +94,8 @@ def test_html_links_its_pictures_is_sortable_and_lists_every_run(report):
             assert attrs["href"].startswith("#")
         assert not (tag in ("script", "link") and ("src" in attrs or "href" in attrs)), "no external script/style"
     pngs = sorted(p.name for p in (report / "plots").glob("*.png"))
-    assert pngs == ["speed-dtu.png", "speed-tnt.png", "sweep-ibgs-k-dtu.png", "sweep-ibgs-losses-dtu.png"]
+    assert pngs == ["curves-dtu.png", "curves-tnt.png", "speed-dtu.png", "speed-tnt.png", "sweep-ibgs-k-dtu.png",
+                    "sweep-ibgs-losses-dtu.png"]
     assert sorted(attrs["src"] for tag, attrs in parser.tags if tag == "img") == [f"plots/{n}" for n in pngs]
     assert "base64" not in page  # each picture is stored once, beside the page
     assert all((report / "plots" / n).read_bytes().startswith(b"\x89PNG") for n in pngs)
@@ -110,7 +111,7 @@ def test_self_contained_page_embeds_the_same_pictures(report, tmp_path):
     write_report(RUNS, out, self_contained=True, generated="2026-01-01T00:00:00+00:00")
     images = [attrs["src"] for tag, attrs in _parsed((out / "index.html").read_text()).tags if tag == "img"]
     embedded = sorted(base64.b64decode(src.removeprefix("data:image/png;base64,")) for src in images)
-    assert len(images) == 4 and all(src.startswith("data:image/png;base64,") for src in images)
+    assert len(images) == 6 and all(src.startswith("data:image/png;base64,") for src in images)
     assert embedded == sorted(p.read_bytes() for p in (report / "plots").glob("*.png"))
     assert (out / "leaderboard.md").read_text() == (report / "leaderboard.md").read_text()
 
@@ -283,7 +284,7 @@ def test_cli_report(tmp_path, capsys):
     write_board(tmp_path / "board" / RECORDS_FILE, _board_of(RUNS))
     assert main(["report", str(tmp_path / "board" / RECORDS_FILE), "--out", str(tmp_path / "board"),
                  "--self-contained"]) == 0
-    assert "and 4 plots in plots/" in capsys.readouterr().out
+    assert "and 6 plots in plots/" in capsys.readouterr().out
     assert "data:image/png;base64," in (tmp_path / "board" / "index.html").read_text()
     assert main(["report", str(tmp_path / "empty-or-missing"), "--out", str(tmp_path / "r2")]) == 2
     assert "does not exist" in capsys.readouterr().err

@@ -16,11 +16,23 @@ from gsbench.errors import one_line
 from gsbench.report import plots as figures
 from gsbench.report import png
 from gsbench.report.aggregate import Board, ablations, leaderboard
+from gsbench.report.anytime import accuracy_to_reach, board_series, budget_results
+from gsbench.report.anytime_tables import TIME_NOTE, budget_table, curves_table, front_table, joins_table
 from gsbench.report.claims import evaluate_claims
-from gsbench.report.collect import Source, label_variants, load_manifests, load_runs, read_source, unfinished_folders
+from gsbench.report.collect import (
+    Source,
+    label_variants,
+    load_manifests,
+    load_runs,
+    merge_resized_scenes,
+    read_source,
+    unfinished_folders,
+)
 from gsbench.report.html import document_html
+from gsbench.report.joins import curves, joins
 from gsbench.report.leaderboard_csv import leaderboard_csv
 from gsbench.report.metrics import COMPANIONS, PAPERS_METRIC, metric_specs, primary_metric, reported
+from gsbench.report.pareto import step_points
 from gsbench.report.run_tables import (
     environment_table,
     failed_table,
@@ -60,6 +72,9 @@ CLAIMS_NOTE = ("The papers' orderings, tested on these runs in the paper's metri
                "runs' budgets (docs/report.md §6).")
 TWINS_NOTE = "What one factor of a scene (glass, framing, relief) costs each method (docs/report.md §7)."
 WITHOUT_GT_NOTE = "What can be measured without ground-truth geometry (docs/report.md §8)."
+TIME_SECTION_NOTE = ("Each dataset's ranking metric against training time, from the points each run evaluated along "
+                     "its training (a record without them: its final result), one curve per row or per rows joined; "
+                     "the best curve at each time budget and the Pareto front over every step (docs/report.md §10).")
 
 
 FILE_STEM_MAX = 100  # characters of a plot's file name stem; a longer one (a row label with many keys) is cut
@@ -203,6 +218,22 @@ def _leaderboards(runs, warnings: list[str]) -> tuple[dict, list[Board], list[Bo
     return primary, boards, companions
 
 
+def _against_time(boards: list[Board], made: _Plots) -> Section:
+    """Per dataset: which rows share a curve, the curves, the time-budget tables and the front over every step."""
+    section = Section("error-against-time", "Error against time", [TIME_SECTION_NOTE, TIME_NOTE], [])
+    for board in boards:
+        board_curves = curves(board)
+        joined = joins_table(board, board_curves, joins(board, board_curves))
+        section.blocks += [joined] if joined else []
+        section.blocks += made.add(f"curves_{board.dataset}", f"{board.dataset}: {board.spec.label} against training "
+                                   "CPU seconds", figures.curves_figure, board)
+        front = step_points(board_series(board, board_curves)[None], bool(board.spec.higher_is_better))
+        section.blocks += [budget_table(board, budget_results(board, board_curves)),
+                           curves_table(board, board_curves, accuracy_to_reach(board, board_curves)),
+                           front_table(board, front)]
+    return section
+
+
 def _without_gt(runs) -> Section | None:
     """The section of the measures that need no ground truth and of the skipped evaluators; None when
     no run has either."""
@@ -247,7 +278,7 @@ def write_report(source, out, *, plots: bool = True, self_contained: bool = Fals
     unfinished = unfinished_folders(source)
     warnings += [f"{folder}: a run folder without a record (unfinished, listed under Failed and unfinished runs)"
                  for folder in unfinished]
-    runs = label_variants(runs)
+    runs = label_variants(merge_resized_scenes(runs))
     manifests, manifest_warnings = load_manifests(source)
     warnings += manifest_warnings
     primary, boards, companions = _leaderboards(runs, warnings)
@@ -276,7 +307,7 @@ def write_report(source, out, *, plots: bool = True, self_contained: bool = Fals
     sections = [Section("leaderboards", "Leaderboards", [ROWS_NOTE, PROTOCOLS_NOTE], ranked),
                 *([surfaces] if surfaces else []), significance, claims,
                 *([Section("twins", "Twin scenes: what one factor costs", [TWINS_NOTE], twins)] if twins else []),
-                speed, *([without_gt] if without_gt else []), sweeps,
+                _against_time(boards, made), speed, *([without_gt] if without_gt else []), sweeps,
                 Section("failed", "Failed and unfinished runs", [],
                         [failed_table(runs), *([unfinished_table(unfinished)] if unfinished else [])]),
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),

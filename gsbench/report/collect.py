@@ -5,6 +5,14 @@ In a runs folder, records are found anywhere below it (``**/record.json``), so o
 ``--out`` folders. A record that cannot be read, or lacks the identity fields, becomes a warning, never a crash.
 The same run id found twice is kept once, preferring an ``ok`` record, then the newest, then the first path.
 
+A run's `RunPoint`s are its evaluations along training (the record's ``points``, docs/report.md §10); a record
+without them (written before they existed) has one, its final result, built from its metrics and timings.
+
+A scene folder named ``<scene>-<W>`` whose images are W pixels wide (the record's ``inputs.source_resolution``),
+beside runs of the same dataset on ``<scene>``, is that scene rendered at another image size (``gsbench scene make
+NAME --res W H`` draws the same cameras and ground truth at that size; the papers' preset ran on such a folder,
+docs/results/README.md): `merge_resized_scenes` shows its runs as runs on ``<scene>``, beside the other presets'.
+
 Rows of a leaderboard are configurations, not just methods: `label_variants` names each run by the config keys
 whose values differ between runs of the same method on the same scene (e.g. ``method.knn_k=5``); keys that
 follow from the preset are named by ``preset=...`` alone.
@@ -27,10 +35,24 @@ from gsbench.report.records_file import board_file, read_board
 from gsbench.run_folder import RunFolder
 
 RECORD_NAME = RunFolder.RECORD
-# Identity and execution keys: they never distinguish two configurations of one method.
-NOT_A_VARIANT = ("seed", "scene", "out", "threads")
+# Identity and execution keys: they never distinguish two configurations of one method (the evaluation points
+# do not change what a run trains, its final result included: issue 63's test of the runner).
+NOT_A_VARIANT = ("seed", "scene", "out", "threads", "eval.points")
 PRESET_KEY = "preset"
 REQUIRED = ("run_id", "method", "dataset", "scene")
+
+
+@dataclass(frozen=True)
+class RunPoint:
+    """One evaluation of a run along its training (an entry of the record's ``points``): the step, the seconds
+    of training so far (``seconds`` wall, ``cpu_seconds`` the process's CPU, None where unknown; evaluation
+    excluded) and the finite metrics; ``ok``: it was evaluated (a failed point has no metrics)."""
+
+    step: int
+    ok: bool
+    seconds: float | None
+    cpu_seconds: float | None
+    metrics: dict
 
 
 @dataclass(frozen=True)
@@ -59,6 +81,9 @@ class Run:
     variant: str = ""
     skipped: dict = field(default_factory=dict)  # evaluator -> why it could not score the scene (record ``skipped``)
     densify_budget: dict = field(default_factory=dict)  # record ``densify_budget`` (gsbench.report.budget)
+    points: tuple[RunPoint, ...] = ()  # in step order, the last the final result (module docstring)
+    source_width: int | None = None  # the scene's image width on disk (record ``inputs.source_resolution``)
+    scene_folder: str = ""  # the folder's name when `merge_resized_scenes` shows the run on another scene
 
     @property
     def ok(self) -> bool:
@@ -147,7 +172,41 @@ def _number(value):
     return value if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
-def _run(data: dict, rel: str) -> Run:
+def _finite_metrics(metrics) -> dict:
+    """The finite numbers of a ``metrics`` mapping, as floats: a non-finite metric is no measurement."""
+    return {k: float(v) for k, v in (metrics or {}).items() if _number(v) is not None and math.isfinite(v)}
+
+
+def _recorded_points(points) -> tuple[RunPoint, ...] | None:
+    """The record's ``points`` as `RunPoint`s; None when they are malformed (not a list of objects, each with
+    an integer ``step`` and a ``status``)."""
+    if not isinstance(points, list):
+        return None
+    read = []
+    for point in points:
+        if not (isinstance(point, dict) and isinstance(point.get("step"), int) and "status" in point):
+            return None
+        metrics = point.get("metrics")
+        read.append(RunPoint(step=point["step"], ok=point["status"] == "ok",
+                             seconds=_number(point.get("train_seconds")),
+                             cpu_seconds=_number(point.get("train_cpu_seconds")),
+                             metrics=_finite_metrics(metrics) if isinstance(metrics, dict) else {}))
+    return tuple(read)
+
+
+def _final_point(ok: bool, iterations, metrics: dict, timings: dict) -> RunPoint:
+    """A record without ``points``: its final result as its one point. The training seconds are the training's
+    plus, for a method with a second stage, the refinement's (``timings.refine``); the CPU seconds are
+    ``timings.train_cpu`` for a run without a second stage, unknown (None) for one with it (its record has no
+    CPU seconds of the refinement)."""
+    refine = timings.get("refine")
+    wall = timings.get("train")
+    return RunPoint(step=int(iterations or 0), ok=ok, seconds=None if wall is None else wall + (refine or 0.0),
+                    cpu_seconds=timings.get("train_cpu") if refine is None else None, metrics=metrics if ok else {})
+
+
+def _run(data: dict, rel: str) -> tuple[Run, list[str]]:
+    """The `Run` of a record, and the warnings about it (malformed ``points``)."""
     config = data.get("config") if isinstance(data.get("config"), dict) else {}
     environment = data.get("environment") if isinstance(data.get("environment"), dict) else {}
     # the record's high-water mark at the end of training: extraction and evaluation, the same for every
@@ -157,23 +216,34 @@ def _run(data: dict, rel: str) -> Run:
     train = config.get("train") if isinstance(config.get("train"), dict) else {}
     iterations = _number(train.get("iterations"))
     # a non-finite metric is no measurement: the run then counts as "no metric"
-    metrics = {k: float(v) for k, v in (data.get("metrics") or {}).items()
-               if _number(v) is not None and math.isfinite(v)}
+    metrics = _finite_metrics(data.get("metrics"))
     timings = {k: float(v) for k, v in (data.get("timings") or {}).items() if _number(v) is not None}
     # evaluators the plan left out (records from before the field have none)
     skipped = data.get("skipped") if isinstance(data.get("skipped"), dict) else {}
     # how the Gaussian budget bound training (records from before the field have none)
     budget = data.get("densify_budget") if isinstance(data.get("densify_budget"), dict) else {}
-    return Run(
+    status = str(data.get("status") or "unknown")
+    size = (data.get("inputs") or {}).get("source_resolution") if isinstance(data.get("inputs"), dict) else None
+    source_width = size[0] if isinstance(size, list) and size and isinstance(size[0], int) else None
+    points = _recorded_points(data.get("points", []))
+    warnings = []
+    if points is None:
+        warnings.append(f"{rel}: 'points' is not a list of points (each an object with an integer 'step' and a "
+                        "'status'): only its final result is drawn; fix: re-run it, or remove 'points' from the record")
+    if not points:  # a record from before points (or a run that failed before its first one)
+        points = (_final_point(status == "ok", iterations, metrics, timings),)
+    run = Run(
         run_id=str(data["run_id"]), dataset=str(data["dataset"]), scene=Path(str(data["scene"]).rstrip("/")).name,
-        method=str(data["method"]), seed=_number(data.get("seed")), status=str(data.get("status") or "unknown"),
+        method=str(data["method"]), seed=_number(data.get("seed")), status=status,
         path=rel, metrics=metrics, timings=timings, it_per_s=_number(data.get("it_per_s")),
         num_gaussians=_number(data.get("num_gaussians")), train_peak_rss_bytes=train_rss,
         threads=threads, iterations=iterations,
         eval_protocol=data.get("eval_protocol") if isinstance(data.get("eval_protocol"), dict) else {},
         environment=environment, error_tail=str(data.get("error_tail") or ""), config=flatten(completed_config(config)),
         skipped={str(k): " ".join(str(v).split()) for k, v in skipped.items()}, densify_budget=budget,
+        points=points, source_width=source_width,
     )
+    return run, warnings
 
 
 def _keep_first(copies: list[Run]) -> list[Run]:
@@ -214,7 +284,8 @@ def load_runs(source) -> tuple[list[Run], list[str]]:
         if missing:
             warnings.append(f"{rel}: record without {', '.join(missing)} skipped")
             continue
-        run = _run(data, rel)
+        run, run_warnings = _run(data, rel)
+        warnings += run_warnings
         non_finite = sorted(k for k, v in (data.get("metrics") or {}).items() if _number(v) is not None
                             and not math.isfinite(v))
         if run.ok and non_finite:
@@ -241,7 +312,21 @@ def load_runs(source) -> tuple[list[Run], list[str]]:
     return runs, warnings
 
 
-def _show(value) -> str:
+def merge_resized_scenes(runs: list[Run]) -> list[Run]:
+    """The runs, those on a folder ``<scene>-<W>`` (W their images' width) of a dataset with runs on ``<scene>``
+    shown on ``<scene>``, the folder's name kept in ``scene_folder`` (module docstring)."""
+    scenes = {(run.dataset, run.scene) for run in runs}
+    merged = []
+    for run in runs:
+        base, _, width = run.scene.rpartition("-")
+        if base and run.source_width is not None and width == str(run.source_width) and (run.dataset, base) in scenes:
+            run = dataclasses.replace(run, scene=base, scene_folder=run.scene)
+        merged.append(run)
+    return merged
+
+
+def show_value(value) -> str:
+    """A config value as row labels show it: ``unset`` for None, a string as is, else JSON."""
     if value is None:
         return "unset"
     return value if isinstance(value, str) else json.dumps(value, sort_keys=True)
@@ -260,7 +345,7 @@ def label_variants(runs: list[Run]) -> list[Run]:
         sizes[group] = sizes.get(group, 0) + 1
         seen, present = values.setdefault(group, {}), presence.setdefault(group, {})
         for key, value in run.config.items():
-            seen.setdefault(key, set()).add(_show(value))
+            seen.setdefault(key, set()).add(show_value(value))
             present[key] = present.get(key, 0) + 1
     varying: dict[tuple, set] = {}
     for group, seen in values.items():
@@ -276,7 +361,7 @@ def label_variants(runs: list[Run]) -> list[Run]:
     labelled = []
     for run in runs:
         keys = sorted(varying[(run.dataset, run.method)])
-        variant = ", ".join(f"{k}={_show(run.config.get(k))}" for k in keys)
+        variant = ", ".join(f"{k}={show_value(run.config.get(k))}" for k in keys)
         labelled.append(dataclasses.replace(run, variant=variant))
     return labelled
 
@@ -285,7 +370,7 @@ def _follows_preset(runs: list[Run], key: str) -> bool:
     """Whether ``key`` takes one value among the runs of each preset: then ``preset=...`` names it."""
     by_preset: dict[str, set] = {}
     for run in runs:
-        by_preset.setdefault(_show(run.config.get(PRESET_KEY)), set()).add(_show(run.config.get(key)))
+        by_preset.setdefault(show_value(run.config.get(PRESET_KEY)), set()).add(show_value(run.config.get(key)))
     return all(len(values) == 1 for values in by_preset.values())
 
 

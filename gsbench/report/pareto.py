@@ -2,7 +2,8 @@
 
 A point is on the front when no other point is at least as good in both cost and error and strictly
 better in one. Cost is always minimised; the error is minimised, or maximised for a score such as F1.
-Equal points are all on the front. `cost_points` applies this to the rows of a board.
+Equal points are all on the front. `cost_points` applies this to the rows of a board (their final results),
+`step_points` to every step of a board's curves of error against training time (docs/report.md §10.4).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 from gsbench.report.aggregate import Board
+from gsbench.report.anytime import CurvePoint
 
 
 def pareto_front(points: list[tuple[float, float]], higher_is_better: bool = False) -> list[int]:
@@ -69,3 +71,21 @@ def cost_points(board: Board, cost: str) -> list[Point]:
     front = {competing[j] for j in pareto_front([raw[i][1:3] for i in competing], board.spec.higher_is_better)}
     return [Point(name, spent, value, complete, i in front, cost_ci, value_ci)
             for i, (name, spent, value, complete, cost_ci, value_ci) in enumerate(raw)]
+
+
+@dataclass(frozen=True)
+class StepPoint:
+    """A step of a curve (`gsbench.report.anytime.CurvePoint`: its schedule length, step, mean time and value,
+    whether wall-timed) and whether it is on the front of all the curves' steps."""
+
+    curve: str
+    point: CurvePoint
+    front: bool
+
+
+def step_points(series: dict[str, list[CurvePoint]], higher_is_better: bool) -> list[StepPoint]:
+    """Every step of every curve of ``series`` (curve label -> its points), in that order, with the front over
+    all of them (time against value)."""
+    steps = [(label, point) for label, points in series.items() for point in points]
+    front = set(pareto_front([(point.time, point.value) for _, point in steps], higher_is_better))
+    return [StepPoint(label, point, i in front) for i, (label, point) in enumerate(steps)]

@@ -7,15 +7,21 @@ without pyplot, so no global backend state or display is touched.
 - `grid_figure`: a one-key numeric sweep (e.g. IBGS K) against the metric, one line per scene, error
   bars = sample std over seeds.
 - `variants_figure`: a sweep of named rows, the metric per row (one marker per scene, std bars).
+- `curves_figure`: per dataset, the metric against training CPU-seconds (log scale), a panel per scene and one
+  for the mean over scenes, one curve per `gsbench.report.joins.Curve` with its min–max band over seeds
+  (docs/report.md §10.1), the time budgets dotted, the steps on the Pareto front ringed.
 """
 
 from __future__ import annotations
 
 import io
+import math
 
 from gsbench.errors import missing_dependency
 from gsbench.report.aggregate import Board
-from gsbench.report.pareto import COSTS, cost_points
+from gsbench.report.anytime import BUDGETS, board_series
+from gsbench.report.joins import curves
+from gsbench.report.pareto import COSTS, cost_points, step_points
 from gsbench.report.png import compact
 
 SCALE = {"train_rss": 1 / 2**20}  # bytes -> MiB on the memory axis
@@ -127,4 +133,65 @@ def variants_figure(board: Board) -> bytes | None:
     ax.grid(alpha=0.3, axis="x")
     ax.legend(fontsize=8)
     ax.set_title(board.title, fontsize=10)
+    return _png(figure)
+
+
+MARKERS = "osD^v"  # a joined curve's schedule lengths, shortest first
+LINE_STYLES = ("-", "--", ":", "-.")  # a method's curves, in row order
+PANEL_INCHES = (3.6, 2.7)
+
+
+def _curve_styles(made) -> dict[str, tuple[str, str]]:
+    """Curve label -> (colour, line style): a colour per method, a line style per curve of that method."""
+    methods: dict[str, list[str]] = {}
+    for curve in made:
+        methods.setdefault(curve.method, []).append(curve.label)
+    return {label: (f"C{m % 10}", LINE_STYLES[k % len(LINE_STYLES)])
+            for m, labels in enumerate(methods.values()) for k, label in enumerate(labels)}
+
+
+def curves_figure(board: Board) -> bytes | None:
+    """The board's curves of error against training time (module docstring); None when no curve has a point."""
+    made = curves(board)
+    panels = board_series(board, made)
+    if not any(panels.values()):
+        return None
+    columns = 2 if len(panels) == 4 else min(3, len(panels))
+    lines = math.ceil(len(panels) / columns)
+    figure = _figure(PANEL_INCHES[0] * columns, PANEL_INCHES[1] * lines + 0.4 + 0.16 * math.ceil(len(made) / 2))
+    axes = figure.subplots(lines, columns, squeeze=False).ravel()
+    styles = _curve_styles(made)
+    handles, wall = {}, False
+    for ax, (scene, series) in zip(axes, panels.items()):
+        for label, points in series.items():
+            colour, style = styles[label]
+            for k, iterations in enumerate(sorted({p.iterations for p in points})):
+                run = [p for p in points if p.iterations == iterations]
+                xs = [p.time for p in run]
+                ax.fill_between(xs, [p.low for p in run], [p.high for p in run], color=colour, alpha=0.15, linewidth=0)
+                (line,) = ax.plot(xs, [p.value for p in run], color=colour, ls=style, lw=1.1)
+                handles.setdefault(label, line)
+                ax.scatter(xs, [p.value for p in run], s=14, marker=MARKERS[k % len(MARKERS)], zorder=3,
+                           facecolors=["none" if p.wall else colour for p in run], edgecolors=colour, linewidths=0.9)
+                wall = wall or any(p.wall for p in run)
+        front = sorted((s.point.time, s.point.value) for s in step_points(series, bool(board.spec.higher_is_better))
+                       if s.front)
+        if front:
+            ax.scatter(*zip(*front), s=55, facecolors="none", edgecolors="red", linewidths=0.8, zorder=4)
+        for budget in BUDGETS:
+            ax.axvline(budget, color="0.55", ls=":", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_title("mean over scenes" if scene is None else scene, fontsize=9)
+        ax.set_xlabel("training CPU seconds", fontsize=7)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3, which="both", lw=0.4)
+    for ax in axes[len(panels):]:
+        ax.axis("off")
+    figure.supylabel(f"{board.spec.label} ({board.spec.direction})", fontsize=8)
+    labels = [curve.label for curve in made if curve.label in handles]
+    figure.legend([handles[label] for label in labels], [_short(label) for label in labels], loc="outside lower center",
+                  ncols=2, fontsize=7, frameon=False)
+    figure.suptitle(f"{board.dataset}: error against training time; band: min–max over seeds; dotted: "
+                    f"{', '.join(f'{b / 60:g}' for b in BUDGETS)} min; red rings: Pareto front"
+                    + ("\nhollow markers: wall seconds (the record has no CPU seconds)" if wall else ""), fontsize=9)
     return _png(figure)

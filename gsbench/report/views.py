@@ -132,6 +132,10 @@ def leaderboard_table(board: Board) -> Table:
     versions = code_version_note(board)
     if versions:
         notes.insert(0, versions)
+    resized = sorted({(run.scene_folder, run.scene) for row in board.rows for run in row.runs if run.scene_folder})
+    if resized:
+        notes.append("Shown on the scene it was rendered from, at another image size (docs/report.md §2): "
+                     + "; ".join(f"{folder} on {scene}" for folder, scene in resized) + ".")
     if board.unscored:
         notes.append(f"Not on this board: {join_text(board.unscored)} — no run there has {board.spec.label}, its "
                      f"evaluator was skipped (see Captures without ground truth).")
