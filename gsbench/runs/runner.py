@@ -1,4 +1,4 @@
-"""One run as cached stages: load → train → extract → evaluate → record (docs/design.md §1, docs/design.md §8).
+"""One run as cached stages: load → train → extract → evaluate → record (docs/design.md §1, §8).
 
 Folder: ``<out>/<dataset>/<scene>/<method>/<run_id>/`` holding ``config.yaml`` (the resolved config),
 ``checkpoint.pt`` / ``checkpoint-final.pt`` and ``metrics.jsonl`` (`gsbench.training.trainer`), ``mesh.ply``,
