@@ -3,7 +3,9 @@
 `gsbench run` writes ``<out>/<dataset>/<scene>/<method>/<run_id>/``: ``config.yaml`` (the resolved
 configuration), ``checkpoint.pt`` (the latest resumable state, removed when training ends),
 ``checkpoint-final.pt``, ``metrics.jsonl`` (the training log), ``mesh.ply``, ``eval.json``, ``stages.json``
-(per stage: seconds and peak memory), ``switches.json`` (the result-changing ``GSBENCH_*`` switches its
+(per stage: seconds and peak memory), ``points/`` (anytime evaluation, docs/training.md §9: per point step
+``<step>/mesh.ply``, ``<step>/eval.json`` and ``<step>.json``, its row of the record's ``points``, written
+last), ``switches.json`` (the result-changing ``GSBENCH_*`` switches its
 outputs were made with, `gsbench.runs.records.check_folder_switches`), ``record.json`` (the run record, written
 last) and ``.lock`` (one process at a time). Training, the runner, sweeps, diagnostics and the report all reach
 these files through `RunFolder`.
@@ -30,6 +32,7 @@ class RunFolder:
     STAGES = "stages.json"
     RECORD = "record.json"
     SWITCHES = "switches.json"
+    POINTS = "points"
     LOCK = ".lock"
 
     def __post_init__(self):
@@ -74,3 +77,15 @@ class RunFolder:
     @property
     def lock(self) -> Path:
         return self.path / self.LOCK
+
+    def point_mesh(self, step: int) -> Path:
+        """The mesh extracted at the point of training step ``step``."""
+        return self.path / self.POINTS / str(int(step)) / self.MESH
+
+    def point_eval(self, step: int) -> Path:
+        """The evaluation report of that mesh (as ``eval.json`` is of the final one)."""
+        return self.path / self.POINTS / str(int(step)) / self.EVAL
+
+    def point_row(self, step: int) -> Path:
+        """The point's row of the record's ``points``, written when the point is done (ok or failed)."""
+        return self.path / self.POINTS / f"{int(step)}.json"

@@ -9,6 +9,7 @@ the loaders).
 - ``threads`` >= 0 (0: every core); ``train.iterations`` >= 1; ``train.log_every`` >= 1;
   ``train.checkpoint_every`` >= 0 (0: only the final checkpoint); ``train.max_gaussians`` >= 0;
 - ``eval.dtu_culling`` one of the DTU culling conventions (`gsbench.evaluators.culling`) or ``none``;
+- ``eval.points`` steps before the end or fractions in (0, 1), distinct once resolved (`point_steps`);
 - the memory the run needs (`memory_check`, the method's ``memory_estimate``) against what is available;
 - the method's own parameters, mesh and raster options (`gsbench.methods.base.Method.check_config`,
   when the plugin has it), and every configured loss term: its name and the parameters the method
@@ -17,7 +18,7 @@ the loaders).
 
 from __future__ import annotations
 
-from gsbench.config.run_config import RunConfig
+from gsbench.config.run_config import RunConfig, point_steps
 from gsbench.errors import ConfigError
 from gsbench.evaluators.culling import CULL_CONVENTIONS, NO_CULLING
 from gsbench.registry import METHODS
@@ -41,6 +42,7 @@ def check_run_config(cfg: RunConfig) -> None:
     if cfg.eval.dtu_culling not in (*CULL_CONVENTIONS, NO_CULLING):
         raise ConfigError(f"eval.dtu_culling must be one of {', '.join((*CULL_CONVENTIONS, NO_CULLING))}, "
                           f"got {cfg.eval.dtu_culling!r}")
+    point_steps(cfg)
     method = METHODS.get(cfg.method["name"])
     check_method = getattr(method, "check_config", None)  # plugins need not have it
     if check_method is not None:

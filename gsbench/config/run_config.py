@@ -45,14 +45,16 @@ from gsbench.data.loader import BUILTIN_SCENES, detect_format, has_ground_truth
 from gsbench.errors import ConfigError
 
 EXECUTION_ONLY_KEYS = ("threads", "out", "gt")
-# (method, dotted key, default) of the fields added after records of that method existed, the default being the value
-# those records ran with (kept here should the field's own default change): at that value a field is left out of the
-# run id, so those records keep theirs (`completed_config` fills it into their configs). SuGaR's refinement stage
-# (docs/methods/sugar.md §6) came after the suites' records.
+# (method, dotted key, default) of the fields added after records of that method existed (method None: of every
+# method), the default being the value those records ran with (kept here should the field's own default change): at
+# that value a field is left out of the run id, so those records keep theirs (`completed_config` fills it into their
+# configs). SuGaR's refinement stage (docs/methods/sugar.md §6) and the points of anytime evaluation
+# (docs/training.md §9) came after the suites' records.
 ADDED_AFTER_RECORDS = (
     ("sugar", "method.refinement", "none"),
     ("sugar", "method.refine_gaussians_per_triangle", 1),
     ("sugar", "method.refine_triangles", 50_000),
+    (None, "eval.points", []),
 )
 HOLDOUT_WITHOUT_GT = 8  # data.holdout_every "auto" (-1) on a scene without ground truth: 3DGS --eval
 
@@ -135,10 +137,14 @@ class MeshConfig:
 @dataclass
 class EvalConfig:
     """Evaluators to run. Empty: the dataset's defaults (`gsbench.evaluators.resolve`), each skipped with
-    its reason when the scene lacks what it needs; named: every one must apply, checked before loading."""
+    its reason when the scene lacks what it needs; named: every one must apply, checked before loading.
+    ``points``: where training stops to extract and evaluate the mesh as at its end (anytime evaluation,
+    docs/training.md §9), steps (int >= 1) or fractions of the run (float in (0, 1)), `point_steps`; the end
+    is always a point, [] = only the end."""
 
     evaluators: list = field(default_factory=list)
     dtu_culling: str = "2dgs"  # mask culling before the DTU protocol: 2dgs, gof or none (`gsbench.evaluators.culling`)
+    points: list = field(default_factory=list)
 
 
 @dataclass
@@ -176,6 +182,31 @@ class RunConfig:
         return run_id(self.to_dict())
 
 
+def point_steps(cfg: RunConfig) -> list[int]:
+    """The steps of ``eval.points`` in order: a step as given, a fraction f of the run at
+    ``max(1, round(f · train.iterations))``; the end, always a point, is not among them. A value that is neither,
+    one at or past the end, and two at one step are each a `ConfigError` naming the fix."""
+    iterations, steps = cfg.train.iterations, {}
+    hint = "eval.points takes steps (int >= 1) or fractions of the run (float in (0, 1)), e.g. [0.1, 0.25, 0.5]"
+    for value in cfg.eval.points:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"eval.points: {value!r} is not a number; {hint}")
+        if isinstance(value, float) and not 0 < value < 1:
+            raise ConfigError(f"eval.points: {value} is a fraction of the run and must be in (0, 1); {hint} (write "
+                              "a step as an integer, e.g. 300)")
+        if isinstance(value, int) and value < 1:
+            raise ConfigError(f"eval.points: step {value} must be >= 1; {hint}")
+        step = value if isinstance(value, int) else max(1, round(value * iterations))
+        if step >= iterations:
+            raise ConfigError(f"eval.points: {value} is step {step}, not before the end of the run (train.iterations "
+                              f"{iterations}), which is always a point; fix: drop it or name an earlier step")
+        if step in steps:
+            raise ConfigError(f"eval.points: {steps[step]!r} and {value!r} are both step {step} of {iterations}; fix: "
+                              "drop one (a short run has fewer distinct steps)")
+        steps[step] = value
+    return sorted(steps)
+
+
 def run_id(resolved: dict) -> str:
     """sha1 of the canonical JSON (sorted keys, no whitespace) of ``resolved`` minus the execution-only keys and
     the `ADDED_AFTER_RECORDS` fields at their defaults, 12 hex."""
@@ -198,7 +229,7 @@ def completed_config(recorded: dict) -> dict:
 
 def _added_fields(config: dict) -> list[tuple[dict, str, Any]]:
     """(the section of ``config`` holding it, its name, its default) of each `ADDED_AFTER_RECORDS` field of the
-    config's method whose section ``config`` has."""
+    config's method (or of every method) whose section ``config`` has."""
     method = config.get("method", {}).get("name") if isinstance(config.get("method"), dict) else None
     found = []
     for owner, key, default in ADDED_AFTER_RECORDS:
@@ -206,7 +237,7 @@ def _added_fields(config: dict) -> list[tuple[dict, str, Any]]:
         section = config
         for part in parents:
             section = section.get(part) if isinstance(section, dict) else None
-        if owner == method and isinstance(section, dict):
+        if owner in (None, method) and isinstance(section, dict):
             found.append((section, name, default))
     return found
 

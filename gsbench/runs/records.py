@@ -15,6 +15,15 @@ records of runs trained before it was tracked), peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
 threads, OS, host, UTC start/end, and ``switches``: the value of every result-changing ``GSBENCH_*`` switch,
 defaults included, `gsbench.switches`; records made before it was tracked lack it and ran at the defaults).
+A method with a second stage (SuGaR's refinement) adds ``refine`` and ``refine_cpu`` to the timings.
+
+``points`` (anytime evaluation, docs/training.md §9): one row per point in step order, the last the run's
+final result (`final_point`), each with the keys of `POINT_KEYS`: ``step``, ``fraction`` (step /
+train.iterations), ``final``, ``status`` (ok or failed), ``error`` (one line, null when ok), ``train_seconds``
+and ``train_cpu_seconds`` (training so far, every training stage up to the point, evaluation excluded; CPU
+null where unknown), ``num_gaussians``, ``metrics`` (the names of ``metrics``; {} when failed),
+``extract_seconds``, ``evaluate_seconds``. A record written before points existed has none:
+`record_points` reads it as its final point alone.
 
 A run folder keeps the switches its outputs were made with in ``switches.json``; a run resumed under other
 values is refused (`check_folder_switches`), so a record never mixes them.
@@ -41,6 +50,8 @@ from gsbench.run_folder import RunFolder
 from gsbench.switches import SWITCHES, result_switches
 
 SCHEMA_VERSION = 1
+POINT_KEYS = ("step", "fraction", "final", "status", "error", "train_seconds", "train_cpu_seconds", "num_gaussians",
+              "metrics", "extract_seconds", "evaluate_seconds")
 STATUSES = ("ok", "failed", "interrupted", "running")  # running: a record in memory until the run ends
 TRACKED_PACKAGES = ("torch", "numpy", "scipy", "open3d", "pymeshlab", "trimesh", "scikit-image", "pycolmap")
 
@@ -61,6 +72,7 @@ class RunRecord:
     inputs: dict = field(default_factory=dict)
     eval_protocol: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
+    points: list = field(default_factory=list)
     skipped: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     it_per_s: float | None = None
@@ -84,6 +96,30 @@ class RunRecord:
         data = json.loads(Path(path).read_text())
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def final_point(record: dict) -> dict:
+    """The final point of the record ``record`` (a dict, `RunRecord.to_dict` or a ``record.json``): its metrics and
+    Gaussian count at step train.iterations; its training time ``timings.train`` plus ``timings.refine`` for a
+    method with a second stage, its CPU time ``train_cpu`` plus ``refine_cpu`` likewise (null when one is unknown);
+    its extraction and evaluation seconds those of the ``extract`` and ``evaluate`` stages."""
+    timings = record.get("timings", {})
+    cpu = timings.get("train_cpu")
+    if "refine" in timings:
+        cpu = None if cpu is None or timings.get("refine_cpu") is None else cpu + timings["refine_cpu"]
+    return {"step": int(record["config"]["train"]["iterations"]), "fraction": 1.0, "final": True, "status": "ok",
+            "error": None, "train_seconds": timings.get("train", 0.0) + timings.get("refine", 0.0),
+            "train_cpu_seconds": cpu, "num_gaussians": record.get("num_gaussians"),
+            "metrics": dict(record.get("metrics", {})), "extract_seconds": timings.get("extract", 0.0),
+            "evaluate_seconds": timings.get("evaluate", 0.0)}
+
+
+def record_points(record: dict) -> list[dict]:
+    """The ``points`` of the record ``record`` (a dict); one written before points existed: its `final_point` when it
+    finished (status ok), else none."""
+    if record.get("points"):
+        return list(record["points"])
+    return [final_point(record)] if record.get("status") == "ok" else []
 
 
 def write_json_atomic(path: Path, obj) -> None:

@@ -2,7 +2,7 @@
 
 Folder: ``<out>/<dataset>/<scene>/<method>/<run_id>/`` holding ``config.yaml`` (the resolved config),
 ``checkpoint.pt`` / ``checkpoint-final.pt`` and ``metrics.jsonl`` (`gsbench.training.trainer`), ``mesh.ply``,
-``eval.json``, ``stages.json`` (seconds and peak RSS of each stage when it was computed) and
+``eval.json``, ``stages.json`` (seconds and peak RSS of each stage when it was computed), ``points/`` and
 ``record.json`` (`gsbench.runs.records.RunRecord`).
 
 A stage is skipped when its output exists (final checkpoint, ``mesh.ply``, ``eval.json``), so running
@@ -26,6 +26,12 @@ when ``data.use_masks``). ``eval.json`` is recomputed when the plan differs from
 (e.g. ``--gt`` given after a first run). A failure anywhere after the plan writes the record with
 status ``failed`` and the traceback tail, then re-raises.
 
+Anytime evaluation (``eval.points``, docs/training.md §9): at each point step of the main training stage the
+Trainer hands the model to `_evaluate_point`, which extracts and evaluates it as the end does into
+``points/<step>/`` and writes its row last (``points/<step>.json``), failed with its reason when extraction
+or evaluation raises; a point whose row exists is not taken again. The record's ``points`` are those rows
+and the final point (`gsbench.runs.records.final_point`).
+
 Progress: one line per stage on stderr (`gsbench.training.progress.stage`), and training's own progress lines
 when stderr is not a terminal.
 """
@@ -47,24 +53,26 @@ import yaml
 
 from gsbench.atomic import check_writable
 from gsbench.config.checks import check_run_config
-from gsbench.config.run_config import RunConfig, dataset_of, resolve
+from gsbench.config.run_config import RunConfig, dataset_of, point_steps, resolve
 from gsbench.data.cache import scene_dir
 from gsbench.data.loader import load_scene
 from gsbench.data.synthetic.builtin import builtin_name
 from gsbench.data.synthetic.make import ensure_scene
-from gsbench.errors import Interrupted
+from gsbench.errors import Interrupted, one_line
 from gsbench.evaluators.api import evaluate_mesh_file, format_table
 from gsbench.evaluators.resolve import get_evaluator, plan_evaluation, run_options
 from gsbench.registry import METHODS
 from gsbench.resources import peak_rss_bytes, set_threads
 from gsbench.run_folder import RunFolder
-from gsbench.runs.records import RunRecord, capture_environment, check_folder_switches, sha256_file, write_json_atomic
+from gsbench.runs.records import (RunRecord, capture_environment, check_folder_switches, final_point, sha256_file,
+                                  write_json_atomic)
 from gsbench.runs.run_lock import run_lock
 from gsbench.switches import departures
 from gsbench.training.progress import stage
-from gsbench.training.trainer import Trainer, load_checkpoint, scaled_losses, schedule_scale
+from gsbench.training.trainer import Trainer, TrainResult, load_checkpoint, scaled_losses, schedule_scale
 
 ERROR_TAIL_LINES = 30
+POINT_METRICS_SHOWN = 3  # metrics in a point's progress line
 
 
 def resolve_run(method: str, scene: str, *, preset: str = "cpu", user_files=(), overrides=(),
@@ -198,10 +206,12 @@ def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) 
         record.timings["total"] = sum(record.timings.values())
         record.timings["wall_this_invocation"] = time.perf_counter() - start
         phases = stages.data.get("train", {}).get("phases", {})
-        if stages.data.get("train", {}).get("cpu_seconds") is not None:
-            record.timings["train_cpu"] = stages.data["train"]["cpu_seconds"]
+        for name in ("train", "refine"):
+            if stages.data.get(name, {}).get("cpu_seconds") is not None:
+                record.timings[f"{name}_cpu"] = stages.data[name]["cpu_seconds"]
         record.timings.update({f"train.{name}": seconds for name, seconds in phases.items()})
         record.peak_rss_bytes = {k: stages.data[k]["peak_rss_bytes"] for k in keys if k in stages.data}
+        record.points = _record_points(cfg, RunFolder(folder), record)
         record.environment["time_end_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
         record.write(RunFolder(folder).record)
     echo(format_table(report))
@@ -238,18 +248,61 @@ def _second_stage(method, scene, cfg: RunConfig, second_cfg: RunConfig, sub: Run
     """The method's second model (SuGaR's refinement), trained from the first in ``sub`` (its own checkpoints,
     so it resumes like the first) or loaded when it finished; recorded as the ``refine`` stage."""
     stage("building the second stage from the trained model")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     second = method.second_stage(scene, cfg, second_cfg)
-    built = time.perf_counter() - t0
+    built, built_cpu = time.perf_counter() - t0, time.process_time() - c0
     record.inputs["second_stage"] = second.describe()
     if not sub.final_checkpoint.is_file():
         stage(f"refining: {second_cfg.train.iterations} steps, {len(second.gaussians)} Gaussians")
         result = Trainer(second, scene, second_cfg, sub.path).fit()
-        stages.done("refine", built + result.seconds, build_seconds=built, it_per_s=result.it_per_s,
+        cpu = None if result.cpu_seconds is None else built_cpu + result.cpu_seconds
+        stages.done("refine", built + result.seconds, cpu_seconds=cpu, build_seconds=built, it_per_s=result.it_per_s,
                     num_gaussians=result.num_gaussians, steps=result.steps)
     else:
         second.load_state_dict(load_checkpoint(sub.final_checkpoint)["method"])
     return second
+
+
+def _evaluate_point(method, trained: TrainResult, scene, cfg: RunConfig, plan, files: RunFolder) -> None:
+    """One point (docs/training.md §9): ``method`` after ``trained.steps`` steps meshed and evaluated as at the end,
+    into ``points/<step>/``; its row (`gsbench.runs.records.POINT_KEYS`) written last, failed with its one-line
+    reason when the extractor or an evaluator raises. An interruption (Ctrl-C, SIGTERM) stops the run."""
+    step, iterations = trained.steps, cfg.train.iterations
+    stage(f"point at step {step}/{iterations}: extracting the mesh ({cfg.mesh.extractor}) and evaluating")
+    row = {"step": step, "fraction": step / iterations, "final": False, "status": "ok", "error": None,
+           "train_seconds": trained.seconds, "train_cpu_seconds": trained.cpu_seconds,
+           "num_gaussians": trained.num_gaussians, "metrics": {}, "extract_seconds": 0.0, "evaluate_seconds": 0.0}
+    mesh = files.point_mesh(step)
+    mesh.parent.mkdir(parents=True, exist_ok=True)
+    timed, t0 = "extract_seconds", time.perf_counter()
+    try:
+        method.extract_mesh(scene, cfg, mesh)
+        row[timed], timed, t0 = time.perf_counter() - t0, "evaluate_seconds", time.perf_counter()
+        report = _evaluate(method, scene, cfg, mesh, plan)
+        write_json_atomic(files.point_eval(step), report)
+        row["metrics"] = _flatten_metrics(report)
+        row[timed] = time.perf_counter() - t0
+    except Exception as exc:  # noqa: BLE001  the point fails, the run goes on (Ctrl-C and Interrupted are not Exceptions)
+        row[timed] = time.perf_counter() - t0
+        row.update(status="failed", error=one_line(f"{type(exc).__name__}: {exc}"))
+    write_json_atomic(files.point_row(step), row)
+    shown = ", ".join(f"{name} {value:.4g}" if isinstance(value, float) else f"{name} {value}"
+                      for name, value in list(row["metrics"].items())[:POINT_METRICS_SHOWN])
+    stage(f"point at step {step}: {shown if row['status'] == 'ok' else 'failed: ' + row['error']} (extract "
+          f"{row['extract_seconds']:.1f} s, evaluate {row['evaluate_seconds']:.1f} s)")
+
+
+def _record_points(cfg: RunConfig, files: RunFolder, record: RunRecord) -> list[dict]:
+    """The record's ``points``: the rows of the points taken, in step order, then the final point when the run is
+    ``ok``. A finished run that lacks a point's row (removed after training) says so: only training again takes it."""
+    rows = []
+    for step in point_steps(cfg):
+        if files.point_row(step).is_file():
+            rows.append(json.loads(files.point_row(step).read_text()))
+        elif record.status == "ok":
+            stage(f"warning: {files.point_row(step)} is missing, so the record has no point at step {step}; remove "
+                  f"{files.final_checkpoint.name} to train again and take it")
+    return [*rows, final_point(record.to_dict())] if record.status == "ok" else rows
 
 
 def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord, plan) -> dict:
@@ -269,7 +322,9 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     report = _stored_report(eval_path, plan)
     if not final.is_file():
         stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
-        result = Trainer(method, scene, cfg, folder).fit()
+        pending = [step for step in point_steps(cfg) if not files.point_row(step).is_file()]
+        result = Trainer(method, scene, cfg, folder, points=pending,
+                         on_point=lambda model, trained: _evaluate_point(model, trained, scene, cfg, plan, files)).fit()
         stages.done("train", result.seconds, cpu_seconds=result.cpu_seconds, it_per_s=result.it_per_s,
                     num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))

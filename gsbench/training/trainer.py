@@ -5,15 +5,19 @@ Per step t = 1 … ``train.iterations``, in 3DGS ``train.py`` order (docs/method
 schedules, draw the next view, render what the active terms need, L = Σ weight·term, backward and densify,
 Adam step (skipped on the last step). Every step-valued setting of the paper's 30 000-step run is scaled by
 ``train.iterations / 30000`` (docs/training.md §1); a resumed run is bit-identical to an uninterrupted one.
+At the steps of anytime evaluation the trained model is handed out between two steps and training goes on as if
+it had not been (`Trainer.take_point`, docs/training.md §9).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import pickle
 import random
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -197,11 +201,13 @@ class Trainer:
     """Runs ``method`` (already `setup`) on ``scene`` for ``cfg.train.iterations`` steps in ``run_dir``.
 
     ``progress_interval``: seconds between the progress lines printed when stderr is not a terminal
-    (`gsbench.training.progress.ProgressLines`)."""
+    (`gsbench.training.progress.ProgressLines`). ``points``: steps before the last at which ``on_point(method,
+    result so far)`` is called (`take_point`)."""
 
     progress_interval: float = DEFAULT_INTERVAL
 
-    def __init__(self, method, scene: Scene, cfg: RunConfig, run_dir, progress_interval: float | None = None):
+    def __init__(self, method, scene: Scene, cfg: RunConfig, run_dir, progress_interval: float | None = None,
+                 points: Iterable[int] = (), on_point: Callable[[object, TrainResult], None] | None = None):
         self.method, self.scene, self.cfg = method, scene, cfg
         self.threads = set_threads(cfg.threads)
         keep_freed_memory()
@@ -223,6 +229,10 @@ class Trainer:
         self.phases = dict.fromkeys(STEP_PHASES, 0.0)
         if progress_interval is not None:
             self.progress_interval = float(progress_interval)
+        self.points = frozenset(int(step) for step in points if int(step) < self.iterations)
+        if self.points and on_point is None:
+            raise ValueError("Trainer: points given without on_point")
+        self.on_point = on_point
         active_terms(self.losses, 0, method.term_params())  # validate names now
 
     # ---- checkpoints --------------------------------------------------------------------------
@@ -354,6 +364,8 @@ class Trainer:
                 self.seconds += time.perf_counter() - t0
                 if self.cpu_seconds is not None:
                     self.cpu_seconds += time.process_time() - c0
+                if self.step in self.points:  # before the step's checkpoint: one written means the point is done
+                    window_start += self.take_point(resumed_from)
                 every = t_cfg.checkpoint_every
                 if self.step < self.iterations and every > 0 and self.step % every == 0:
                     self.check_parameters(self.step)
@@ -363,6 +375,21 @@ class Trainer:
         save_atomic(self.state_dict(), RunFolder(self.run_dir).final_checkpoint)
         resume.unlink(missing_ok=True)
         return self.result(resumed_from)
+
+    def take_point(self, resumed_from: int) -> float:
+        """``on_point(method, result so far)`` under ``torch.no_grad``, outside the training time; returns its wall
+        seconds. Training goes on bit for bit as without it: the python, numpy and torch RNG states and the method's
+        state (`Method.state_dict`, what a resume restores) are put back afterwards, so whatever the extraction
+        and evaluation draw, cache or change in the model (e.g. IBGS's frames) is undone."""
+        t0 = time.perf_counter()
+        method_state, rng = copy.deepcopy(self.method.state_dict()), rng_state()
+        try:
+            with torch.no_grad():
+                self.on_point(self.method, self.result(resumed_from))
+        finally:
+            self.method.load_state_dict(method_state)
+            set_rng_state(rng)
+        return time.perf_counter() - t0
 
     def result(self, resumed_from: int = 0) -> TrainResult:
         return TrainResult(steps=self.step, seconds=self.seconds, it_per_s=self.step / max(self.seconds, 1e-9),
