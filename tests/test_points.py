@@ -259,11 +259,11 @@ def test_no_points_keeps_the_run_id_of_records_made_before_points_and_points_mak
     assert resolve_run("3dgs", str(tiny_spot), preset="quick", overrides=[POINTS]).run_id != cfg.run_id
 
 
-def test_the_boards_evaluate_at_a_tenth_a_quarter_and_half_of_the_run():
+def test_the_boards_evaluate_between_opacity_resets_at_15_25_and_50_percent_of_the_run():
     for board in BOARDS:
-        assert load_sweep(sweep_file(board))["base"]["eval.points"] == [0.1, 0.25, 0.5], board
+        assert load_sweep(sweep_file(board))["base"]["eval.points"] == [0.15, 0.25, 0.5], board
     runs = expand(load_sweep(sweep_file("all_methods")))
-    assert runs and all(r.config.eval.points == [0.1, 0.25, 0.5] for r in runs)
+    assert runs and all(r.config.eval.points == [0.15, 0.25, 0.5] for r in runs)
 
 
 def test_a_record_made_before_points_reads_as_its_final_point():
