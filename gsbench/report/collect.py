@@ -33,6 +33,7 @@ from gsbench.config.run_config import completed_config
 from gsbench.errors import GsbenchError
 from gsbench.report.records_file import board_file, read_board
 from gsbench.run_folder import RunFolder
+from gsbench.runs.records import final_point
 
 RECORD_NAME = RunFolder.RECORD
 # Identity and execution keys: they never distinguish two configurations of one method (the evaluation points
@@ -194,15 +195,12 @@ def _recorded_points(points) -> tuple[RunPoint, ...] | None:
     return tuple(read)
 
 
-def _final_point(ok: bool, iterations, metrics: dict, timings: dict) -> RunPoint:
-    """A record without ``points``: its final result as its one point. The training seconds are the training's
-    plus, for a method with a second stage, the refinement's (``timings.refine``); the CPU seconds are
-    ``timings.train_cpu`` for a run without a second stage, unknown (None) for one with it (its record has no
-    CPU seconds of the refinement)."""
-    refine = timings.get("refine")
-    wall = timings.get("train")
-    return RunPoint(step=int(iterations or 0), ok=ok, seconds=None if wall is None else wall + (refine or 0.0),
-                    cpu_seconds=timings.get("train_cpu") if refine is None else None, metrics=metrics if ok else {})
+def _final_point(data: dict, ok: bool, iterations) -> RunPoint:
+    """A record without ``points``: its final result as its one point (`gsbench.runs.records.final_point`: the
+    refinement's seconds added to training's); a run that did not end ok: a failed point at its last step."""
+    if ok and iterations:
+        return _recorded_points([final_point(data)])[0]
+    return RunPoint(step=int(iterations or 0), ok=False, seconds=None, cpu_seconds=None, metrics={})
 
 
 def _run(data: dict, rel: str) -> tuple[Run, list[str]]:
@@ -231,7 +229,7 @@ def _run(data: dict, rel: str) -> tuple[Run, list[str]]:
         warnings.append(f"{rel}: 'points' is not a list of points (each an object with an integer 'step' and a "
                         "'status'): only its final result is drawn; fix: re-run it, or remove 'points' from the record")
     if not points:  # a record from before points (or a run that failed before its first one)
-        points = (_final_point(status == "ok", iterations, metrics, timings),)
+        points = (_final_point(data, status == "ok", iterations),)
     run = Run(
         run_id=str(data["run_id"]), dataset=str(data["dataset"]), scene=Path(str(data["scene"]).rstrip("/")).name,
         method=str(data["method"]), seed=_number(data.get("seed")), status=status,
