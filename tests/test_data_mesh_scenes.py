@@ -29,12 +29,13 @@ RES = (64, 48)
 
 @pytest.fixture(scope="module")
 def sphere_scene(tmp_path_factory):
-    """An icosphere (radius 1, vertex colours) as a DTU-like scene framed as DTU: 100 mm across."""
+    """An icosphere (radius 1, vertex colours) as a DTU-like scene framed as DTU on the synthetic cap rig: 100 mm
+    across, its GT frame z up (DTU's own rig, the default, sizes the object instead: tests/test_reference_rigs.py)."""
     folder = tmp_path_factory.mktemp("mesh")
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
     sphere.visual.vertex_colors = np.column_stack([(sphere.vertices * 0.4 + 0.5) * 255, np.full(len(sphere.vertices), 255)])
     sphere.export(folder / "ball.ply")
-    return make_mesh_scene(folder / "ball.ply", out=folder / "ball", res=RES), sphere
+    return make_mesh_scene(folder / "ball.ply", out=folder / "ball", res=RES, rig="cap"), sphere
 
 
 def _eval(mesh, scene, tmp_path, *extra):
@@ -83,7 +84,7 @@ def test_box_in_both_layouts_has_its_surface_as_ground_truth(tmp_path):
     box = trimesh.Trimesh(*trimesh.remesh.subdivide_to_size(*(lambda b: (b.vertices, b.faces))(
         trimesh.creation.box(extents=(1.0, 0.6, 0.4))), max_edge=0.02))  # dense, as the evaluator's mask culling expects
     box.export(tmp_path / "box.off")
-    dtu = make_mesh_scene(tmp_path / "box.off", fmt="dtu", res=RES, out=tmp_path / "box-dtu")
+    dtu = make_mesh_scene(tmp_path / "box.off", fmt="dtu", res=RES, out=tmp_path / "box-dtu", rig="cap")
     assert read_meta(dtu)["mesh"]["albedo"] == "procedural" and (dtu / "cameras.npz").is_file()
     metrics = _eval(dtu / "gt_mesh.ply", dtu, tmp_path, "--evaluator", "dtu_chamfer")["dtu_chamfer"]["metrics"]
     assert metrics["completeness"] < 0.12

@@ -20,8 +20,12 @@ def add_parser(subparsers) -> None:
                                   "in a room (DTU layouts) or on the ground (tnt), exact ground truth")
     make_parser.add_argument("--framing", default=None,
                              help="dtu (the object fills 34%% of each image, as on DTU), small (12.6%%, the first "
-                                  "synthetic scenes) or a share in (0, 1); default: dtu for --mesh, the scene's own "
-                                  "for built-ins")
+                                  "synthetic scenes) or a share in (0, 1); in DTU's rig it sets the object's size, in the "
+                                  "synthetic rigs the camera distance; default: dtu for --mesh, the scene's own for built-ins")
+    make_parser.add_argument("--rig", default=None, choices=("dtu", "barn", "cap", "ring", "band"),
+                             help="--mesh: the cameras (default: the dataset's own: dtu = DTU's 49 cameras, the object "
+                                  "sized by --framing; barn = Tanks-and-Temples Barn's lens and floor plan; cap, ring, band: "
+                                  "synthetic rigs of the first scenes)")
     make_parser.add_argument("--up", default="y", choices=("x", "y", "z", "-x", "-y", "-z"),
                              help="--mesh: the file's up axis")
     make_parser.add_argument("--yaw", type=float, default=0.0,
@@ -65,7 +69,7 @@ def make(args) -> int:
         if args.name:
             raise ConfigError(f"scene make: give a built-in name or --mesh, not both (got {args.name!r} and --mesh {args.mesh})")
         path = make_mesh_scene(args.mesh, fmt=args.format or "dtu-colmap", framing=args.framing or "dtu", up=args.up,
-                               yaw=args.yaw, albedo=args.albedo, largest_part=args.largest_part, smooth=args.smooth, **common)
+                               yaw=args.yaw, rig=args.rig, albedo=args.albedo, largest_part=args.largest_part, smooth=args.smooth, **common)
     elif args.name:
         path = make_scene(args.name, fmt=args.format, framing=args.framing, **common)
     else:

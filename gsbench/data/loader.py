@@ -14,6 +14,7 @@ from pathlib import Path
 from gsbench.data.cache import scene_dir
 from gsbench.data.camera import Scene
 from gsbench.data.dtu import dtu_ground_truth, dtu_gt_paths, load_dtu, load_dtu_colmap, scan_number
+from gsbench.data.frame import scene_frame
 from gsbench.data.meta import read_meta
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES, builtin_name
 from gsbench.data.tnt import gt_files, load_tnt, scene_gt_name
@@ -143,6 +144,7 @@ def check_scene(path, gt_root=None) -> dict:
         report["gt_normal_maps"] = scene.gt is not None and scene.gt.normal_maps is not None
         facing = scene.views_facing_scene()
         report["cameras_facing_scene"] = len(facing)
+        report["frame"] = scene_frame(scene)
         try:
             scene.check_cameras_face_scene()
         except GsbenchError as exc:

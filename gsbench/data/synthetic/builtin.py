@@ -70,6 +70,12 @@ BUILTIN_SCENES: dict[str, BuiltinScene] = {
         BuiltinScene("synthetic/dtu-glass-bottle", "dtu", 0.340, "glass: a thin-walled open bottle (index 1.5) on the table, framed as DTU",
                      twin_of="synthetic/dtu-glass-bottle-opaque", factor=GLASS),
         BuiltinScene("synthetic/dtu-glass-bottle-opaque", "dtu", 0.340, "opaque twin of dtu-glass-bottle: the same bottle, glazed"),
+        BuiltinScene("synthetic/dtu-rig-bunny", "dtu", 0.340, "dtu-bunny in DTU's own rig (49 cameras, fx 1.81 W, IDR's frame of scan 65), framed as DTU by its size"),
+        BuiltinScene("synthetic/dtu-rig-face", "dtu", 0.340, "dtu-face in DTU's own rig, framed as DTU by its size"),
+        BuiltinScene("synthetic/dtu-rig-spot", "dtu", 0.340, "dtu-spot-near in DTU's own rig, framed as DTU by its size"),
+        BuiltinScene("synthetic/tnt-rig-spot", "tnt", 0.266, "tnt-spot with Barn's lens and floor plan (TnT's camera-to-object distances)"),
+        BuiltinScene("synthetic/tnt-rig-yard", "tnt", 0.409, "tnt-yard with Barn's lens and floor plan"),
+        BuiltinScene("synthetic/tnt-rig-sky", "tnt", 0.266, "tnt-sky with Barn's lens and floor plan"),
     )
 }
 

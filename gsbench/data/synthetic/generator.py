@@ -16,7 +16,8 @@ object's bounding-box centre), and GT ``Points/stl/stl{scan:03d}_total.ply`` (su
 apart seen by >= 2 views; the object is 100 mm long, which gives about 120-250 thousand points),
 ``ObsMask/ObsMask{scan}_10.mat`` (``Res`` = 1 mm; surface samples 0.5 mm apart seen by >= 2 views,
 dilated by 4 mm) and
-``ObsMask/Plane{scan}.mat`` (``P`` = z > lowest GT point - 1 mm; the GT frame is z up). Scan numbers
+``ObsMask/Plane{scan}.mat`` (``P`` = up > lowest GT point - 1 mm, up = the object frame's z: the GT frame's z in
+the synthetic rigs, DTU's table normal in DTU's rig). Scan numbers
 are 1001 + the scene's index in `BUILTIN_SCENES`.
 
 Why the DTU ``stl`` holds only samples seen by >= 2 views (generator v6): DTU's reference scans come
@@ -79,9 +80,11 @@ from tqdm import tqdm
 
 from gsbench.data.camera import Camera, Normalisation
 from gsbench.data.colmap import write_colmap_model
-from gsbench.data.dtu import write_cameras_npz
+from gsbench.data.dtu import normalisation_from_scale_mat, write_cameras_npz
+from gsbench.data.frame import FrameQuantities, Region, cameras_extent, crop_region, frame_quantities
 from gsbench.data.images import write_mask, write_rgb
 from gsbench.data.meta import write_meta
+from gsbench.data.reference_rigs import barn_rig, dtu_rig
 from gsbench.data.similarity import decompose, similarity, transform_camera, transform_points
 from gsbench.data.synthetic.builtin import BUILTIN_SCENES
 from gsbench.data.synthetic.environment import World, make_environment
@@ -99,12 +102,12 @@ from gsbench.data.synthetic.groundtruth import (
 from gsbench.data.synthetic.mesh_file import file_digest, read_mesh_object
 from gsbench.data.synthetic.primitives import Surface
 from gsbench.data.synthetic.render import MAX_BOUNCES, MIN_WEIGHT, Renderer
-from gsbench.data.synthetic.rigs import make_rig
+from gsbench.data.synthetic.rigs import REAL_RIGS, barn_cameras, dtu_cameras, make_rig
 from gsbench.data.synthetic.shapes import NAMED_ALBEDOS, make_surface, named_albedo
 from gsbench.data.tnt import nerfpp_normalisation, write_crop_json, write_log
 from gsbench.errors import DataError, RegistryError
 
-GENERATOR_VERSION = 7
+GENERATOR_VERSION = 8
 DEFAULT_RES = 0.25
 SCAN_BASE = 1001
 GT_MESH_NAME = "gt_mesh.ply"
@@ -222,8 +225,16 @@ SPECS = {
        for name, shape in (("glass-orb", "orb"), ("glass-wine", "wineglass"), ("glass-bottle", "bottle"))
        for twin, ior in (("", GLASS_IOR), ("-opaque", None))},
 }
+RIGGED = {  # the scenes of the dtu-framed and tnt-like boards, in the datasets' own rigs (generator v8)
+    "dtu-rig-bunny": "dtu-bunny", "dtu-rig-face": "dtu-face", "dtu-rig-spot": "dtu-spot-near",
+    "tnt-rig-spot": "tnt-spot", "tnt-rig-yard": "tnt-yard", "tnt-rig-sky": "tnt-sky",
+}
+SPECS.update({f"synthetic/{new}": dataclasses.replace(SPECS[f"synthetic/{old}"], distance=None,
+                                                      rig="dtu" if new.startswith("dtu") else "barn")
+              for new, old in RIGGED.items()})
 MESH_SCAN = 2001  # DTU scan number of scenes made from a user's mesh file (built-ins: SCAN_BASE + index)
 MESH_ENVIRONMENT = {"dtu": "room", "tnt": "ground"}
+LEGACY_MESH_RIG = {"dtu": "cap", "tnt": "ring"}  # the rig of mesh scenes made before generator v8 (no "rig" in their meta)
 
 
 @dataclass
@@ -348,17 +359,23 @@ def plan_scene(name: str, fmt: str | None = None, res=None, seed: int = 0, frami
 
 def plan_mesh_scene(mesh, *, fmt: str = "dtu-colmap", res=None, seed: int = 0, framing="dtu", up: str = "y",
                     yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False, smooth: int = 0,
-                    scan: int = MESH_SCAN) -> ScenePlan:
+                    scan: int = MESH_SCAN, rig: str | None = None) -> ScenePlan:
     """Plan a scene of any mesh file (``gsbench scene make --mesh FILE``): the object on the table in the
-    room (DTU layouts) or on the ground among props (TnT), framed to the object share ``framing``
-    (``dtu``: as DTU's images; None: the layout's distance). ``albedo`` ``auto``: the file's colours, or
-    ``procedural`` when it has none (resolved when the file is read, and recorded as the one used)."""
+    room (DTU layouts) or on the ground among props (TnT). ``rig`` None: the dataset's own (``dtu``: DTU's
+    cameras, the object sized to the object share ``framing``; ``barn``: Barn's floor plan, no framing);
+    ``cap``/``ring``/``band``: a synthetic rig at the layout's distance or framed by ``framing``.
+    ``albedo`` ``auto``: the file's colours, or ``procedural`` when it has none (resolved when the file is
+    read, and recorded as the one used)."""
     path = Path(mesh)
     if fmt not in ("dtu", "dtu-colmap", "tnt"):
         raise DataError(f"unknown scene format {fmt!r}; expected dtu, dtu-colmap or tnt")
-    spec = SyntheticSpec(mesh=str(path.resolve()), albedo=albedo, fmt=fmt, environment=MESH_ENVIRONMENT[fmt.split("-")[0]],
-                         up=up, yaw=yaw, largest_part=largest_part, smooth=smooth, framing=parse_framing(framing))
-    return plan_spec(f"mesh/{path.stem}", spec, fmt, res, seed, scan, f"{path.name} as a {fmt.split('-')[0].upper()}-like scene")
+    base = fmt.split("-")[0]
+    rig = rig or next(name for name, layout in REAL_RIGS.items() if layout == base)
+    if rig == "barn":
+        framing = None
+    spec = SyntheticSpec(mesh=str(path.resolve()), albedo=albedo, fmt=fmt, environment=MESH_ENVIRONMENT[base],
+                         up=up, yaw=yaw, largest_part=largest_part, smooth=smooth, framing=parse_framing(framing), rig=rig)
+    return plan_spec(f"mesh/{path.stem}", spec, fmt, res, seed, scan, f"{path.name} as a {base.upper()}-like scene")
 
 
 def _cameras_at(spec: SyntheticSpec, d: FormatDefaults, K: np.ndarray, width: int, height: int, radius: float, seed: int):
@@ -378,6 +395,9 @@ def plan_spec(name: str, spec: SyntheticSpec, fmt: str, res, seed: int, scan: in
     base = fmt.split("-")[0]
     d = FORMATS[base]
     own = base == spec.fmt.split("-")[0]
+    rig = spec.rig or d.rig
+    if rig in REAL_RIGS and REAL_RIGS[rig] != base:
+        raise DataError(f"{name}: the {rig} rig is {REAL_RIGS[rig].upper()}'s; fix: write the scene in a {REAL_RIGS[rig]} layout")
     size = spec.size if own and spec.size else d.size
     offset = spec.offset if own and spec.offset else d.offset
     width, height = _image_size(d.full_size, res)
@@ -387,18 +407,38 @@ def plan_spec(name: str, spec: SyntheticSpec, fmt: str, res, seed: int, scan: in
     world = None
     if spec.environment:
         world = make_environment(spec.environment, surface, seed)
-    cameras_at = _cameras_at(spec, d, K, width, height, surface.radius, seed)
+    if rig == "dtu":
+        reference = dtu_rig()
+        cameras_at, object_to_training = dtu_cameras(reference, width, height, surface.radius)
+    elif rig == "barn":
+        if spec.framing is not None:
+            raise DataError(f"{name}: Barn's rig stands at Barn's distances from the crop region; fix: no --framing")
+        barn = barn_cameras(barn_rig(), _crop_region(surface, world), d.views, width, height, 0.03 * surface.radius,
+                            np.random.default_rng(seed))
+        cameras_at = lambda distance: barn  # noqa: E731  the floor plan fixes the distances
+    else:
+        cameras_at = _cameras_at(spec, d, K, width, height, surface.radius, seed)
     distance, share = spec.distance or d.distance, None
     if spec.framing is not None:
         distance, share = framed_distance(surface, cameras_at, spec.framing)
     obj_to_gt = similarity(size, Rotation.from_euler("z", d.yaw, degrees=True).as_matrix(), offset)
+    if rig == "dtu":
+        scale_mat = np.linalg.inv(reference.to_training)
+        obj_to_gt = scale_mat @ object_to_training(distance)
+        if surface.radius * decompose(obj_to_gt)[0] > reference.region.radius:
+            raise DataError(f"{name}: at this framing the object leaves IDR's unit sphere of DTU's rig (radius "
+                            f"{surface.radius * decompose(obj_to_gt)[0]:.0f} mm > {reference.region.radius:.0f} mm); "
+                            "fix: a smaller --framing")
     plan = ScenePlan(name=name, fmt=fmt, seed=seed, spec=spec, surface=surface, cameras=cameras_at(distance),
                      obj_to_gt=obj_to_gt, gt_to_dataset=np.eye(4), normalisation=Normalisation(),
                      units=(spec.units if own else None) or d.units, world=world, description=description,
                      distance=distance, share=share, mesh_info=mesh_info)
     r = surface.radius
     if base == "dtu":
-        plan.normalisation = Normalisation(scale=1.1 * r * size, center=np.asarray(offset, dtype=np.float64), radius=1.0)
+        if rig == "dtu":
+            plan.normalisation = normalisation_from_scale_mat(scale_mat)
+        else:
+            plan.normalisation = Normalisation(scale=1.1 * r * size, center=np.asarray(offset, dtype=np.float64), radius=1.0)
         plan.scan = scan
     else:
         cs = spec.colmap_scale if own else SyntheticSpec.colmap_scale
@@ -407,7 +447,31 @@ def plan_spec(name: str, spec: SyntheticSpec, fmt: str, res, seed: int, scan: in
         plan.gt_to_dataset = similarity(cs, rot, center - cs * rot @ np.asarray(offset))
         plan.normalisation = nerfpp_normalisation(np.array([c.center for c in plan.dataset_cameras]))
         plan.tau = TAU_FRACTION * size
+    if rig == "barn":
+        plan.distance = frame_quantities(plan.cameras, _crop_region(surface, world)).camera_distance
     return plan
+
+
+def _crop_region(surface: Surface, world: World | None) -> Region:
+    """The object region (`gsbench.data.frame`) of a TnT-like scene in the object frame: its world's GT
+    polygon and z range, or the object's own xy hull and z range."""
+    if world is not None:
+        return crop_region(world.gt_polygon, world.gt_z, 1.0)
+    xy = surface.vertices[:, :2]
+    return crop_region(xy[ConvexHull(xy).vertices], (surface.vertices[:, 2].min(), surface.vertices[:, 2].max()), 1.0)
+
+
+def plan_frame(plan: ScenePlan) -> FrameQuantities:
+    """The frame quantities (`gsbench.data.frame`) of a planned scene, in its GT frame."""
+    gt_cameras = [transform_camera(c, plan.obj_to_gt) for c in plan.cameras]
+    scale = decompose(plan.obj_to_gt)[0]
+    if plan.fmt.startswith("dtu"):
+        norm = plan.normalisation
+        return frame_quantities(gt_cameras, Region(norm.center, norm.scale, False, norm.scale))
+    local = _crop_region(plan.surface, plan.world)
+    centre = transform_points(plan.obj_to_gt, local.centre[None])[0]
+    extent = cameras_extent(np.array([c.center for c in gt_cameras]))
+    return frame_quantities(gt_cameras, Region(centre, local.radius * scale, True, extent))
 
 
 def plan_meta(plan: ScenePlan) -> dict:
@@ -426,6 +490,9 @@ def plan_meta(plan: ScenePlan) -> dict:
         meta["tau"] = plan.tau
     if plan.supersample != DEFAULT_SUPERSAMPLE:
         meta["supersample"] = plan.supersample
+    if plan.spec.rig in REAL_RIGS or plan.mesh_info is not None:
+        meta["rig"] = plan.spec.rig or FORMATS[plan.fmt.split("-")[0]].rig
+    meta["frame"] = plan_frame(plan).as_dict()
     if plan.spec.framing is not None:
         meta["framing"] = {"object_share": plan.spec.framing, "distance_radii": round(plan.distance, 6),
                            "measured_share": round(plan.share, 4)}
@@ -453,7 +520,8 @@ def plan_from_meta(meta: dict, root: Path) -> ScenePlan:
                         "re-make the scene")
     return plan_mesh_scene(path, fmt=meta["format"], framing=framing, up=mesh["up"], yaw=mesh["yaw"], albedo=mesh["albedo"],
                            largest_part=mesh["largest_part"], smooth=mesh.get("taubin_iterations", 0),
-                           scan=meta.get("scan", MESH_SCAN), **common)
+                           scan=meta.get("scan", MESH_SCAN), rig=meta.get("rig", LEGACY_MESH_RIG[meta["format"].split("-")[0]]),
+                           **common)
 
 
 def write_scene(plan: ScenePlan, out: Path) -> None:
@@ -544,11 +612,12 @@ def _write_dtu(plan: ScenePlan, out: Path, depths: list[np.ndarray]) -> None:
     (out / "ObsMask").mkdir()
     save_mat(out / "ObsMask" / f"ObsMask{plan.scan}_10.mat", {"ObsMask": obs, "BB": bb, "Res": np.array([[DTU_OBS_RES]])},
              do_compression=True)
+    up = plan.obj_to_gt[:3, 2] / size  # the object frame's z in the GT frame (DTU's rig: not the GT frame's z)
     if plan.world is None:
-        plane = np.array([[0.0], [0.0], [1.0], [-(points_mm[:, 2].min() - 1.0)]])
+        height = (points_mm @ up).min() - 1.0
     else:
-        table_top = transform_points(plan.obj_to_gt, np.array([[0.0, 0.0, plan.world.ground_z]]))[0, 2]
-        plane = np.array([[0.0], [0.0], [1.0], [-(table_top + DTU_PLANE_ABOVE_TABLE)]])
+        height = transform_points(plan.obj_to_gt, np.array([[0.0, 0.0, plan.world.ground_z]]))[0] @ up + DTU_PLANE_ABOVE_TABLE
+    plane = np.array([[up[0]], [up[1]], [up[2]], [-height]])
     save_mat(out / "ObsMask" / f"Plane{plan.scan}.mat", {"P": plane})
     norm = plan.normalisation
     scale_mat = similarity(norm.scale, None, norm.center)

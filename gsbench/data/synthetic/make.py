@@ -57,11 +57,11 @@ def make_scene(name: str, fmt: str | None = None, out=None, res=None, seed: int 
 
 def make_mesh_scene(mesh, *, out=None, fmt: str = "dtu-colmap", res=None, seed: int = 0, supersample: int | None = None,
                     framing="dtu", up: str = "y", yaw: float = 0.0, albedo: str = "auto", largest_part: bool = False,
-                    smooth: int = 0) -> Path:
+                    smooth: int = 0, rig: str | None = None) -> Path:
     """Generate a scene of the mesh file ``mesh`` (`gsbench.data.synthetic.generator.plan_mesh_scene`) and
     return its folder (default: ``<cache>/mesh/<file stem>``...); the other arguments as `make_scene`'s."""
     plan = plan_mesh_scene(mesh, fmt=fmt, res=res, seed=seed, framing=framing, up=up, yaw=yaw, albedo=albedo,
-                           largest_part=largest_part, smooth=smooth)
+                           largest_part=largest_part, smooth=smooth, rig=rig)
     return _write_plan(plan, out, res is not None, supersample)
 
 

@@ -9,12 +9,27 @@
 
 Each camera looks at the origin plus a small random offset (seeded), from ``distance`` x (1 ± 5%).
 Orientation: OpenCV (x right, y down, z forward), image "up" is world +z.
+
+The datasets' own rigs (`gsbench.data.reference_rigs`; docs/scenes.md §2):
+
+- ``dtu``: DTU's 49 cameras and intrinsics, exactly, in IDR's normalised frame of scan 65. The object
+  frame is set in that frame with its origin at the sphere's centre, z up and +y towards the cameras
+  (`dtu_object_axes`); ``distance`` (the cameras' mean distance, in object radii) sets the object's size.
+- ``barn``: Tanks-and-Temples Barn's intrinsics and floor plan: every k-th camera of its trajectory keeps
+  its horizontal offset from the crop centre in crop radii, mapped onto the scene's crop region; the
+  heights follow the ``ring`` rig's elevations and each camera looks at the object (`barn_cameras`).
 """
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
+from gsbench.data.camera import Camera
+from gsbench.data.frame import Region
+from gsbench.data.reference_rigs import ReferenceRig
+from gsbench.data.similarity import similarity, transform_camera
 from gsbench.errors import DataError
 
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
@@ -59,14 +74,71 @@ def _band(n: int) -> np.ndarray:
 
 
 RIGS = {"cap": _cap, "ring": _ring, "band": _band}
+REAL_RIGS = {"dtu": "dtu", "barn": "tnt"}  # the datasets' own rigs -> the layout they belong to
 
 
 def make_rig(kind: str, n: int, distance: float, jitter: float, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` world-to-camera poses ``(R, t)``; ``jitter`` is the look-at offset scale (object units)."""
     if kind not in RIGS:
-        raise DataError(f"unknown camera rig {kind!r}; expected one of {sorted(RIGS)}")
+        raise DataError(f"unknown camera rig {kind!r}; expected one of {sorted(RIGS) + sorted(REAL_RIGS)}")
     poses = []
     for d in RIGS[kind](n):
         eye = d * distance * rng.uniform(0.95, 1.05)
         poses.append(look_at(eye, rng.normal(scale=jitter, size=3)))
     return poses
+
+
+def dtu_object_axes(cameras: list[Camera]) -> np.ndarray:
+    """Rotation whose columns are the object frame's x, y, z in the frame of ``cameras``: z (up) is the
+    direction least seen along the cameras' image x axes (DTU's views are upright: the smallest eigenvector
+    of Σ xᵢxᵢᵀ, signed towards the cameras), y the cameras' mean direction from the origin made horizontal."""
+    x_axes = np.array([c.R[0] for c in cameras])
+    up = np.linalg.eigh(x_axes.T @ x_axes)[1][:, 0]
+    centres = np.array([c.center for c in cameras])
+    if up @ centres.mean(axis=0) < 0:
+        up = -up
+    front = centres.mean(axis=0) - (centres.mean(axis=0) @ up) * up
+    front /= np.linalg.norm(front)
+    return np.stack([np.cross(front, up), front, up], axis=1)
+
+
+def dtu_cameras(reference: ReferenceRig, width: int, height: int, radius: float) -> tuple[Callable[[float], list[Camera]], Callable[[float], np.ndarray]]:
+    """``(cameras_at, object_to_training)``: DTU's cameras in the object frame when their mean distance is
+    ``distance`` object radii (object radius ``radius``, object units), and the object-to-training-frame
+    similarity that places the object there (module docstring)."""
+    training = [c.scaled(width / c.width) for c in reference.training_cameras]
+    if training[0].height != height:
+        raise DataError(f"image size {width}x{height}: DTU's rig is {reference.cameras[0].width}x{reference.cameras[0].height}; "
+                        "fix: a size with its 4:3 aspect, e.g. --res 400 300")
+    axes = dtu_object_axes(training)
+    mean_distance = float(np.mean([np.linalg.norm(c.center) for c in training]))
+
+    def object_to_training(distance: float) -> np.ndarray:
+        return similarity(mean_distance / (distance * radius), axes)
+
+    def cameras_at(distance: float) -> list[Camera]:
+        to_object = np.linalg.inv(object_to_training(distance))
+        return [transform_camera(c, to_object) for c in training]
+
+    return cameras_at, object_to_training
+
+
+def barn_cameras(reference: ReferenceRig, region: Region, views: int, width: int, height: int, jitter: float,
+                 rng: np.random.Generator) -> list[Camera]:
+    """``views`` cameras in the object frame on Barn's floor plan (module docstring): trajectory frames
+    ``round(linspace(0, n - 1, views))``, each at its horizontal offset from Barn's crop centre scaled by the
+    ratio of the crop radii, at the ``ring`` rig's elevation above the object's centre (the origin), looking
+    at the origin plus a seeded offset of scale ``jitter``; Barn's intrinsics scaled to ``width``."""
+    picks = np.round(np.linspace(0, len(reference.cameras) - 1, views)).astype(int)
+    elevations = np.arcsin(_ring(views)[:, 2])
+    cameras = []
+    for k, (i, elevation) in enumerate(zip(picks, elevations)):
+        source = reference.cameras[i]
+        offset = (source.center - reference.region.centre)[:2] / reference.region.radius * region.radius
+        eye = np.array([*(region.centre[:2] + offset), np.linalg.norm(region.centre[:2] + offset) * np.tan(elevation)])
+        R, t = look_at(eye, rng.normal(scale=jitter, size=3))
+        scaled = source.scaled(width / source.width)
+        if scaled.height != height:
+            raise DataError(f"image size {width}x{height}: Barn's frames are {source.width}x{source.height}; fix: a 16:9 size")
+        cameras.append(Camera(K=scaled.K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png"))
+    return cameras
