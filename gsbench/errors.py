@@ -16,6 +16,10 @@ class DataError(GsbenchError):
     """A scene folder, camera, image, mask or ground-truth file is missing or malformed."""
 
 
+class GroundTruthRead(GsbenchError):
+    """A method read the scene's ground truth, which only the evaluators may read (`gsbench.data.method_scene`)."""
+
+
 class RegistryError(GsbenchError):
     """An unknown method, evaluator or scene name."""
 

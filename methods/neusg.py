@@ -34,7 +34,6 @@ from skimage.measure import marching_cubes
 
 from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
-from gsbench.data.tnt import gt_bounding_sphere
 from gsbench.errors import ConfigError, import_open3d
 from gsbench.geometry.depth import world_rays
 from gsbench.losses.terms import Batch, loss_term, method_state
@@ -46,7 +45,8 @@ from gsbench.raster.reference_projection import quat_to_rotmat
 from gsbench.training.optim import make_adam
 from gsbench.training.trainer import scale_step
 
-SDF_REGIONS = ("scene", "gt_bounds")  # method.sdf_region (`sdf_region`)
+SDF_REGIONS = ("scene", "cameras", "sfm_points")  # method.sdf_region (`sdf_region`)
+SFM_BOUND_STDS = 3.0  # `sdf_region` sfm_points: the radius in standard deviations of the SfM points (Neuralangelo)
 MESH_CHUNK = 1 << 18  # field evaluations per batch when meshing
 COARSE = 4  # fine cells per coarse cell side of the meshing grid (`sdf_volume`)
 
@@ -200,14 +200,46 @@ class NeuSG(Method):
 
 
 def sdf_region(scene: Scene, region: str) -> tuple[np.ndarray, float]:
-    """(centre, radius) of the SDF's sphere in the training frame (docs/methods/neusg.md §5.6): ``scene``, the
-    normalisation's sphere (DTU's, as IDR and Neuralangelo bound DTU); ``gt_bounds``, the region the TnT
-    ground truth spans, as Neuralangelo bounds a TnT scene (`gsbench.data.tnt.gt_bounding_sphere`)."""
+    """(centre, radius) of the SDF's sphere in the training frame (docs/methods/neusg.md §5.6), from what a capture
+    offers, never its ground truth: ``scene``, the normalisation's sphere (DTU's, as IDR and Neuralangelo bound
+    DTU); ``cameras`` and ``sfm_points``, the two automatic bounds of Neuralangelo's ``convert_data_to_json.py``
+    for a COLMAP capture (`bound_by_cameras`, `bound_by_sfm_points`). The training frame is the COLMAP frame
+    scaled and shifted, so each sphere is the one found there. A scene without SfM points is a ConfigError
+    naming the fix."""
     if region == "scene":
         return np.zeros(3), float(scene.radius)
-    if region == "gt_bounds":
-        return gt_bounding_sphere(scene)
+    if region == "cameras":
+        return bound_by_cameras(scene.cameras)
+    if region == "sfm_points":
+        if scene.points is None or len(scene.points) == 0:
+            raise ConfigError(f"scene '{scene.name}' has no SfM points, so method.sdf_region=sfm_points has nothing to "
+                              "bound; fix: method.sdf_region=cameras or scene")
+        return bound_by_sfm_points(np.asarray(scene.points, dtype=np.float64))
     raise ConfigError(f"method.sdf_region must be one of {SDF_REGIONS}, got {region!r}")
+
+
+def bound_by_cameras(cameras) -> tuple[np.ndarray, float]:
+    """Neuralangelo's ``bound_by_pose`` (its "object" scenes): centre = the mean over all ordered pairs of cameras
+    (i, j), i = j included, of the midpoint of the closest points of their optical axes (least squares, minimum
+    norm for parallel axes: a camera with itself gives its own centre); radius = the cameras' mean distance from
+    that centre. Deviation: Neuralangelo takes the mean distance from the COLMAP frame's origin, which depends on
+    where COLMAP put it."""
+    origins = np.array([cam.center for cam in cameras], dtype=np.float64)
+    axes = np.array([cam.R[2] for cam in cameras], dtype=np.float64)  # camera z, world frame (OpenCV: forward)
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    total = np.zeros(3)
+    for origin, axis in zip(origins, axes):  # camera i against every camera j: t_i d_i - t_j d_j = o_j - o_i
+        system = np.stack([np.broadcast_to(axis, axes.shape), -axes], axis=-1)
+        steps = np.linalg.pinv(system, rcond=3 * np.finfo(np.float64).eps) @ (origins - origin)[..., None]
+        total += (origin + axis * steps[:, 0] + origins + axes * steps[:, 1]).sum(axis=0)
+    centre = total / (2 * len(cameras) ** 2)
+    return centre, float(np.linalg.norm(origins - centre, axis=1).mean())
+
+
+def bound_by_sfm_points(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Neuralangelo's ``bound_by_points`` (its "outdoor" and "indoor" scenes): centre = the SfM points' mean,
+    radius = `SFM_BOUND_STDS` x their largest per-axis standard deviation."""
+    return points.mean(axis=0), SFM_BOUND_STDS * float(points.std(axis=0).max())
 
 
 def evaluate(sdf_fn, points: np.ndarray) -> np.ndarray:

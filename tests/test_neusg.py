@@ -4,6 +4,7 @@ quick run to ok."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -13,13 +14,13 @@ import torch
 import trimesh
 
 from gsbench.cli import main
-from gsbench.data.camera import GroundTruth, Normalisation, Scene
+from gsbench.data.camera import Camera
 from gsbench.data.loader import load_scene
-from gsbench.data.tnt import gt_bounding_sphere
-from gsbench.errors import DataError
+from gsbench.data.synthetic.rigs import look_at
+from gsbench.errors import ConfigError
 from gsbench.geometry.depth import world_rays
 from gsbench.mesh import MeshError
-from gsbench.methods.neusg import sdf_mesh
+from gsbench.methods.neusg import bound_by_cameras, sdf_mesh, sdf_region
 from gsbench.methods.neusg_field import (
     ImplicitScene,
     MultiGrid,
@@ -184,26 +185,59 @@ def test_a_field_moved_to_its_region_renders_as_the_same_field_with_the_rays_mov
     assert float(a.opacity.detach().min()) > 0
 
 
-def test_the_tnt_region_is_the_ground_truths_bounding_sphere_in_the_training_frame(tmp_path):
-    """gt_bounding_sphere maps the GT points by the inverse alignment and the normalisation: a box of GT
-    points under a known similarity comes back as its box's centre and 1.01 x half its diagonal; a scene
-    without TnT ground truth is an error that names method.sdf_region."""
+def _looking_at(eyes: np.ndarray, targets: np.ndarray) -> list[Camera]:
+    cameras = []
+    for eye, target in zip(eyes, targets):
+        R, t = look_at(eye, target)
+        cameras.append(Camera(K=np.diag([50.0, 50.0, 1.0]), R=R, t=t, width=64, height=48))
+    return cameras
+
+
+def test_the_cameras_region_is_neuralangelos_bound_by_pose_and_the_same_in_any_frame():
+    """Twelve cameras on a ring 1.5 above p, all looking at p: every pair of axes meets at p, and each camera paired
+    with itself gives its own centre (1/12 of the weight), so the centre is 1.5/12 above p. Cameras looking near p:
+    the centre is Neuralangelo's mean over all ordered pairs of the least-squares midpoint of the two optical axes
+    (its loop, np.linalg.lstsq per pair), and a shifted, scaled frame moves the sphere with it."""
+    p = np.array([0.3, -0.2, 0.1])
+    angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    ring = p + np.stack([2 * np.cos(angles), 2 * np.sin(angles), np.full(12, 1.5)], axis=1)
+    centre, radius = bound_by_cameras(_looking_at(ring, np.tile(p, (12, 1))))
+    assert np.allclose(centre, p + [0, 0, 1.5 / 12], atol=1e-9) and radius == pytest.approx(math.hypot(2, 1.5 * 11 / 12))
+
     rng = np.random.default_rng(0)
-    box = rng.uniform([-1.0, -2.0, -0.5], [1.0, 2.0, 0.5], (5000, 3))
-    box[:800:100] = np.array([[x, y, z] for x in (-1, 1) for y in (-2, 2) for z in (-0.5, 0.5)])  # corners, read
-    angle = 0.7
-    rot = np.array([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle), math.cos(angle), 0], [0, 0, 1]])
-    trans = np.eye(4)
-    trans[:3, :3], trans[:3, 3] = 2.0 * rot, [5.0, -1.0, 3.0]  # COLMAP -> GT
-    colmap_points = box + np.array([0.5, 0.5, 0.5])
-    gt_points = colmap_points @ trans[:3, :3].T + trans[:3, 3]
-    trimesh.PointCloud(gt_points).export(tmp_path / "toy.ply")
-    np.savetxt(tmp_path / "toy_trans.txt", trans)
-    norm = Normalisation(scale=4.0, center=np.array([0.5, 0.5, 1.5]))
-    scene = Scene(name="toy", fmt="tnt", root=tmp_path, cameras=[], images=[], normalisation=norm,
-                  gt=GroundTruth(kind="tnt", root=tmp_path, name="toy"))
-    centre, radius = gt_bounding_sphere(scene)
-    assert np.allclose(centre, (np.array([0.5, 0.5, 0.5]) - norm.center) / 4.0, atol=1e-6)
-    assert math.isclose(radius, 1.01 * math.sqrt(1 + 4 + 0.25) / 4.0, rel_tol=1e-6)
-    with pytest.raises(DataError, match="method.sdf_region=scene"):
-        gt_bounding_sphere(Scene(name="toy", fmt="tnt", root=tmp_path, cameras=[], images=[], gt_missing="toy.ply not found"))
+    eyes, targets = ring + rng.normal(0, 0.3, ring.shape), p + rng.normal(0, 0.2, (12, 3))
+    cameras = _looking_at(eyes, targets)
+    axes, total = [cam.R[2] for cam in cameras], np.zeros(3)
+    for i, j in itertools.product(range(12), repeat=2):
+        t_i, t_j = np.linalg.lstsq(np.stack([axes[i], -axes[j]], axis=1), eyes[j] - eyes[i], rcond=None)[0]
+        total += 0.5 * (eyes[i] + t_i * axes[i] + eyes[j] + t_j * axes[j])
+    centre, radius = bound_by_cameras(cameras)
+    assert np.allclose(centre, total / 144, atol=1e-9) and not np.allclose(centre, p, atol=1e-3)
+    assert radius == pytest.approx(np.linalg.norm(eyes - centre, axis=1).mean())
+    moved_centre, moved_radius = bound_by_cameras(_looking_at(3 * eyes + 1.0, 3 * targets + 1.0))
+    assert np.allclose(moved_centre, 3 * centre + 1.0, atol=1e-9) and moved_radius == pytest.approx(3 * radius)
+
+
+def test_the_sfm_region_is_three_standard_deviations_and_a_scene_without_points_names_the_fix(tiny_spot):
+    """sdf_region dispatches on method.sdf_region: ``sfm_points`` is the points' mean and 3 x their largest per-axis
+    standard deviation (Neuralangelo's bound_by_points); a scene without SfM points is a ConfigError naming the
+    other regions; ``cameras`` is `bound_by_cameras` of the scene's cameras; an unknown region is refused."""
+    scene = load_scene(tiny_spot, load_images=False)
+    assert scene.points is None
+    with pytest.raises(ConfigError, match="has no SfM points.*fix: method.sdf_region=cameras or scene"):
+        sdf_region(scene, "sfm_points")
+    scene.points = np.random.default_rng(1).normal([1.0, 2.0, 3.0], [0.1, 0.4, 0.2], (5000, 3))
+    centre, radius = sdf_region(scene, "sfm_points")
+    assert np.allclose(centre, scene.points.mean(axis=0)) and radius == pytest.approx(3 * scene.points[:, 1].std())
+    assert np.array_equal(sdf_region(scene, "cameras")[0], bound_by_cameras(scene.cameras)[0])
+    assert np.array_equal(sdf_region(scene, "scene")[0], np.zeros(3)) and sdf_region(scene, "scene")[1] == scene.radius
+    with pytest.raises(ConfigError, match="method.sdf_region must be one of"):
+        sdf_region(scene, "gt_bounds")
+
+
+def test_neusg_bounds_tnt_scenes_by_their_cameras_and_dtu_scenes_by_their_sphere():
+    """The region is the dataset's (configs/methods/neusg.tnt.yaml); the removed GT bound is refused before a run."""
+    assert resolve_run("neusg", "synthetic/tnt-rig-spot", preset="cpu").method["sdf_region"] == "cameras"
+    assert resolve_run("neusg", "synthetic/spot", preset="cpu").method["sdf_region"] == "scene"
+    with pytest.raises(ConfigError, match="method.sdf_region must be one of .*got 'gt_bounds'"):
+        METHODS.get("neusg").check_config(resolve_run("neusg", "synthetic/tnt-rig-spot", overrides=["method.sdf_region=gt_bounds"]))

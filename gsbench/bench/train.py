@@ -55,6 +55,7 @@ import torch
 import gsbench.training.trainer as train
 from gsbench.config.files import paper_methods
 from gsbench.data.cache import cache_dir
+from gsbench.data.method_scene import scene_for_method
 from gsbench.data.synthetic.make import make_scene
 from gsbench.errors import ConfigError
 from gsbench.losses.terms import Batch, active_terms, required_outputs
@@ -167,7 +168,7 @@ def bench_workload(name: str, workload: Workload, *, steps: int = STEPS, warmup:
     if key not in scenes:
         make_run_scene(cfg)
         scenes[key] = load_run_scene(cfg)
-    scene = scenes[key]
+    scene = scene_for_method(scenes[key], workload.method)
     method = METHODS.get(workload.method)()
     set_threads(threads)
     train.seed_everything(cfg.seed)
@@ -194,7 +195,7 @@ def bench_run_folder(folder, *, steps: int = STEPS, warmup: int = WARMUP, probe_
     cfg.threads = threads
     cfg.train.checkpoint_every = 0
     make_run_scene(cfg)
-    scene = load_run_scene(cfg)
+    scene = scene_for_method(load_run_scene(cfg), cfg.method["name"])
     method = METHODS.get(cfg.method["name"])()
     set_threads(threads)
     train.seed_everything(cfg.seed)

@@ -37,7 +37,7 @@ from gsbench.data.images import read_views
 from gsbench.data.meta import optional_dir, read_meta
 from gsbench.data.resolution import fit_downscale
 from gsbench.data.similarity import similarity, transform_camera
-from gsbench.errors import DataError, import_open3d
+from gsbench.errors import DataError
 
 TNT_TAU = {"Barn": 0.01, "Caterpillar": 0.005, "Church": 0.025, "Courthouse": 0.025, "Ignatius": 0.003,
            "Meetingroom": 0.01, "Truck": 0.005}
@@ -120,27 +120,6 @@ def check_tnt_ground_truth(files: dict[str, Path]) -> None:
     check_crop_json(files[".json"], fix)
     read_matrix4_text(files["_trans.txt"], fix)
     check_log(files["_COLMAP_SfM.log"], fix)
-
-
-def gt_bounding_sphere(scene: Scene) -> tuple[np.ndarray, float]:
-    """(centre, radius) in the training frame of the region the GT point cloud spans, as Neuralangelo bounds
-    a TnT scene for its SDF (its ``convert_tnt_to_json.py``): the GT points (every 100th) mapped into the
-    reconstruction frame by the inverse of ``{scene}_trans.txt``, then here by the training
-    normalisation; centre = the middle of their bounding box, radius = 1.01 x the farthest point from it.
-    A scene without TnT ground truth is a `DataError` naming the fix."""
-    if scene.gt is None or scene.gt.kind != "tnt":
-        raise DataError(f"{scene.root}: the SDF region 'gt_bounds' needs the scene's TnT ground truth "
-                        f"({scene.gt_missing or 'not a TnT scene'}); fix: method.sdf_region=scene, or pass --gt")
-    files = gt_files(scene.gt.root, scene.gt.name)
-    fix = "re-download the scene's TnT ground truth or use method.sdf_region=scene"
-    check_ply(files[".ply"], fix)
-    points = np.asarray(import_open3d().io.read_point_cloud(str(files[".ply"])).points, dtype=np.float64)[::100]
-    if len(points) == 0:
-        raise DataError(f"{files['.ply']}: the GT point cloud is empty; fix: {fix}")
-    to_colmap = np.linalg.inv(read_matrix4_text(files["_trans.txt"], fix))
-    points = scene.normalisation.invert(points @ to_colmap[:3, :3].T + to_colmap[:3, 3])
-    centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
-    return centre, 1.01 * float(np.linalg.norm(points - centre, axis=1).max())
 
 
 def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,

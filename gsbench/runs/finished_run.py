@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import yaml
 
+from gsbench.data.method_scene import scene_for_method
 from gsbench.errors import GsbenchError
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
@@ -37,12 +38,12 @@ def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFol
 
 
 def load_finished_run(folder, command: str, *, load_images: bool = True):
-    """``(cfg, scene, method)`` of the finished run in ``folder``, the method set up on the scene and
-    loaded from the final checkpoint; ``command`` names the caller in the errors."""
+    """``(cfg, scene, method)`` of the finished run in ``folder``, the method set up on the scene (its ground truth
+    hidden, `scene_for_method`) and loaded from the final checkpoint; ``command`` names the caller in the errors."""
     cfg, final = read_run_config(folder, command)
     make_run_scene(cfg)
     scene = load_run_scene(cfg, load_images=load_images)
     method = METHODS.get(cfg.method["name"])()
-    method.setup(scene, cfg)
+    method.setup(scene_for_method(scene, cfg.method["name"]), cfg)
     method.load_state_dict(load_checkpoint(final)["method"])
     return cfg, scene, method

@@ -32,6 +32,9 @@ Trainer hands the model to `_evaluate_point`, which extracts and evaluates it as
 or evaluation raises; a point whose row exists is not taken again. The record's ``points`` are those rows
 and the final point (`gsbench.runs.records.final_point`).
 
+The method is set up, trained and meshed on the scene with its ground truth hidden
+(`gsbench.data.method_scene.scene_for_method`: reading it raises `GroundTruthRead`); only evaluation reads it.
+
 Progress: one line per stage on stderr (`gsbench.training.progress.stage`), and training's own progress lines
 when stderr is not a terminal.
 """
@@ -56,6 +59,7 @@ from gsbench.config.checks import check_run_config
 from gsbench.config.run_config import RunConfig, dataset_of, point_steps, resolve
 from gsbench.data.cache import scene_dir
 from gsbench.data.loader import load_scene
+from gsbench.data.method_scene import scene_for_method
 from gsbench.data.synthetic.builtin import builtin_name
 from gsbench.data.synthetic.make import ensure_scene
 from gsbench.errors import Interrupted, one_line
@@ -263,10 +267,11 @@ def _second_stage(method, scene, cfg: RunConfig, second_cfg: RunConfig, sub: Run
     return second
 
 
-def _evaluate_point(method, trained: TrainResult, scene, cfg: RunConfig, plan, files: RunFolder) -> None:
-    """One point (docs/training.md §9): ``method`` after ``trained.steps`` steps meshed and evaluated as at the end,
-    into ``points/<step>/``; its row (`gsbench.runs.records.POINT_KEYS`) written last, failed with its one-line
-    reason when the extractor or an evaluator raises. An interruption (Ctrl-C, SIGTERM) stops the run."""
+def _evaluate_point(method, trained: TrainResult, scene, given, cfg: RunConfig, plan, files: RunFolder) -> None:
+    """One point (docs/training.md §9): ``method`` after ``trained.steps`` steps meshed (from ``given``, the scene
+    without its ground truth) and evaluated (on ``scene``) as at the end, into ``points/<step>/``; its row
+    (`gsbench.runs.records.POINT_KEYS`) written last, failed with its one-line reason when the extractor or an
+    evaluator raises. An interruption (Ctrl-C, SIGTERM) stops the run."""
     step, iterations = trained.steps, cfg.train.iterations
     stage(f"point at step {step}/{iterations}: extracting the mesh ({cfg.mesh.extractor}) and evaluating")
     row = {"step": step, "fraction": step / iterations, "final": False, "status": "ok", "error": None,
@@ -276,7 +281,7 @@ def _evaluate_point(method, trained: TrainResult, scene, cfg: RunConfig, plan, f
     mesh.parent.mkdir(parents=True, exist_ok=True)
     timed, t0 = "extract_seconds", time.perf_counter()
     try:
-        method.extract_mesh(scene, cfg, mesh)
+        method.extract_mesh(given, cfg, mesh)
         row[timed], timed, t0 = time.perf_counter() - t0, "evaluate_seconds", time.perf_counter()
         report = _evaluate(method, scene, cfg, mesh, plan)
         write_json_atomic(files.point_eval(step), report)
@@ -313,8 +318,9 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     scene = load_run_scene(cfg)
     stages.done("load", time.perf_counter() - t0)
 
+    given = scene_for_method(scene, cfg.method["name"])  # the method trains and meshes without the ground truth
     method = METHODS.get(cfg.method["name"])()
-    method.setup(scene, cfg)
+    method.setup(given, cfg)
     record.inputs["initial_gaussians"] = len(method.gaussians)
     record.losses["params"] = method.term_params()
     files = RunFolder(folder)
@@ -323,8 +329,8 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     if not final.is_file():
         stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
         pending = [step for step in point_steps(cfg) if not files.point_row(step).is_file()]
-        result = Trainer(method, scene, cfg, folder, points=pending,
-                         on_point=lambda model, trained: _evaluate_point(model, trained, scene, cfg, plan, files)).fit()
+        result = Trainer(method, given, cfg, folder, points=pending,
+                         on_point=lambda model, trained: _evaluate_point(model, trained, scene, given, cfg, plan, files)).fit()
         stages.done("train", result.seconds, cpu_seconds=result.cpu_seconds, it_per_s=result.it_per_s,
                     num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
@@ -333,12 +339,12 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
 
     second_cfg = method.second_stage_config(cfg)
     if second_cfg is not None and not mesh_path.is_file():
-        method = _second_stage(method, scene, cfg, second_cfg, RunFolder(folder / "refine"), stages, record)
+        method = _second_stage(method, given, cfg, second_cfg, RunFolder(folder / "refine"), stages, record)
 
     if not mesh_path.is_file():
         stage(f"extracting the mesh ({cfg.mesh.extractor})")
         t0 = time.perf_counter()
-        size = method.extract_mesh(scene, cfg, mesh_path)
+        size = method.extract_mesh(given, cfg, mesh_path)
         stages.done("extract", time.perf_counter() - t0, **size)
         report = None
 
