@@ -42,6 +42,7 @@ class DTUOptions:
     min_inside_fraction: float = 0.1  # warn (units/frame) when fewer vertices lie in the GT box
     max_sample_points: int = 50_000_000  # refuse meshes whose sampling would exceed this (memory guard)
     sample_oversample: float = 4.0  # area samples per downsample_density² of surface (sampled protocol)
+    sampled: bool = True  # mode "mesh": also score area samples (*_sampled); False: the official steps only
 
 
 def dtu_gt_files(scene: Scene) -> dict[str, Path]:
@@ -183,7 +184,7 @@ class DTUChamfer(Evaluator):
         diag.data.update(official.counts, stl_above_plane=len(official.s2d))
         metrics = {"accuracy": official.accuracy, "completeness": official.completeness,
                    "chamfer": (official.accuracy + official.completeness) / 2}
-        if opts.mode == "mesh":
+        if opts.mode == "mesh" and opts.sampled:
             with diag.phase("sampled_draw"):
                 area = pointsets.area_samples(verts, faces, opts.downsample_density, opts.seed, opts.sample_oversample,
                                               opts.max_sample_points)

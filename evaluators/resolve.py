@@ -94,7 +94,11 @@ def plan_evaluation(scene: Scene, dataset: str, named, held_out: int) -> Evaluat
 CULLING_EVALUATORS = ("dtu_chamfer", "normal_similarity")  # they take the DTU mask culling option ``cull``
 
 
-def run_options(dtu_culling: str, names) -> dict:
+def run_options(dtu_culling: str, names, dtu_sampled: bool = True) -> dict:
     """The options a run passes to its mesh evaluators ``names``: ``cull = eval.dtu_culling`` to each of
-    `CULLING_EVALUATORS` (normal_similarity culls only DTU scenes, like the Chamfer it sits beside)."""
-    return {name: {"cull": dtu_culling} for name in names if name in CULLING_EVALUATORS}
+    `CULLING_EVALUATORS` (normal_similarity culls only DTU scenes, like the Chamfer it sits beside), and
+    ``sampled = eval.dtu_sampled`` to dtu_chamfer."""
+    options = {name: {"cull": dtu_culling} for name in names if name in CULLING_EVALUATORS}
+    if "dtu_chamfer" in options:
+        options["dtu_chamfer"]["sampled"] = dtu_sampled
+    return options

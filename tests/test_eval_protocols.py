@@ -9,6 +9,7 @@ import trimesh
 
 from gsbench.evaluators import culling
 from gsbench.evaluators.dtu_chamfer import DTUChamfer
+from gsbench.evaluators.resolve import run_options
 from gsbench.evaluators.tnt_f1 import TnTF1, precision_recall, uniform_rate
 
 
@@ -50,6 +51,16 @@ def test_dtu_sampled_chamfer_ignores_the_triangulation(dtu_scene):
     assert max(official) - min(official) > 0.04  # mm: the fan's slivers leave the official grid sparse
     assert max(sampled) - min(sampled) < 0.003
     assert all(s["accuracy_sampled"] > 0 and s["completeness_sampled"] > 0 for s in scores.values())
+
+
+def test_dtu_sampled_off_leaves_the_official_numbers(dtu_scene):
+    """``eval.dtu_sampled: false`` (the boards of large objects) skips the area samples and changes nothing else."""
+    mesh = F.dtu_sphere_mesh(subdivisions=3)
+    both = DTUChamfer().evaluate(mesh, dtu_scene, cull="none")
+    official = DTUChamfer().evaluate(mesh, dtu_scene, cull="none", sampled=False)
+    assert "chamfer_sampled" in both["metrics"] and not any(k.endswith("_sampled") for k in official["metrics"])
+    assert official["metrics"] == {k: v for k, v in both["metrics"].items() if not k.endswith("_sampled")}
+    assert run_options("2dgs", ["dtu_chamfer", "tnt_f1"], False) == {"dtu_chamfer": {"cull": "2dgs", "sampled": False}}
 
 
 def test_tnt_point_sets_and_sampled_f1_ignore_the_triangulation(tnt_scene):

@@ -55,6 +55,7 @@ ADDED_AFTER_RECORDS = (
     ("sugar", "method.refine_gaussians_per_triangle", 1),
     ("sugar", "method.refine_triangles", 50_000),
     (None, "eval.points", []),
+    (None, "eval.dtu_sampled", True),
 )
 HOLDOUT_WITHOUT_GT = 8  # data.holdout_every "auto" (-1) on a scene without ground truth: 3DGS --eval
 
@@ -145,6 +146,7 @@ class EvalConfig:
     evaluators: list = field(default_factory=list)
     dtu_culling: str = "2dgs"  # mask culling before the DTU protocol: 2dgs, gof or none (`gsbench.evaluators.culling`)
     points: list = field(default_factory=list)
+    dtu_sampled: bool = True  # dtu_chamfer also on area samples (*_sampled, docs/evaluation.md §2.4); off: the official steps only
 
 
 @dataclass

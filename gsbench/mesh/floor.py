@@ -51,7 +51,7 @@ def floor_report(scene_name: str, *, preset: str = "cpu", overrides=(), out: Pat
     mesh_path = out / "floor.ply"
     canonical_order(mesh).export(mesh_path)
     names = [n for n in plan_run_evaluation(cfg, scene).mesh if n != "surface_offset"] + ["surface_offset"]
-    options = run_options(cfg.eval.dtu_culling, names)
+    options = run_options(cfg.eval.dtu_culling, names, cfg.eval.dtu_sampled)
     report = evaluate_mesh_file(mesh_path, scene, names, options)
     report["config"] = {"preset": preset, "overrides": list(overrides), "resolution": [scene.cameras[0].width,
                         scene.cameras[0].height], "mesh": vars(cfg.mesh).copy(), "use_masks": masks is not None}
