@@ -45,6 +45,7 @@ def test_local_workers_have_their_threads_and_leave_ctrl_c_to_the_sweep():
     with LocalExecutor(1, 1) as executor:
         assert executor.submit(os.getenv, "OMP_NUM_THREADS").result() == "1"
         assert executor.submit(signal.getsignal, signal.SIGINT).result() == signal.SIG_IGN
+        assert executor.submit(signal.getsignal, signal.SIGHUP).result() == signal.SIG_IGN  # a closed terminal too
 
 
 def test_local_executor_runs_each_task_in_a_fresh_process():

@@ -20,7 +20,7 @@ from gsbench.config.files import config_root
 from gsbench.errors import ConfigError
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, git_state
-from gsbench.runs.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
+from gsbench.runs.sweep import count_runs, expand, format_runs, load_sweep, run_sweep, with_suite
 from sweep_files import ALL, REPO, sweep_file
 
 
@@ -85,8 +85,9 @@ def test_malformed_sweeps_fail_before_running(tmp_path, text, message):
 
 @pytest.mark.parametrize("path", ALL, ids=[p.relative_to(REPO).as_posix() for p in ALL])
 def test_every_sweep_expands_and_validates(path):
-    runs = expand(load_sweep(path))
-    assert runs and len({r.run_id for r in runs}) == len(runs)
+    sweep = load_sweep(path)
+    runs = expand(sweep)
+    assert runs and len({r.run_id for r in runs}) == len(runs) and count_runs(sweep) == len(runs)
 
 
 def test_a_sweeps_name_is_its_file_stem_and_names_one_sweep():

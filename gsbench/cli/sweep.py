@@ -39,11 +39,11 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     from gsbench.runs.executors import make_executor, threads_per_run
-    from gsbench.runs.sweep import expand, format_runs, load_sweep, run_sweep, with_suite
+    from gsbench.runs.sweep import check_run_count, expand, format_runs, load_sweep, run_sweep, with_suite
 
     sweep = with_suite(load_sweep(args.config), args.suite, args.seeds)
+    print(f"# sweep {sweep['name']}: {check_run_count(sweep)} runs", flush=True)  # before expanding, which takes a while
     runs = expand(sweep, overrides=args.set or ())
-    print(f"# sweep {sweep['name']}: {len(runs)} runs")
     if args.dry_run:
         print(format_runs(runs))
         return 0
@@ -56,6 +56,4 @@ def run(args) -> int:
                        address=args.address or settings.get("address")) as executor:
         summary = run_sweep(runs, executor, name=sweep["name"], description=sweep.get("description", ""),
                             file=args.config, out=args.out, threads=threads, other_code=args.other_code)
-    if summary.interrupted:
-        return 130
-    return 1 if summary.counts["failed"] else 0
+    return summary.exit_status

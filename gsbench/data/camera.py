@@ -18,6 +18,16 @@ import numpy as np
 
 from gsbench.errors import DataError
 
+MIN_TRAIN_VIEWS_SEEING = 0.5  # share of the training cameras that must see the scene (`Scene.check_cameras_face_scene`)
+NAMES_SHOWN = 5  # names a message lists before "and N more" (`name_list`)
+
+
+def name_list(names) -> str:
+    """``a, b, c, d, e and 3 more``: the first `NAMES_SHOWN` of ``names`` and the count of the others."""
+    names = [str(n) for n in names]
+    shown = ", ".join(names[:NAMES_SHOWN])
+    return shown + (f" and {len(names) - NAMES_SHOWN} more" if len(names) > NAMES_SHOWN else "")
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -74,6 +84,18 @@ class Camera:
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (pc @ self.K.T)[:, :2] / z[:, None]
         return uv, z
+
+    def sees_sphere(self, centre, radius: float) -> bool:
+        """Whether the sphere (``centre``, ``radius``; world) reaches into the view pyramid: its centre lies less than
+        ``radius`` behind each of the five planes through the camera centre, ``z = 0`` and the four through the
+        picture's edges (inward normals ``(1, 0, cx/fx)``, ``(-1, 0, (W-cx)/fx)``, ``(0, 1, cy/fy)``,
+        ``(0, -1, (H-cy)/fy)`` in camera space). Conservative: near an edge of the pyramid a sphere just outside
+        passes."""
+        normals = np.array([[0.0, 0.0, 1.0],
+                            [1.0, 0.0, self.cx / self.fx], [-1.0, 0.0, (self.width - self.cx) / self.fx],
+                            [0.0, 1.0, self.cy / self.fy], [0.0, -1.0, (self.height - self.cy) / self.fy]])
+        centre_camera = self.R @ np.asarray(centre, dtype=np.float64) + self.t
+        return bool(np.all(normals @ centre_camera / np.linalg.norm(normals, axis=1) > -radius))
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by ``factor`` (e.g. 0.5 for half resolution)."""
@@ -187,32 +209,39 @@ class Scene:
         return self.holdout_every > 0 and view % self.holdout_every == 0
 
     def views_facing_scene(self) -> list[int]:
-        """Indices of the cameras that look at the scene: the camera is inside the scene sphere (radius r about
-        the origin of the normalised frame: every camera of a layout normalised around the cameras, as TnT's
-        is), or the sphere's centre is in front of it (z > 0) and its image, widened by the sphere's projected
-        radius f·r/z, overlaps the picture. A camera that fails both sees nothing of the scene."""
-        facing = []
-        for i, cam in enumerate(self.cameras):
-            if np.linalg.norm(cam.center) < self.radius:
-                facing.append(i)
-                continue
-            pixel, z = cam.project(np.zeros((1, 3)))
-            if z[0] <= 0:
-                continue
-            reach = max(cam.fx, cam.fy) * self.radius / z[0]
-            x, y = pixel[0]
-            if -reach <= x <= cam.width + reach and -reach <= y <= cam.height + reach:
-                facing.append(i)
-        return facing
+        """Indices of the cameras that see the scene: the scene sphere (radius r about the origin of the normalised
+        frame, where the object lies) reaches into the camera's view pyramid, i.e. its centre lies less than r behind
+        each of the pyramid's five planes (the camera plane z = 0 and the four through the picture's edges). A camera
+        inside the sphere passes all five (every camera of a layout normalised around its cameras, as TnT's is, so a
+        turned camera there is not found); `Camera.sees_sphere`."""
+        return [i for i, cam in enumerate(self.cameras) if cam.sees_sphere(np.zeros(3), self.radius)]
 
-    def check_cameras_face_scene(self) -> None:
-        """DataError when no training camera looks at the scene (`views_facing_scene`): training could only
-        end in an empty model. Names the fix."""
-        if not set(self.train_views) & set(self.views_facing_scene()):
-            raise DataError(f"scene '{self.name}': none of its {len(self.train_views)} training cameras looks at the "
-                            f"scene (the sphere of radius {self.radius:.4g} about the origin of the normalised frame is "
-                            "behind or outside every image); fix: check the camera poses (world-to-camera versus "
-                            "camera-to-world, the sign of the viewing axis) and the normalisation")
+    def check_cameras_face_scene(self) -> str:
+        """DataError when fewer than `MIN_TRAIN_VIEWS_SEEING` of the training cameras see the scene
+        (`views_facing_scene`): training would fit views of nothing and end in an empty or wrong model. Otherwise
+        a warning naming the cameras that do not see it (held-out ones too), "" when every camera does."""
+        facing = set(self.views_facing_scene())
+        away = [i for i in range(len(self.cameras)) if i not in facing]
+        train = self.train_views
+        train_away = [i for i in train if i not in facing]
+        seeing = len(train) - len(train_away)
+        sphere = f"the sphere of radius {self.radius:.4g} about the origin of the normalised frame"
+        fix = ("fix: check the camera poses (world-to-camera versus camera-to-world, the sign of the viewing axis) and "
+               "the normalisation")
+        if seeing < MIN_TRAIN_VIEWS_SEEING * len(train):
+            which = f"none of its {len(train)} training cameras looks" if not seeing else \
+                f"only {seeing} of its {len(train)} training cameras look"
+            raise DataError(f"scene '{self.name}': {which} at the scene ({sphere} is behind or outside the pictures "
+                            f"of {self._camera_names(train_away)}; at least {MIN_TRAIN_VIEWS_SEEING:.0%} must see it); "
+                            f"{fix}")
+        if not away:
+            return ""
+        return (f"scene '{self.name}': {len(away)} of its {len(self.cameras)} cameras do not see the scene ({sphere} "
+                f"is behind or outside their pictures): {self._camera_names(away)}; {fix}")
+
+    def _camera_names(self, views: list[int]) -> str:
+        """The names (else indices) of ``views``, the first few and the count of the others (`name_list`)."""
+        return name_list([self.cameras[i].name or f"view {i}" for i in views])
 
     @property
     def has_masks(self) -> bool:

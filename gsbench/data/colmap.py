@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsbench.data.camera import Camera
+from gsbench.data.camera import Camera, name_list
 from gsbench.data.filecheck.colmap import (
     COLMAP_FIX,
     check_colmap_model,
@@ -149,18 +149,22 @@ def write_colmap_model(sparse_dir: Path, cameras: list[Camera], points: np.ndarr
 
 
 def colmap_image_paths(root: Path, cameras: list[Camera]) -> list[Path]:
-    """``images/<name>`` for every COLMAP image; the folder must hold exactly those images."""
+    """``images/<name>`` for every COLMAP image; the folder must hold exactly those images. The error names every
+    image missing (or extra), the first few and the count of the others (`name_list`)."""
     folder = root / "images"
+    model = root / "sparse" / "0"
     if not folder.is_dir():
         raise DataError(f"{folder}: images folder not found; fix: put the undistorted views in images/")
+    paths = [folder / c.name for c in cameras]
+    missing = [p.name for p in paths if not p.is_file()]
+    if missing:
+        raise DataError(f"{folder}: {len(missing)} of the {len(cameras)} images named in the COLMAP model {model} not "
+                        f"found: {name_list(missing)}; fix: add them or re-run COLMAP")
     found = list_images(folder)
     if len(found) != len(cameras):
-        raise DataError(
-            f"{folder}: {len(found)} images but {len(cameras)} cameras in {root / 'sparse' / '0'}; "
-            "fix: one image per registered COLMAP image"
-        )
-    paths = [folder / c.name for c in cameras]
-    for p in paths:
-        if not p.is_file():
-            raise DataError(f"{p}: image named in the COLMAP model not found; fix: add it or re-run COLMAP")
+        listed = set(paths)
+        extra = [p.name for p in found if p not in listed]
+        raise DataError(f"{folder}: {len(found)} images but {len(cameras)} cameras in {model}"
+                        f"{f' (not in the model: {name_list(extra)})' if extra else ''}; fix: one image per registered "
+                        "COLMAP image")
     return paths

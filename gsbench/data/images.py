@@ -31,10 +31,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
+from tqdm import tqdm
 
 from gsbench.atomic import atomic_path
 from gsbench.data.cache import cache_dir
@@ -43,6 +46,7 @@ from gsbench.switches import IMAGE_CACHE
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
 DECODED_CACHE_VERSION = 1
+LOAD_PROGRESS_SECONDS = 10.0  # decoding that lasts longer shows its progress (`_decode_views`)
 
 
 def list_images(folder: Path) -> list[Path]:
@@ -244,12 +248,35 @@ def _check_headers(image_paths, mask_paths, sizes) -> None:
                 )
 
 
+def _decode_views(image_paths, mask_paths, downscale: float):
+    """(uint8 images, bool masks or None), decoded; once that has lasted `LOAD_PROGRESS_SECONDS`, its progress on
+    stderr: a tqdm bar on a terminal, else a line every `LOAD_PROGRESS_SECONDS` (49 photos of 8000x6000 take
+    minutes to decode)."""
+    raw, masks = [], [] if mask_paths is not None else None
+    total = len(image_paths)
+    start = last = time.perf_counter()
+    with tqdm(total=total, desc="decoding images", unit="view", disable=None, delay=LOAD_PROGRESS_SECONDS) as bar:
+        for k, path in enumerate(image_paths):
+            raw.append(decode_rgb(path, downscale))
+            if masks is not None:
+                masks.append(read_mask(mask_paths[k], downscale))
+            bar.update()
+            now = time.perf_counter()
+            if bar.disable and now - last >= LOAD_PROGRESS_SECONDS:
+                last, done = now, k + 1
+                sys.stderr.write(f"gsbench: decoding images: {done}/{total} views after {now - start:.0f} s, about "
+                                 f"{(now - start) / done * (total - done):.0f} s left\n")
+                sys.stderr.flush()
+    return raw, masks
+
+
 def read_views(image_paths, mask_paths, sizes, downscale: float, load_images: bool):
     """Read all images (and masks, when ``mask_paths`` is not None), checking each has its expected size.
 
     ``sizes`` is the (width, height) each image must have on disk. Returns ``(images, masks)``; both
     are empty/None when ``load_images`` is False (only the headers are checked then). Decoded views
-    come from / go to the decoded-image cache (module docstring).
+    come from / go to the decoded-image cache (module docstring); decoding that lasts shows its progress
+    (`_decode_views`).
     """
     sizes = list(sizes)
     image_paths = list(image_paths)[:len(sizes)]
@@ -269,8 +296,7 @@ def read_views(image_paths, mask_paths, sizes, downscale: float, load_images: bo
     if cached is not None:
         raw, masks = cached
     else:
-        raw = [decode_rgb(path, downscale) for path in image_paths]
-        masks = [read_mask(mask_paths[k], downscale) for k in range(len(image_paths))] if with_masks else None
+        raw, masks = _decode_views(image_paths, mask_paths, downscale)
         if cache is not None:
             _write_cached(cache, raw, masks)
     images = []

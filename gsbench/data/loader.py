@@ -125,11 +125,12 @@ def check_scene(path, gt_root=None) -> dict:
     """What a folder holds and what is wrong with it: format, counts, image size, ground truth.
 
     Reads cameras, points and image/mask headers only (no pixel is decoded). ``ok`` is True when the
-    scene loads: ground truth is optional (``ground_truth`` says what was found, or why not, and
+    scene loads and enough of its cameras see it (`Scene.check_cameras_face_scene`; ``warnings`` names those that
+    do not): ground truth is optional (``ground_truth`` says what was found, or why not, and
     which evaluators a run will skip without it).
     """
     root = Path(path)
-    report = {"path": str(root), "format": None, "ok": False, "errors": []}
+    report = {"path": str(root), "format": None, "ok": False, "errors": [], "warnings": []}
     try:
         report["format"] = detect_format(root)
         scene = load_scene(root, load_images=False, gt_root=gt_root)
@@ -146,9 +147,11 @@ def check_scene(path, gt_root=None) -> dict:
         report["cameras_facing_scene"] = len(facing)
         report["frame"] = scene_frame(scene)
         try:
-            scene.check_cameras_face_scene()
+            away = scene.check_cameras_face_scene()
         except GsbenchError as exc:
             report["errors"].append(str(exc))
+        else:
+            report["warnings"] += [away] if away else []
     if report["format"]:
         report["ground_truth"] = {
             "found": scene is not None and scene.gt is not None,

@@ -268,6 +268,15 @@ def _sweeps(manifests, runs, primary: dict, made: _Plots) -> tuple[Section, dict
     return section, labels
 
 
+def _failed_section(runs, unfinished: list[str]) -> Section:
+    """The records that are not ok, then the run folders without a record; its one "(none)" only when there are
+    neither (an empty records table above a listed unfinished run read as "nothing failed")."""
+    failed = failed_table(runs)
+    tables = [failed] if failed.rows or not unfinished else []
+    tables += [unfinished_table(unfinished)] if unfinished else []
+    return Section("failed", "Failed and unfinished runs", [], tables)
+
+
 def write_report(source, out, *, plots: bool = True, self_contained: bool = False, generated: str | None = None,
                  warn=None) -> list[Path]:
     """Write the report of ``source`` (a runs folder, or a board's records file or folder) into ``out``; return
@@ -308,8 +317,7 @@ def write_report(source, out, *, plots: bool = True, self_contained: bool = Fals
                 *([surfaces] if surfaces else []), significance, claims,
                 *([Section("twins", "Twin scenes: what one factor costs", [TWINS_NOTE], twins)] if twins else []),
                 _against_time(boards, made), speed, *([without_gt] if without_gt else []), sweeps,
-                Section("failed", "Failed and unfinished runs", [],
-                        [failed_table(runs), *([unfinished_table(unfinished)] if unfinished else [])]),
+                _failed_section(runs, unfinished),
                 Section("protocols", "Protocols", [], [protocol_table(runs)]),
                 Section("environment", "Environment", [], [environment_table(runs)])]
     warnings = list(dict.fromkeys(warnings))

@@ -7,7 +7,8 @@ on ProcessPoolExecutor): cancel the pending tasks, stop the running ones now and
 - ``local`` (`LocalExecutor`, the default): a ProcessPoolExecutor of ``workers`` processes, each running
   one task at a time with ``threads`` OpenMP / torch threads; ``workers × threads`` must fit the cores.
   Processes are spawned, not forked (torch and OpenMP state does not survive a fork). Workers ignore
-  SIGINT, so a Ctrl-C in the terminal reaches only the sweep, which decides what to stop.
+  SIGINT and SIGHUP, so a Ctrl-C in the terminal or its closing reaches only the sweep, which decides what to
+  stop (it stops its workers with SIGTERM, `gsbench.runs.sweep.run_sweep`).
 - Both run every task in a fresh process: a run's peak memory is the process high-water mark
   (``ru_maxrss``, which never decreases), so a reused worker would report the largest earlier run's.
 - ``ray`` (`RayExecutor`, extra ``gsbench[ray]``): each task is a Ray task with ``num_cpus = threads``,
@@ -68,10 +69,11 @@ def make_executor(kind: str, *, workers: int, threads: int, address: str | None 
 
 
 def _init_local_worker(threads: int) -> None:
-    """In each spawned worker, before torch loads: its thread count; Ctrl-C is the sweep's to handle; progress
-    bars locked by a thread lock, not tqdm's default multiprocessing semaphore, which a terminated worker
-    would leak (a warning when the sweep exits)."""
+    """In each spawned worker, before torch loads: its thread count; Ctrl-C and a closed terminal (SIGHUP) are the
+    sweep's to handle; progress bars locked by a thread lock, not tqdm's default multiprocessing semaphore, which a
+    terminated worker would leak (a warning when the sweep exits)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
     os.environ["OMP_NUM_THREADS"] = str(threads)
     tqdm.set_lock(threading.RLock())
 

@@ -22,22 +22,30 @@ A ``suite`` (`gsbench.config.suites`) gives the scenes and, unless the sweep has
 excludes ``scenes``. `with_suite` applies the command line's ``--suite`` / ``--seeds`` to a loaded sweep.
 `expand` resolves every run (`gsbench.runs.runner.resolve_run`: unknown keys and bad types fail with the
 run's label) and checks its loss-term names against the registry, so a sweep fails before it
-starts. Each run's id is its resolved config's (`gsbench.config.run_config.run_id`), so re-running a sweep
+starts; a sweep of more than `MAX_SWEEP_RUNS` runs (`count_runs`, from the lengths of its lists) fails before
+that. Each run's id is its resolved config's (`gsbench.config.run_config.run_id`), so re-running a sweep
 finds the finished runs.
 
 Running (`run_sweep`): every unfinished run is one task (`run_one`) on an executor
-(`gsbench.runs.executors`: local processes or Ray); a manifest (`Manifest`) records the sweep's runs and
-their statuses for the report, and a summary (`SweepSummary`) says how it ended.
+(`gsbench.runs.executors`: local processes or Ray); a manifest (`Manifest`, written under a file lock, so sweeps
+of one name running at once keep each other's entries) records the sweep's runs and their statuses for the
+report, and a summary (`SweepSummary`) says how it ended. Ctrl-C, SIGTERM and SIGHUP stop the sweep's runs (each
+keeps its last checkpoint) and end it with a line naming them.
 """
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import json
+import math
+import os
+import signal
+import threading
 import time
 import traceback
 from concurrent.futures import FIRST_COMPLETED, CancelledError, wait
-from contextlib import suppress
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,7 +55,7 @@ from gsbench.config.checks import check_run_config
 from gsbench.config.files import load_yaml
 from gsbench.config.run_config import RunConfig, parse_override
 from gsbench.config.suites import SUITE_PREFIX, load_suite
-from gsbench.errors import ConfigError
+from gsbench.errors import ConfigError, Interrupted
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, code_version, git_state, write_json_atomic
 from gsbench.runs.runner import ERROR_TAIL_LINES, resolve_run, run, run_dir
@@ -58,6 +66,11 @@ EXECUTOR_KEYS = ("kind", "workers", "threads", "address")
 # The sweep waits for runs in slices of this many seconds: a SIGINT the kernel delivers to another
 # thread (torch's, tqdm's) only sets CPython's flag, and an untimed wait would never look at it.
 SIGNAL_POLL_SECONDS = 0.5
+# Signals that stop a sweep as Ctrl-C does (`stop_signals_raised`): a batch scheduler's time limit, a closed terminal.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+# The most runs a sweep may have (`count_runs`): expanding resolves every run, about 15 ms each, and a larger grid
+# would not finish on one machine anyway.
+MAX_SWEEP_RUNS = 10_000
 
 
 @dataclass
@@ -153,11 +166,33 @@ def _label(variant: str | None, values: dict) -> str:
     return " ".join(parts) or "base"
 
 
+def count_runs(sweep: dict) -> int:
+    """How many runs ``sweep`` expands to (variants × grid × zip × scenes × seeds), from the lengths of its lists,
+    without resolving any."""
+    scenes, seeds = scenes_and_seeds(sweep)
+    zipped = sweep.get("zip", {})
+    return (max(1, len(sweep.get("variants", {}))) * math.prod(len(v) for v in sweep.get("grid", {}).values())
+            * (len(next(iter(zipped.values()))) if zipped else 1) * len(scenes or [None]) * len(seeds or [None]))
+
+
+def check_run_count(sweep: dict) -> int:
+    """`count_runs`, or a ConfigError when it is above `MAX_SWEEP_RUNS`, naming the fix."""
+    count = count_runs(sweep)
+    if count > MAX_SWEEP_RUNS:
+        raise ConfigError(f"sweep {sweep.get('name', '')}: {count:,} runs, more than the {MAX_SWEEP_RUNS:,} a sweep may "
+                          "have (variants × grid × zip × scenes × seeds); fix: split the grid into several sweep files "
+                          "(give them one name: their runs share one manifest), or run a part at a time with --seeds "
+                          "or --suite")
+    return count
+
+
 def expand(sweep: dict, overrides=()) -> list[SweepRun]:
     """Resolve every run of ``sweep`` (module docstring); ``overrides`` (``a.b=c`` texts, e.g. a
     smaller budget) apply to every run after the sweep's own settings. Every run is checked
     (`gsbench.config.checks.check_run_config`), so a bad grid value fails here, before any run starts (also with
-    ``--dry-run``); errors name the run's label."""
+    ``--dry-run``); errors name the run's label. A sweep of more than `MAX_SWEEP_RUNS` fails first
+    (`check_run_count`)."""
+    check_run_count(sweep)
     extra = {}
     for text in overrides:
         extra.update(flatten(parse_override(text)))
@@ -296,43 +331,81 @@ def merge_manifest_runs(earlier: list[dict], now: list[dict]) -> list[dict]:
     return [entry for entry in earlier if entry.get("run_id") not in ids] + list(now)
 
 
+@contextmanager
+def manifest_lock(path: Path):
+    """An exclusive lock on ``.<name>.lock`` beside the manifest at ``path`` (``fcntl.flock``, blocking) for the
+    block: each read-modify-write of a manifest holds it, so sweeps of one name writing into one ``--out`` at once
+    (started together, or one per ``--seeds``) lose none of each other's entries. The system releases it when the
+    holder exits, however it exits."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path.with_name(f".{path.name}.lock"), os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the flock
+
+
 class Manifest:
     """``<out>/sweeps/<name>.json``, what the report builds ablation tables from::
 
         {"name", "description", "file", "runs": [{"run_id", "label", "method", "scene", "seed", "dir", "status"}]}
 
     ``dir`` is the run folder relative to ``<out>``; ``status`` is pending, skipped (finished by an
-    earlier invocation), ok, failed or cancelled (interrupted, or never started). An earlier invocation's
-    entries for runs this one does not have are kept before this one's (`merge_manifest_runs`). Rewritten
-    atomically on every change."""
+    earlier invocation), ok, failed or cancelled (interrupted, or never started). Written when the sweep starts, an
+    earlier invocation's entries for runs this one does not have kept before this one's (`merge_manifest_runs`);
+    then each change puts this sweep's entries in place among those the file holds then. Every write reads the file
+    and replaces it atomically under `manifest_lock`, so other sweeps of the name writing at the same time keep
+    their entries."""
 
     def __init__(self, path: Path, *, name: str, description: str, file: str, runs: list[SweepRun], out: Path,
                  finished: set):
         self.path = path
+        self.header = {"name": name, "description": description, "file": file}
         entries = [{"run_id": r.run_id, "label": r.label, "method": r.config.method["name"], "scene": r.config.scene,
                     "seed": r.config.seed, "dir": str(run_dir(r.config).relative_to(out)),
                     "status": "skipped" if r.run_id in finished else "pending"} for r in runs]
-        self.data = {"name": name, "description": description, "file": file,
-                     "runs": merge_manifest_runs(read_manifest_runs(path), entries)}
         self._by_id = {entry["run_id"]: entry for entry in entries}
+        self._update(lambda earlier: merge_manifest_runs(earlier, entries))
 
     def set(self, run_id: str, status: str) -> None:
         self._by_id[run_id]["status"] = status
-        self.write()
+        self._update(self._with_mine)
 
-    def write(self) -> None:
-        write_json_atomic(self.path, self.data)
+    def _with_mine(self, runs: list[dict]) -> list[dict]:
+        """``runs`` (the file's) with this sweep's entries in their places, and at the end those it lacks."""
+        present = {entry.get("run_id") for entry in runs}
+        return [self._by_id.get(entry.get("run_id"), entry) for entry in runs] + \
+            [entry for run_id, entry in self._by_id.items() if run_id not in present]
+
+    def _update(self, change) -> None:
+        """Under the lock: the file's entries, ``change``d, written back with this sweep's header."""
+        with manifest_lock(self.path):
+            write_json_atomic(self.path, {**self.header, "runs": change(read_manifest_runs(self.path))})
 
 
 @dataclass
 class SweepSummary:
-    """How a sweep ended: counts (ok, skipped, failed, cancelled), wall time, the failed runs."""
+    """How a sweep ended: counts (ok, skipped, failed, cancelled), wall time, the failed runs, and the signal that
+    stopped it (``SIGINT``: Ctrl-C, ``SIGTERM``, ``SIGHUP``; "" when it ran to the end)."""
 
     name: str
     counts: dict
     seconds: float
     failures: list  # (SweepRun, RunOutcome)
-    interrupted: bool = False
+    stopped_by: str = ""
+
+    @property
+    def interrupted(self) -> bool:
+        return bool(self.stopped_by)
+
+    @property
+    def exit_status(self) -> int:
+        """128 + the stopping signal's number (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP), as a shell gives
+        a process that signal ends; else 1 when a run failed, 0 when none did."""
+        if self.stopped_by:
+            return 128 + signal.Signals[self.stopped_by].value
+        return 1 if self.counts["failed"] else 0
 
     def format(self, tail_lines: int = 5) -> str:
         c = self.counts
@@ -354,9 +427,12 @@ def _unique(runs: list[SweepRun]) -> list[SweepRun]:
 
 
 def _outcome(future, sweep_run: SweepRun) -> RunOutcome:
-    """The task's outcome; an executor error (a worker that died, a Ray error) is a failed run."""
+    """The task's outcome; an executor error (a worker that died, a Ray error) is a failed run, a run stopped by a
+    signal to its worker alone (`Interrupted`: its record says interrupted, it resumes) a cancelled one."""
     try:
         return future.result()
+    except Interrupted as exc:
+        return RunOutcome(sweep_run.run_id, "cancelled", 0.0, f"stopped by {exc}")
     except Exception as exc:  # noqa: BLE001
         return RunOutcome(sweep_run.run_id, "failed", 0.0, f"{type(exc).__name__}: {exc}")
 
@@ -412,11 +488,11 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
     by another (`settle_other_code`). A failing run is recorded and the others go on. The manifest (`Manifest`) is
     written when the sweep starts and updated as runs finish.
 
-    Ctrl-C: the runs not started are cancelled and the running ones are stopped at once
-    (``executor.terminate_workers()``; an executor without it lets them finish). A stopped run keeps
-    what it had written (finished stages, its last checkpoint), so re-running the sweep resumes it;
-    finished records are untouched (written atomically). Both count as cancelled, and the summary has
-    ``interrupted`` set.
+    Ctrl-C, SIGTERM or SIGHUP (`stop_signals_raised`): the runs not started are cancelled and the running ones
+    are stopped at once (``executor.terminate_workers()``; an executor without it lets them finish). A stopped run
+    keeps what it had written (finished stages, its last checkpoint), so re-running the sweep resumes it;
+    finished records are untouched (written atomically). Both count as cancelled, one line says what was stopped
+    (`_stopped_line`), and the summary has ``stopped_by`` set.
     """
     start = time.perf_counter()
     runs = _apply(runs, out, threads)
@@ -426,31 +502,71 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
     root = Path(runs[0].config.out)
     manifest = Manifest(root / "sweeps" / f"{name}.json", name=name, description=description, file=str(file),
                         runs=runs, out=root, finished=finished)
-    manifest.write()
     tally = _Tally(todo, len(finished), manifest, name, echo)
     futures: dict = {}
-    interrupted = False
-    try:
-        for sweep_run in todo:
-            futures[executor.submit(run_one, sweep_run.config)] = sweep_run
-        pending = set(futures)
-        while pending:  # a timed wait: a Ctrl-C delivered to another thread still wakes this one
-            done, pending = wait(pending, timeout=SIGNAL_POLL_SECONDS, return_when=FIRST_COMPLETED)
-            for future in sorted(done, key=list(futures).index):
-                tally.finish(futures[future], _outcome(future, futures[future]))
-    except KeyboardInterrupt:
-        interrupted = True
-        echo(f"interrupted: cancelling {len(tally.unfinished)} unfinished runs")
-        _stop(executor, futures)
-        for future, sweep_run in futures.items():
-            if sweep_run.run_id in tally.unfinished and not future.cancelled() and future.exception() is None:
-                tally.finish(sweep_run, future.result())  # finished while the sweep was stopping
-        tally.cancel_unfinished()
-    finally:
-        tally.bar.close()
-    summary = SweepSummary(name, tally.counts, time.perf_counter() - start, tally.failures, interrupted)
+    stopped_by = ""
+    with stop_signals_raised():
+        try:
+            for sweep_run in todo:
+                futures[executor.submit(run_one, sweep_run.config)] = sweep_run
+            pending = set(futures)
+            while pending:  # a timed wait: a signal delivered to another thread still wakes this one
+                done, pending = wait(pending, timeout=SIGNAL_POLL_SECONDS, return_when=FIRST_COMPLETED)
+                for future in sorted(done, key=list(futures).index):
+                    tally.finish(futures[future], _outcome(future, futures[future]))
+        except (KeyboardInterrupt, Interrupted) as exc:
+            stopped_by = "SIGINT" if isinstance(exc, KeyboardInterrupt) else str(exc)
+            _stop(executor, futures)
+            stopped = []
+            for future, sweep_run in futures.items():
+                if sweep_run.run_id not in tally.unfinished or future.cancelled():
+                    continue
+                if future.exception() is None:
+                    tally.finish(sweep_run, future.result())  # finished while the sweep was stopping
+                elif isinstance(future.exception(), Interrupted):
+                    stopped.append(sweep_run)  # its worker recorded it interrupted at the signal
+            echo(_stopped_line(name, stopped_by, stopped, len(tally.unfinished) - len(stopped)))
+            tally.cancel_unfinished()
+        finally:
+            tally.bar.close()
+    summary = SweepSummary(name, tally.counts, time.perf_counter() - start, tally.failures, stopped_by)
     echo(summary.format())
     return summary
+
+
+@contextmanager
+def stop_signals_raised():
+    """In the main thread, `STOP_SIGNALS` raise `Interrupted` (its text the signal's name) for the block, as Ctrl-C
+    raises KeyboardInterrupt: the sweep stops its workers instead of leaving them running when it dies. Only the
+    first does: one more while the sweep stops its workers (a scheduler's second notice) is ignored. A signal that
+    was ignored when the block began (``nohup`` ignores SIGHUP) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+
+    def _raise(signum, _frame):
+        if not received:
+            received.append(signum)
+            raise Interrupted(signal.Signals(signum).name)
+
+    previous = {signum: signal.signal(signum, _raise) for signum in STOP_SIGNALS
+                if signal.getsignal(signum) is not signal.SIG_IGN}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+
+
+def _stopped_line(name: str, stopped_by: str, stopped: list[SweepRun], not_started: int) -> str:
+    """What a sweep stopped by ``stopped_by`` stopped: the runs that were running (each keeps its last checkpoint) and
+    how many had not started; the same command resumes them all."""
+    running = "; ".join(f"{r.config.method['name']} on {r.config.scene}, seed {r.config.seed}, run {r.run_id}"
+                        for r in stopped)
+    return (f"sweep {name} stopped by {stopped_by}: {len(stopped)} running run{'' if len(stopped) == 1 else 's'} "
+            f"stopped{f' ({running})' if stopped else ''}, {not_started} not started; the same command resumes "
+            "them (a stopped run from its last checkpoint)")
 
 
 def _stop(executor, futures: dict) -> None:
