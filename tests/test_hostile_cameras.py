@@ -14,6 +14,7 @@ from gsbench.data.images import write_mask, write_rgb
 from gsbench.data.loader import check_scene, load_scene
 from gsbench.data.synthetic.rigs import look_at
 from gsbench.errors import DataError
+from gsbench.runs import runner
 
 W, H, VIEWS = 16, 12, 49
 K = np.array([[20.0, 0, W / 2], [0, 20.0, H / 2], [0, 0, 1]])
@@ -94,3 +95,17 @@ def test_a_camera_sees_the_sphere_when_it_reaches_into_its_view_pyramid():
 def test_name_list_names_the_first_few_and_counts_the_others():
     assert name_list(["a", "b"]) == "a, b"
     assert name_list([f"v{k}" for k in range(8)]) == "v0, v1, v2, v3, v4 and 3 more"
+
+
+def test_a_run_warns_of_the_cameras_that_do_not_see_the_scene(tmp_path, capsys, monkeypatch):
+    root = dtu_folder(tmp_path / "scan6", turned={7})
+
+    def stop(*_args):
+        raise RuntimeError("stopped after the camera check")
+
+    monkeypatch.setattr(runner, "plan_run_evaluation", stop)
+    with pytest.raises(RuntimeError, match="stopped after the camera check"):
+        main(["--threads", "1", "run", "--method", "3dgs", "--scene", str(root), "--preset", "quick",
+              "--out", str(tmp_path / "runs")])
+    (warning,) = [line for line in capsys.readouterr().err.splitlines() if line.startswith("gsbench: warning:")]
+    assert "scene 'scan6': 1 of its 49 cameras do not see the scene" in warning and "): 000007.png;" in warning

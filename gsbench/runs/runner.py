@@ -174,7 +174,8 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     make_run_scene(cfg)
     stage(f"{cfg.method['name']} on {cfg.scene}: reading the cameras and planning the evaluation")
     header = load_run_scene(cfg, load_images=False)
-    header.check_cameras_face_scene()
+    if away := header.check_cameras_face_scene():
+        stage(f"warning: {away}")
     plan = plan_run_evaluation(cfg, header)
     for name, reason in plan.skipped.items():
         stage(f"evaluator {name} skipped: {reason}")
