@@ -7,7 +7,8 @@ configuration), ``checkpoint.pt`` (the latest resumable state, removed when trai
 ``<step>/mesh.ply``, ``<step>/eval.json`` and ``<step>.json``, its row of the record's ``points``, written
 last), ``switches.json`` (the result-changing ``GSBENCH_*`` switches its
 outputs were made with, `gsbench.runs.records.check_folder_switches`), ``record.json`` (the run record, written
-last) and ``.lock`` (one process at a time). Training, the runner, sweeps, diagnostics and the report all reach
+last), ``.lock`` (one process at a time) and, for a method with a second stage, ``refine/`` (that stage's
+checkpoints and training log). Training, the runner, sweeps, diagnostics and the report all reach
 these files through `RunFolder`.
 """
 
@@ -34,6 +35,7 @@ class RunFolder:
     SWITCHES = "switches.json"
     POINTS = "points"
     LOCK = ".lock"
+    REFINE = "refine"
 
     def __post_init__(self):
         object.__setattr__(self, "path", Path(self.path))
@@ -77,6 +79,20 @@ class RunFolder:
     @property
     def lock(self) -> Path:
         return self.path / self.LOCK
+
+    @property
+    def refine(self) -> "RunFolder":
+        """The folder of a second stage's training (its own checkpoints and log, so it resumes like the first)."""
+        return RunFolder(self.path / self.REFINE)
+
+    def written(self, point_steps=()) -> list[Path]:
+        """Every file a run writes here (the module docstring's), with the points' at the steps ``point_steps`` and a
+        second stage's."""
+        points = [path for step in point_steps for path in (self.point_mesh(step), self.point_eval(step),
+                                                             self.point_row(step))]
+        return [self.config, self.checkpoint, self.final_checkpoint, self.metrics, self.mesh, self.eval, self.stages,
+                self.switches, self.record, self.lock, *points, self.refine.checkpoint, self.refine.final_checkpoint,
+                self.refine.metrics]
 
     def point_mesh(self, step: int) -> Path:
         """The mesh extracted at the point of training step ``step``."""

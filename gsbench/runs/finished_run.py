@@ -2,8 +2,9 @@
 
 The diagnostics that look inside a trained model (`gsbench depth`, `gsbench gaussians`) read the folder
 `gsbench run` wrote (``<out>/<dataset>/<scene>/<method>/<run_id>``): ``config.yaml``, the resolved
-configuration it wrote itself, and ``checkpoint-final.pt``. A folder without them, or a config that is
-not a run's, is a `GsbenchError` naming the file and the fix.
+configuration it wrote itself, and ``checkpoint-final.pt``. A folder without them, a config that is not a run's,
+and a config or record that is not the folder's run (edited: `gsbench.runs.records.check_folder_identity`) are each
+a `GsbenchError` naming the file and the fix.
 """
 
 from __future__ import annotations
@@ -11,9 +12,10 @@ from __future__ import annotations
 import yaml
 
 from gsbench.data.method_scene import scene_for_method
-from gsbench.errors import GsbenchError
+from gsbench.errors import GsbenchError, one_line
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
+from gsbench.runs.records import check_folder_identity
 from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
 from gsbench.training.trainer import load_checkpoint
 
@@ -28,11 +30,16 @@ def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFol
         raise GsbenchError(f"{missing} not found: `{command}` reads a run's folder (config.yaml and "
                            f"{' or '.join(checkpoints)}); fix: pass <out>/<dataset>/<scene>/<method>/<run_id> of a run "
                            "whose training wrote a checkpoint")
-    resolved = yaml.safe_load(files.config.read_text())
+    try:
+        resolved = yaml.safe_load(files.config.read_text())
+    except yaml.YAMLError as exc:
+        raise GsbenchError(f"{files.config}: not YAML ({one_line(exc, 120)}); fix: pass the folder gsbench run wrote, "
+                           "whose config.yaml it wrote itself") from exc
     if not (isinstance(resolved, dict) and isinstance(resolved.get("method"), dict) and "name" in resolved["method"]
             and "scene" in resolved and "preset" in resolved):
         raise GsbenchError(f"{files.config}: not a run's resolved config (needs method.name, scene and preset); fix: pass "
                            "the folder gsbench run wrote, whose config.yaml it wrote itself")
+    check_folder_identity(files)
     cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(files.config,))
     return cfg, found[0]
 

@@ -13,8 +13,10 @@ of method-specific phases inside them, e.g. IBGS ``train.knn``; docs/training.md
 densification candidates out, null if never, ``candidates_cut``; docs/training.md §6; empty in
 records of runs trained before it was tracked), peak RSS per
 stage, mesh path + sha256, environment (gsbench version, git commit/dirty, package versions, CPU,
-threads, OS, host, UTC start/end, and ``switches``: the value of every result-changing ``GSBENCH_*`` switch,
-defaults included, `gsbench.switches`; records made before it was tracked lack it and ran at the defaults).
+threads, OS, host, UTC start (``time_utc``: the run's first invocation's, kept when it is resumed or run again)
+and end (``time_end_utc``: when the record was written), and ``switches``: the value of every result-changing
+``GSBENCH_*`` switch, defaults included, `gsbench.switches`; records made before it was tracked lack it and ran at
+the defaults).
 A method with a second stage (SuGaR's refinement) adds ``refine`` and ``refine_cpu`` to the timings.
 
 ``points`` (anytime evaluation, docs/training.md §9): one row per point in step order, the last the run's
@@ -26,7 +28,9 @@ null where unknown), ``num_gaussians``, ``metrics`` (the names of ``metrics``; {
 `record_points` reads it as its final point alone.
 
 A run folder keeps the switches its outputs were made with in ``switches.json``; a run resumed under other
-values is refused (`check_folder_switches`), so a record never mixes them.
+values is refused (`check_folder_switches`), so a record never mixes them. Its ``config.yaml`` and ``record.json``
+must be those of the run its name is (`check_folder_identity`): an edited one is refused by every command that reads
+the folder, so no output is made or read under settings other than its run id's.
 """
 
 from __future__ import annotations
@@ -43,9 +47,12 @@ from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
 
+import yaml
+
 import gsbench
 from gsbench.atomic import atomic_path
-from gsbench.errors import ConfigError
+from gsbench.config.run_config import EXECUTION_ONLY_KEYS, completed_config, run_id
+from gsbench.errors import ConfigError, one_line
 from gsbench.run_folder import RunFolder
 from gsbench.switches import SWITCHES, result_switches
 
@@ -54,6 +61,10 @@ POINT_KEYS = ("step", "fraction", "final", "status", "error", "train_seconds", "
               "metrics", "extract_seconds", "evaluate_seconds")
 STATUSES = ("ok", "failed", "interrupted", "running")  # running: a record in memory until the run ends
 TRACKED_PACKAGES = ("torch", "numpy", "scipy", "open3d", "pymeshlab", "trimesh", "scikit-image", "pycolmap")
+SHOWN_DIFFERENCES = 3  # changed settings a message about an edited run folder names
+_ABSENT = object()  # a setting one of two configurations lacks
+_EDITED = "a run folder holds the files of one run, and editing them changes nothing that run made"
+_REWRITE = "delete it (`gsbench run` of this run writes it again from the folder's outputs)"
 
 
 @dataclass
@@ -221,3 +232,95 @@ def check_folder_switches(files: RunFolder) -> None:
                               "--out) to run it afresh with these switches")
     if not made or not files.switches.is_file():
         write_json_atomic(files.switches, now)
+
+
+def check_folder_identity(files: RunFolder, config: dict | None = None) -> None:
+    """Refuse the run folder ``files`` unless its ``config.yaml`` and ``record.json`` (those it has) are those of the
+    run its name is: the run id of each one's configuration (`gsbench.config.run_config.run_id`), and the record's
+    ``run_id``, must be the folder's name. A changed setting is named against ``config`` (the resolved configuration
+    of the run, given by `gsbench run`, whose run id names the folder), else against the other file."""
+    name = files.path.name
+    record = _read_folder_file(files.record, json.loads)
+    stored = _read_folder_file(files.config, yaml.safe_load)
+    if record is not None and not (isinstance(record.get("config"), dict) and isinstance(record.get("run_id"), str)):
+        raise _unreadable(files.record, "no config or run_id")
+    settings = {path: found for path, found in ((files.config, stored), (files.record, (record or {}).get("config")))
+                if found is not None}
+    runs = {path: run_id(found) for path, found in settings.items()}
+    if record is not None and record["run_id"] != name and runs[files.record] == name:
+        raise ConfigError(f"{files.record}: its run_id is {record['run_id']}, not {name}, the run whose folder this is "
+                          f"and whose configuration the record holds; {_EDITED}; fix: {_REWRITE}")
+    if len(runs) == 2 and name not in runs.values() and len(set(runs.values())) == 1:
+        raise ConfigError(f"{files.path}: the folder is named {name}, and its {files.CONFIG} and {files.RECORD} are "
+                          f"those of run {runs[files.config]}; a run folder is named by its run id; fix: rename it to "
+                          f"{runs[files.config]}")
+    wrong = [path for path, found in runs.items() if found != name]
+    if wrong:
+        other = files.record if wrong[0] == files.config else files.config
+        reference, source = ((config, "this run's configuration") if config is not None else
+                             (settings.get(other), other.name) if runs.get(other) == name else (None, ""))
+        raise _not_this_run(wrong[0], name, settings[wrong[0]], reference, source, is_record=wrong[0] == files.record)
+
+
+def _not_this_run(path: Path, name: str, settings: dict, reference: dict | None, source: str, *,
+                  is_record: bool) -> ConfigError:
+    """The error of ``path`` (``config.yaml`` or ``record.json``, holding ``settings``) in the folder of run ``name``:
+    the settings it changed from ``reference`` (those of run ``name``, from ``source``; None when unknown)."""
+    changed = [] if reference is None else _differences(settings, reference)
+    shown = "; ".join(f"{key} is {_shown(mine)} there and {_shown(theirs)} in {source}"
+                      for key, mine, theirs in changed[:SHOWN_DIFFERENCES])
+    more = f" (and {len(changed) - SHOWN_DIFFERENCES} more)" if len(changed) > SHOWN_DIFFERENCES else ""
+    if is_record:
+        fix = _REWRITE
+    else:
+        edited = " ".join(f"--set {key}={_shown(mine)}" for key, mine, _ in changed if mine is not _ABSENT)
+        fix = ("undo the edit, or delete the file (`gsbench run` of this run writes it again); to run with the edited "
+               f"settings, make them a run of its own: gsbench run ... {edited or '--set KEY=VALUE'}")
+    return ConfigError(f"{path}: not the {'record' if is_record else 'configuration'} of run {name}, whose folder this "
+                       f"is: {shown + more if changed else f'its settings are those of run {run_id(settings)}'}; "
+                       f"{_EDITED}; fix: {fix}")
+
+
+def _read_folder_file(path: Path, parse) -> dict | None:
+    """``path`` parsed (a mapping), None when there is none; a ConfigError naming it when it is unreadable."""
+    if not path.is_file():
+        return None
+    try:
+        found = parse(path.read_text())
+    except (ValueError, yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise _unreadable(path, one_line(exc, 120)) from exc
+    if not isinstance(found, dict):
+        raise _unreadable(path, "not a mapping")
+    return found
+
+
+def _unreadable(path: Path, why: str) -> ConfigError:
+    return ConfigError(f"{path}: unreadable ({why}): not a file gsbench wrote; fix: delete it (`gsbench run` of this "
+                       "run writes it again)")
+
+
+def _differences(mine: dict, theirs: dict) -> list[tuple[str, object, object]]:
+    """(dotted key, value in ``mine``, value in ``theirs``) of every setting the two resolved configurations give
+    different values (a field one predates at its default, `completed_config`; execution-only keys left out)."""
+    flat_mine, flat_theirs = _flat(completed_config(mine)), _flat(completed_config(theirs))
+    pairs = {key: (flat_mine.get(key, _ABSENT), flat_theirs.get(key, _ABSENT))
+             for key in set(flat_mine) | set(flat_theirs) if key.split(".")[0] not in EXECUTION_ONLY_KEYS}
+    return [(key, mine, theirs) for key, (mine, theirs) in sorted(pairs.items()) if mine != theirs]
+
+
+def _flat(settings: dict, prefix: str = "") -> dict:
+    """``{"data": {"max_size": [64, 48]}}`` as ``{"data.max_size": [64, 48]}``."""
+    flat = {}
+    for key, value in settings.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _shown(value) -> str:
+    """A setting's value as ``--set`` takes it (compact JSON, which is YAML; a string as it is)."""
+    if value is _ABSENT:
+        return "absent"
+    return value if isinstance(value, str) else json.dumps(value, separators=(",", ":"))

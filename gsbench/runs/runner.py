@@ -6,7 +6,8 @@ Folder: ``<out>/<dataset>/<scene>/<method>/<run_id>/`` holding ``config.yaml`` (
 ``record.json`` (`gsbench.runs.records.RunRecord`).
 
 A stage is skipped when its output exists (final checkpoint, ``mesh.ply``, ``eval.json``), so running
-the same config again resumes it; an interrupted training resumes from ``checkpoint.pt``. The scene is
+the same config again resumes it, and says from where; an interrupted training resumes from ``checkpoint.pt``.
+The record keeps the run's first start (``environment.time_utc``) over resumes and reruns. The scene is
 always loaded; the trained model is loaded from the final checkpoint only when a later stage needs it.
 Timings in the record are the stored ones of the invocation that computed each stage (``train``
 counts optimisation steps only, over all resumes; ``extract`` and ``evaluate`` likewise exclude the
@@ -29,7 +30,7 @@ status ``failed`` and the traceback tail, then re-raises.
 Anytime evaluation (``eval.points``, docs/training.md §9): at each point step of the main training stage the
 Trainer hands the model to `_evaluate_point`, which extracts and evaluates it as the end does into
 ``points/<step>/`` and writes its row last (``points/<step>.json``), failed with its reason when extraction
-or evaluation raises; a point whose row exists is not taken again. The record's ``points`` are those rows
+or evaluation raises (a full disk stops the run instead); a point whose row exists is not taken again. The record's ``points`` are those rows
 and the final point (`gsbench.runs.records.final_point`).
 
 The method is set up, trained and meshed on the scene with its ground truth hidden
@@ -54,7 +55,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from gsbench.atomic import check_writable
+from gsbench.atomic import DiskFullError, atomic_path, check_writable_files, disk_full_error
 from gsbench.config.checks import check_run_config
 from gsbench.config.run_config import RunConfig, dataset_of, point_steps, resolve
 from gsbench.data.cache import scene_dir
@@ -68,14 +69,15 @@ from gsbench.evaluators.resolve import get_evaluator, plan_evaluation, run_optio
 from gsbench.registry import METHODS
 from gsbench.resources import peak_rss_bytes, set_threads
 from gsbench.run_folder import RunFolder
-from gsbench.runs.records import (RunRecord, capture_environment, check_folder_switches, final_point, sha256_file,
-                                  write_json_atomic)
+from gsbench.runs.records import (RunRecord, capture_environment, check_folder_identity, check_folder_switches,
+                                  final_point, sha256_file, write_json_atomic)
 from gsbench.runs.run_lock import run_lock
 from gsbench.switches import departures
 from gsbench.training.progress import stage
 from gsbench.training.trainer import Trainer, TrainResult, load_checkpoint, scaled_losses, schedule_scale
 
 ERROR_TAIL_LINES = 30
+OUT_OPTION = "--out (or out: in a config file)"  # the setting that chooses where a run writes
 POINT_METRICS_SHOWN = 3  # metrics in a point's progress line
 
 
@@ -162,12 +164,17 @@ def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
 def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     """Run (or resume) every stage of ``cfg``, write and return its record, print the metrics table.
 
-    The configuration is checked (`gsbench.config.checks`), a missing built-in scene made (`make_run_scene`)
-    and the evaluation planned before anything else is read or written; the run folder is locked while this
-    process works in it (`gsbench.runs.run_lock`). Ctrl-C or SIGTERM records status ``interrupted`` (the run
-    resumes from its last checkpoint), any other exception ``failed`` with its traceback tail; both re-raise."""
+    The configuration is checked (`gsbench.config.checks`), every file the run will write checked writable
+    (`gsbench.atomic.check_writable_files`), a run folder that exists checked to be this run's
+    (`gsbench.runs.records.check_folder_identity`), a missing built-in scene made (`make_run_scene`) and the
+    evaluation planned before anything else is read or written; the run folder is locked while this process works
+    in it (`gsbench.runs.run_lock`). Ctrl-C or SIGTERM records status ``interrupted`` (the run resumes from its
+    last checkpoint), any other exception ``failed`` with its traceback tail; both re-raise, a full disk as a
+    `gsbench.atomic.DiskFullError`."""
     check_run_config(cfg)
-    check_writable(cfg.out, "--out (or out: in a config file)")
+    folder = run_dir(cfg)
+    check_writable_files(RunFolder(folder).written(point_steps(cfg)), OUT_OPTION)
+    check_folder_identity(RunFolder(folder), cfg.to_dict())
     threads = set_threads(cfg.threads)
     for warning in departures():
         stage(f"warning: {warning}")
@@ -179,20 +186,29 @@ def run(cfg: RunConfig, *, echo=print) -> RunRecord:
     plan = plan_run_evaluation(cfg, header)
     for name, reason in plan.skipped.items():
         stage(f"evaluator {name} skipped: {reason}")
-    folder = run_dir(cfg)
-    with run_lock(folder), interrupts_raised():
-        return _run_locked(cfg, folder, header, plan, threads, echo)
+    try:
+        with run_lock(folder), interrupts_raised():
+            return _run_locked(cfg, folder, header, plan, threads, echo)
+    except OSError as exc:  # a write that is not atomic_path's (the training log, the lock file)
+        full = disk_full_error(exc, exc.filename or folder)
+        if full is None:
+            raise
+        raise full from exc
 
 
 def _run_locked(cfg: RunConfig, folder: Path, header, plan, threads: int, echo) -> RunRecord:
     """`run` once it holds the folder's lock: the record, the stages, the status."""
     check_folder_switches(RunFolder(folder))
-    RunFolder(folder).config.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    with atomic_path(RunFolder(folder).config) as tmp:
+        tmp.write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     record = RunRecord(run_id=cfg.run_id, method=cfg.method["name"], scene=cfg.scene, dataset=dataset_of(cfg.scene),
                        seed=cfg.seed, config=cfg.to_dict(),
                        losses={"schedule": scaled_losses(cfg.losses, schedule_scale(cfg.train.iterations))},
                        environment=capture_environment(threads), inputs=scene_inputs(header, cfg),
                        skipped=dict(plan.skipped))
+    if RunFolder(folder).record.is_file():  # the run's start: that of its first invocation, kept by resumes and reruns
+        first = RunRecord.read(RunFolder(folder).record).environment.get("time_utc")
+        record.environment["time_utc"] = first or record.environment["time_utc"]
     stages = _Stages(RunFolder(folder).stages)
     start = time.perf_counter()
     try:
@@ -288,6 +304,8 @@ def _evaluate_point(method, trained: TrainResult, scene, given, cfg: RunConfig, 
         write_json_atomic(files.point_eval(step), report)
         row["metrics"] = _flatten_metrics(report)
         row[timed] = time.perf_counter() - t0
+    except DiskFullError:  # the run stops (and a rerun takes the point), as it would at any other write
+        raise
     except Exception as exc:  # noqa: BLE001  the point fails, the run goes on (Ctrl-C and Interrupted are not Exceptions)
         row[timed] = time.perf_counter() - t0
         row.update(status="failed", error=one_line(f"{type(exc).__name__}: {exc}"))
@@ -328,7 +346,8 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
     final, mesh_path, eval_path = files.final_checkpoint, files.mesh, files.eval
     report = _stored_report(eval_path, plan)
     if not final.is_file():
-        stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
+        if not files.checkpoint.is_file():  # else the Trainer says the step it resumes from
+            stage(f"training {cfg.train.iterations} steps from {len(method.gaussians)} Gaussians")
         pending = [step for step in point_steps(cfg) if not files.point_row(step).is_file()]
         result = Trainer(method, given, cfg, folder, points=pending,
                          on_point=lambda model, trained: _evaluate_point(model, trained, scene, given, cfg, plan, files)).fit()
@@ -336,11 +355,14 @@ def _run_stages(cfg: RunConfig, folder: Path, stages: _Stages, record: RunRecord
                     num_gaussians=result.num_gaussians,
                     steps=result.steps, phases=result.phases, budget=dataclasses.asdict(result.budget))
     elif not (mesh_path.is_file() and report is not None):
+        stage(f"resuming after training (step {cfg.train.iterations} of {cfg.train.iterations}) from {final}")
         method.load_state_dict(load_checkpoint(final)["method"])
+    else:
+        stage(f"finished already: every stage's output is in {folder}; the record is written again from them")
 
     second_cfg = method.second_stage_config(cfg)
     if second_cfg is not None and not mesh_path.is_file():
-        method = _second_stage(method, given, cfg, second_cfg, RunFolder(folder / "refine"), stages, record)
+        method = _second_stage(method, given, cfg, second_cfg, files.refine, stages, record)
 
     if not mesh_path.is_file():
         stage(f"extracting the mesh ({cfg.mesh.extractor})")

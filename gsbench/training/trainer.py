@@ -33,7 +33,7 @@ from gsbench.losses.terms import Batch, active_terms, required_outputs, total_lo
 from gsbench.resources import keep_freed_memory, set_threads
 from gsbench.run_folder import RunFolder
 from gsbench.training.optim import VisibleAdam
-from gsbench.training.progress import DEFAULT_INTERVAL, ProgressLines
+from gsbench.training.progress import DEFAULT_INTERVAL, ProgressLines, stage
 from gsbench.training.strategies.base import REFERENCE_ITERATIONS
 
 STEP_PHASES = ("render", "loss", "backward", "densify", "optimizer", "checks")
@@ -79,9 +79,11 @@ def seed_everything(seed: int) -> None:
 
 
 def save_atomic(obj, path: Path) -> None:
-    """``torch.save`` to a temp file in the same folder, then ``os.replace`` (`gsbench.atomic`)."""
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
+    """``torch.save`` to a temp file in the same folder, then ``os.replace`` (`gsbench.atomic`); through a Python
+    file, whose OSError names the cause of a failed write (a full disk), where torch's own stream says only
+    ``basic_ios::clear: iostream error``."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        torch.save(obj, fh)
 
 
 def load_checkpoint(path: Path) -> dict:
@@ -259,10 +261,13 @@ class Trainer:
         self.phases.update({k: float(v) for k, v in state.get("phases", {}).items()})
 
     def _truncate_metrics(self) -> None:
-        """Drop metrics lines past the resumed step (written after the last checkpoint)."""
+        """Drop metrics lines past the resumed step (written after the last checkpoint), and a last line without its
+        newline (a write cut short, by a full disk)."""
         path = RunFolder(self.run_dir).metrics
         if path.is_file():
-            lines = [ln for ln in path.read_text().splitlines() if ln and json.loads(ln)["step"] <= self.step]
+            text = path.read_text()
+            whole = text[: text.rfind("\n") + 1].splitlines()
+            lines = [ln for ln in whole if ln and json.loads(ln)["step"] <= self.step]
             path.write_text("".join(ln + "\n" for ln in lines))
 
     # ---- the loop -----------------------------------------------------------------------------
@@ -336,6 +341,8 @@ class Trainer:
         resume = RunFolder(self.run_dir).checkpoint
         if resume.is_file():
             self.load_state_dict(load_checkpoint(resume))
+            stage(f"resuming at step {self.step} of {self.iterations} from {resume} ({len(self.method.gaussians)} "
+                  "Gaussians)")
         else:
             seed_everything(self.cfg.seed)
         resumed_from = self.step
