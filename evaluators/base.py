@@ -11,7 +11,9 @@ resolves the evaluator list against these before loading images, `gsbench.evalua
      "diagnostics": {counts, per-phase seconds, peak RSS, warnings, ...}}
 
 Options are a frozen dataclass per evaluator (``Options``); ``evaluate(mesh, scene, **options)``
-rejects unknown option names with the list of valid ones.
+rejects unknown option names with the list of valid ones. ``memory_per_face`` (bytes) is what an
+evaluator of a mesh file needs at its peak per face, measured on large meshes (`gsbench.evaluators.api`
+checks a mesh against the memory available before scoring it).
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ class Evaluator(ABC):
     needs: ClassVar[tuple[str, ...]] = ("gt",)
     metrics: ClassVar[dict[str, MetricInfo]]
     Options: ClassVar[type]
+    memory_per_face: ClassVar[int] = 0  # 0: not known (a plugin), not checked
 
     @property
     def protocol_id(self) -> str:

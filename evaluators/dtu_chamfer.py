@@ -24,6 +24,7 @@ from gsbench.evaluators import culling, gt_io, pointsets
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo, check_files, require_gt
 from gsbench.evaluators.dtu_gt import DTUGroundTruth
 from gsbench.evaluators.geometry import load_geometry, to_dataset_frame, to_normalised_frame
+from gsbench.resources import available_memory_bytes, memory_size
 
 
 @dataclass(frozen=True)
@@ -85,11 +86,29 @@ class _Scored:
     counts: dict
 
 
+def check_downsample_memory(data: np.ndarray, density: float, label: str, available: int | None = None) -> None:
+    """EvaluationError when the greedy downsampling of ``data`` at ``density`` needs more than the memory available:
+    it holds every pair of points closer than ``density`` (`pointsets.radius_pair_estimate`,
+    `pointsets.greedy_downsample_memory`), as many as the square of a mesh's vertices on a given surface."""
+    available = available_memory_bytes() if available is None else available
+    if available is None:
+        return
+    pairs = pointsets.radius_pair_estimate(data, density)
+    need = pointsets.greedy_downsample_memory(len(data), pairs)
+    if need > available:
+        raise EvaluationError(
+            f"dtu_chamfer: downsampling the {len(data):,} points of {label} at {density} mm holds every pair closer "
+            f"than that, about {pairs:,}: {memory_size(need)} in all, but {memory_size(available)} is available; fix: "
+            f"decimate the mesh (vertices {density} mm apart lose nothing this protocol sees), or run it on a larger "
+            "machine")
+
+
 def _score(data: np.ndarray, gt: DTUGroundTruth, stl_trees, opts: DTUOptions, label: str, where: str,
            diag: Diagnostics, prefix: str = "") -> _Scored:
-    """Steps 2-7 for the points ``data`` (mm), each timed as ``{prefix}{step}``; ``stl_trees`` caches the
-    STL KD-tree between point sets."""
+    """Steps 2-7 for the points ``data`` (mm), each timed as ``{prefix}{step}``, the downsampling's memory
+    checked first (`check_downsample_memory`); ``stl_trees`` caches the STL KD-tree between point sets."""
     with diag.phase(f"{prefix}downsample"):
+        check_downsample_memory(data, opts.downsample_density, label)
         data = pointsets.greedy_downsample(data, opts.downsample_density, opts.seed)
     with diag.phase(f"{prefix}mask"):
         inbound = gt.in_box(data, opts.patch_size)
@@ -123,6 +142,7 @@ class DTUChamfer(Evaluator):
 
     name = "dtu_chamfer"
     version = 1
+    memory_per_face = 360
     requires = ("mesh",)
     metrics = {
         "accuracy": MetricInfo(False, "mm", "mean distance reconstruction -> GT (d2s), inside ObsMask"),

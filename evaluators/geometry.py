@@ -15,6 +15,7 @@ import trimesh
 
 from gsbench.data.camera import Scene
 from gsbench.errors import EvaluationError
+from gsbench.mesh.files import read_mesh_file
 
 FRAMES = ("normalised", "dataset")
 
@@ -45,7 +46,7 @@ def read_geometry(mesh) -> Geometry:
             raise EvaluationError(f"mesh file not found: {path} (fix: pass the path of an existing .ply/.obj)")
         try:
             # process=False keeps every vertex, as open3d's reader does in the reference scripts.
-            loaded = trimesh.load(path, process=False)
+            loaded = read_mesh_file(path)
         except Exception as exc:  # noqa: BLE001 - any reader failure becomes a clear message
             raise EvaluationError(f"cannot read mesh file {path}: {exc}") from exc
         if isinstance(loaded, trimesh.Scene):

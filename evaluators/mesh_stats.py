@@ -34,6 +34,7 @@ class MeshStats(Evaluator):
 
     name = "mesh_stats"
     version = 1
+    memory_per_face = 380
     requires = ("mesh",)
     needs = ()
     metrics = {

@@ -128,6 +128,7 @@ class NormalSimilarity(Evaluator):
 
     name = "normal_similarity"
     version = 2
+    memory_per_face = 310
     requires = ("mesh",)
     metrics = {
         "normal_consistency": MetricInfo(True, "", "mean |cos| of NN normal pairs, both ways (every pair)"),

@@ -16,6 +16,12 @@ from gsbench.errors import EvaluationError
 
 QUERY_CHUNK = 500_000  # query points per KD-tree call
 PAIR_BUDGET = 4_000_000  # (query x k) entries per KNN call
+RADIUS_CHUNK = 500_000  # points per slab of `radius_pairs`
+# greedy_downsample's peak memory in bytes: per point, per radius pair, per pair of one slab (found at once). Fitted
+# (and rounded up) to points on a plane: 1 M points with 10 M and 30 M pairs, 2 M with 30 M, 4 M with 60 M peaked
+# 384, 940, 769 and 1278 MiB above the points; the fit is within 3% of each.
+DOWNSAMPLE_BYTES = {"point": 112, "pair": 10, "slab pair": 40}
+DEGREE_SAMPLE = 20_000  # points whose neighbours estimate the radius pairs
 
 
 def _chunks(n: int, size: int, desc: str | None = None):
@@ -82,7 +88,7 @@ def barycentric_grid_samples(vertices: np.ndarray, faces: np.ndarray, density: f
     return out
 
 
-def radius_pairs(points: np.ndarray, radius: float, chunk: int = 500_000) -> tuple[np.ndarray, np.ndarray]:
+def radius_pairs(points: np.ndarray, radius: float, chunk: int = RADIUS_CHUNK) -> tuple[np.ndarray, np.ndarray]:
     """All pairs (i < j) with ``|p_i - p_j| <= radius``, as two int arrays, computed slab by slab.
 
     Points are sorted along their widest axis and cut into slabs of ``chunk`` points; each slab plus
@@ -109,7 +115,7 @@ def radius_pairs(points: np.ndarray, radius: float, chunk: int = 500_000) -> tup
     return np.concatenate(lo), np.concatenate(hi)
 
 
-def greedy_downsample(points: np.ndarray, radius: float, seed: int, chunk: int = 500_000) -> np.ndarray:
+def greedy_downsample(points: np.ndarray, radius: float, seed: int, chunk: int = RADIUS_CHUNK) -> np.ndarray:
     """Greedy radius downsampling in a seeded random order (DTUeval-python eval.py steps 2-3).
 
     Reference semantics: shuffle; walk the points in order; a point still kept removes every other
@@ -138,6 +144,27 @@ def greedy_downsample(points: np.ndarray, radius: float, seed: int, chunk: int =
         hit[d[status[s] == 1]] = True
         status[(status == 0) & hit] = 2
     return pts[status == 1]
+
+
+def radius_pair_estimate(points: np.ndarray, radius: float, seed: int = 0) -> int:
+    """About how many pairs `radius_pairs` finds: n d / 2, d the mean number of other points within ``radius``
+    of `DEGREE_SAMPLE` points drawn at random (a generator of its own: no other draw is moved). On a given
+    surface d grows with the points, so the pairs grow as their square."""
+    n = len(points)
+    if n < 2:
+        return 0
+    picked = points[np.random.default_rng(seed).choice(n, size=min(DEGREE_SAMPLE, n), replace=False)]
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built in under half the time
+    degree = float(tree.query_ball_point(picked, radius, return_length=True, workers=-1).mean()) - 1
+    return int(n * degree / 2)
+
+
+def greedy_downsample_memory(n: int, pairs: int, chunk: int = RADIUS_CHUNK) -> int:
+    """Bytes `greedy_downsample` of ``n`` points with ``pairs`` radius pairs holds at its peak (`DOWNSAMPLE_BYTES`;
+    a slab of ``chunk`` points has its share of the pairs)."""
+    slab_pairs = pairs / n * min(chunk, n) if n else 0
+    return int(DOWNSAMPLE_BYTES["point"] * n + DOWNSAMPLE_BYTES["pair"] * pairs
+               + DOWNSAMPLE_BYTES["slab pair"] * slab_pairs)
 
 
 def nn_distances(queries: np.ndarray, tree: cKDTree, upper: float = np.inf, desc: str | None = None,

@@ -79,6 +79,7 @@ class Silhouette(Evaluator):
 
     name = "silhouette"
     version = 1
+    memory_per_face = 350
     requires = ("mesh",)
     needs = ("masks",)
     metrics = {

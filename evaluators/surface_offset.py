@@ -64,6 +64,7 @@ class SurfaceOffset(Evaluator):
 
     name = "surface_offset"
     version = 1
+    memory_per_face = 270
     requires = ("mesh",)
     metrics = {
         "offset_median_px": MetricInfo(False, "px", "median signed distance to the exact surface / pixel footprint "

@@ -125,6 +125,7 @@ class TnTF1(Evaluator):
 
     name = "tnt_f1"
     version = 2
+    memory_per_face = 400
     requires = ("mesh",)
     metrics = {
         "precision": MetricInfo(True, "", "official: fraction of mesh vertices within tau of the GT"),

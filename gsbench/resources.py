@@ -9,6 +9,7 @@ gsbench is imported (`gsbench/__init__.py`). `keep_freed_memory` is the allocato
 from __future__ import annotations
 
 import ctypes
+import math
 import os
 import resource
 import sys
@@ -73,3 +74,8 @@ def available_memory_bytes() -> int | None:
 def gib(n_bytes: float) -> str:
     """``12.3 GiB``."""
     return f"{n_bytes / 2**30:.1f} GiB"
+
+
+def memory_size(n_bytes: float) -> str:
+    """``12.3 GiB``, or below a GiB ``312 MiB`` (rounded up: ``1 MiB`` at least)."""
+    return gib(n_bytes) if n_bytes >= 2**30 else f"{max(1, math.ceil(n_bytes / 2**20))} MiB"

@@ -38,18 +38,24 @@ def run(args) -> int:
     from gsbench.config.run_config import dataset_of
     from gsbench.data.loader import load_scene
     from gsbench.data.synthetic.make import ensure_scene
-    from gsbench.evaluators.api import evaluate_mesh_file, format_table
+    from gsbench.evaluators.api import check_evaluation_memory, evaluate_mesh_file, format_table, mesh_counts
     from gsbench.evaluators.resolve import plan_evaluation, run_options
     from gsbench.runs.records import write_json_atomic
+    from gsbench.training.progress import stage
 
     if not Path(args.mesh).is_file():
         raise DataError(f"{args.mesh}: mesh file not found; fix: --mesh names a .ply (a run folder's mesh.ply)")
+    if args.out:  # before the evaluation, not after it
+        if Path(args.out).is_dir():
+            raise ConfigError(f"--out {args.out}: is a folder, and the results are one JSON file; fix: name a file, "
+                              f"e.g. --out {Path(args.out) / 'eval.json'}")
+        check_writable(Path(args.out).parent, "--out")
     size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt}
     ensure_scene(args.scene)
     header = load_scene(args.scene, load_images=False, **size)
-    if args.out:
-        check_writable(Path(args.out).parent, "--out")  # before the evaluation, not after it
     plan = plan_evaluation(header, dataset_of(args.scene), args.evaluator or (), held_out=0)
+    if plan.mesh:  # before the images are read
+        check_evaluation_memory(args.mesh, plan.mesh, mesh_counts(args.mesh))
     scene = load_scene(args.scene, **size)
     culling = run_options(args.dtu_culling, plan.mesh)
     if args.points and set(plan.mesh) != {"dtu_chamfer"}:
@@ -57,7 +63,7 @@ def run(args) -> int:
                           f"{', '.join(plan.mesh) or 'no mesh evaluator'}; fix: add --evaluator dtu_chamfer")
     options = {name: {"frame": args.frame, **culling.get(name, {}), **({"mode": "pcd"} if args.points else {})}
                for name in plan.mesh}
-    results = evaluate_mesh_file(Path(args.mesh), scene, plan.mesh, options) if plan.mesh else \
+    results = evaluate_mesh_file(Path(args.mesh), scene, plan.mesh, options, progress=stage) if plan.mesh else \
         {"mesh": args.mesh, "scene": scene.name, "results": {}}
     results["skipped"] = {n: r for n, r in plan.skipped.items() if n != "image"}
     print(format_table(results))

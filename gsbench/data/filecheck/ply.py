@@ -1,4 +1,5 @@
-"""PLY files: the header, then each element's records against the bytes left (`gsbench.data.filecheck`)."""
+"""PLY files: the header, then each element's records against the bytes left (`gsbench.data.filecheck`);
+`ply_element_counts` reads the header alone."""
 
 from __future__ import annotations
 
@@ -51,6 +52,15 @@ def _ply_header(path: Path, head: bytes, fix: str):
     if fmt is None:
         raise damaged(path, "its header has no 'format' line", fix)
     return fmt, elements, body
+
+
+def ply_element_counts(path, fix: str) -> dict[str, int]:
+    """``{element: count}`` as a PLY file's header states them (its first `PLY_HEADER_LIMIT` bytes alone, so a
+    file of any size answers at once); a damaged header is a `DataError` naming ``fix``."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        _, elements, _ = _ply_header(path, f.read(PLY_HEADER_LIMIT), fix)
+    return {name: count for name, count, _ in elements}
 
 
 def _list_element_size(buf, offset: int, count: int, props, order: str, left: int):

@@ -1,9 +1,9 @@
 """A triangle mesh file as a synthetic object: read, checked, repaired, turned z-up and coloured.
 
-`read_mesh_object(path, up, yaw, largest_part)` reads OBJ, PLY, GLB/glTF, OFF or STL through trimesh
-(no processing: UV seams and vertex colours stay as the file has them) and returns the object in the
-object frame of ``shapes.py`` (z up, bounding-box centre at the origin, largest side 1) with the
-colours the file carries, if any:
+`read_mesh_object(path, up, yaw, largest_part)` reads OBJ, PLY (triangle strips too), GLB/glTF, OFF or STL
+(`gsbench.mesh.files.read_mesh_file`: trimesh with no processing, so UV seams and vertex colours stay as the
+file has them) and returns the object in the object frame of ``shapes.py`` (z up, bounding-box centre at the
+origin, largest side 1) with the colours the file carries, if any:
 
 - ``texture``: per-corner UVs and the material's image, sampled bilinearly at the barycentric UV;
 - ``vertex`` / ``face``: the file's colours, interpolated barycentrically (vertex) or per face.
@@ -38,6 +38,7 @@ import trimesh
 from gsbench.data.synthetic.primitives import Albedo
 from gsbench.data.synthetic.shapes import texture_albedo, to_object_frame
 from gsbench.errors import DataError
+from gsbench.mesh.files import read_mesh_file
 
 MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".off", ".stl")
 UP_AXES = ("x", "y", "z", "-x", "-y", "-z")
@@ -90,7 +91,7 @@ def _load(path: Path) -> trimesh.Trimesh:
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise DataError(f"{path}: unsupported mesh suffix {path.suffix!r}; fix: convert it to one of {', '.join(MESH_SUFFIXES)}")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        mesh = read_mesh_file(path, force="mesh")
     except Exception as exc:  # trimesh raises whatever its parsers raise
         raise DataError(f"{path}: could not be read as a mesh ({type(exc).__name__}: {exc}); fix: check the file "
                         "opens in a mesh viewer, or re-export it") from exc
