@@ -36,6 +36,7 @@ from gsbench.evaluators.gt_io import read_matrix4, read_points
 from gsbench.geometry.depth import world_rays
 from gsbench.report import png
 from gsbench.run_folder import RunFolder
+from gsbench.runs.records import check_folder_identity
 from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
 
 PICTURE_WIDTH = 320  # pixels across one panel, as drawn
@@ -162,6 +163,7 @@ def surface_picture(run_dir, title: str | None = None) -> Picture:
         if not path.is_file():
             raise GsbenchError(f"{path} not found: the pictures show a finished run's mesh; fix: pass "
                                "<out>/<dataset>/<scene>/<method>/<run_id> of a run that wrote its mesh")
+    check_folder_identity(files)
     resolved = yaml.safe_load(files.config.read_text())
     cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(files.config,))
     make_run_scene(cfg)

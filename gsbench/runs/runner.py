@@ -148,7 +148,7 @@ def _flatten_metrics(report: dict) -> dict:
 
 def _evaluate(method, scene, cfg: RunConfig, mesh_path: Path, plan) -> dict:
     options = run_options(cfg.eval.dtu_culling, plan.mesh, cfg.eval.dtu_sampled)
-    report = evaluate_mesh_file(mesh_path, scene, plan.mesh, options) if plan.mesh else \
+    report = evaluate_mesh_file(mesh_path, scene, plan.mesh, options, progress=stage) if plan.mesh else \
         {"mesh": str(mesh_path), "scene": scene.name, "results": {}}
     report["plan"], report["skipped"] = list(plan.names), plan.skipped
     held_out = scene.held_out_views
