@@ -13,7 +13,7 @@ import yaml
 from gsbench.errors import GsbenchError
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
-from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
+from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_recorded
 from gsbench.training.trainer import load_checkpoint
 
 
@@ -32,7 +32,7 @@ def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFol
             and "scene" in resolved and "preset" in resolved):
         raise GsbenchError(f"{files.config}: not a run's resolved config (needs method.name, scene and preset); fix: pass "
                            "the folder gsbench run wrote, whose config.yaml it wrote itself")
-    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(files.config,))
+    cfg = resolve_recorded(resolved)
     return cfg, found[0]
 
 
