@@ -18,7 +18,7 @@
     sphere init's density restricted to the hull. Below a floor of min(1000, n) further batches are
     drawn (at most 50) until the floor is reached; never more than n. An empty hull is a `DataError`.
   - ``sphere``, and any scene without masks: ``random_init_points`` uniform in the scene sphere
-    (`Gaussians.random_in_sphere`), the initialisation before the hull rule, bit for bit.
+    (`Scene.sphere`, `Gaussians.random_in_sphere`), the initialisation before the hull rule, bit for bit.
   Adam (``train.optimizer``, `gsbench.training.optim`) with eps 1e-15 and one group per parameter,
   ``group["name"]`` = `Gaussians.params` key (docs/methods/3dgs.md §5.1): means ``position_lr_init·extent``, sh_dc
   ``feature_lr``, sh_rest ``feature_lr/20``, opacity ``opacity_lr``, log-scales ``scaling_lr``,
@@ -260,7 +260,7 @@ class Method:
             points, colors = self._points_in_visual_hull(scene, cfg, n)
             g = Gaussians.from_points(points, colors, dims=dims, max_sh_degree=cfg.raster.sh_degree, seed=cfg.seed)
         else:
-            g = Gaussians.random_in_sphere(n, scene.radius, dims=dims, max_sh_degree=cfg.raster.sh_degree,
+            g = Gaussians.random_in_sphere(n, scene.sphere, dims=dims, max_sh_degree=cfg.raster.sh_degree,
                                            seed=cfg.seed)
         g.params["opacity_logits"].data.fill_(math.log(p.init_opacity / (1 - p.init_opacity)))
         return g
@@ -278,7 +278,7 @@ class Method:
         for _ in range(HULL_INIT_MAX_BATCHES):
             direction = rng.normal(size=(n, 3))
             direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-            candidates = direction * scene.radius * rng.uniform(0, 1, size=(n, 1)) ** (1 / 3)
+            candidates = direction * scene.sphere * rng.uniform(0, 1, size=(n, 1)) ** (1 / 3)
             candidate_colors = rng.uniform(0, 1, size=(n, 3))
             inside = inside_visual_hull(candidates, cameras, masks, dilate_px=1, min_views=1)
             points.append(candidates[inside])

@@ -51,7 +51,7 @@ class GGGSConfig(FilteredConfig):
     feature_rest_divisor: float = 0.0013 / 0.00011  # sh_rest lr 0.00011
     prune_world_size: bool = False
     init_scale_camera_share: float = 0.05  # initial scale <= this × distance to the nearest training camera
-    solid_search_range: float = 0.4  # × scene radius (the authors' 0.4 is in DTU's normalised frame, radius 1)
+    solid_search_range: float = 0.4  # × scene radius (1): the authors' 0.4 in IDR's units on DTU, COLMAP's on TnT
     solid_rounds: int = 5
     multi_view_num: int = 8
     multi_view_max_angle: float = 30.0  # degrees between viewing directions

@@ -201,13 +201,14 @@ class NeuSG(Method):
 
 def sdf_region(scene: Scene, region: str) -> tuple[np.ndarray, float]:
     """(centre, radius) of the SDF's sphere in the training frame (docs/methods/neusg.md §5.6), from what a capture
-    offers, never its ground truth: ``scene``, the normalisation's sphere (DTU's, as IDR and Neuralangelo bound
-    DTU); ``cameras`` and ``sfm_points``, the two automatic bounds of Neuralangelo's ``convert_data_to_json.py``
-    for a COLMAP capture (`bound_by_cameras`, `bound_by_sfm_points`). The training frame is the COLMAP frame
-    scaled and shifted, so each sphere is the one found there. A scene without SfM points is a ConfigError
+    offers, never its ground truth: ``scene``, the training frame's scene sphere (DTU's unit sphere, as IDR and
+    Neuralangelo bound DTU; on TnT the cameras' extent); ``cameras`` and ``sfm_points``, the two automatic bounds
+    of Neuralangelo's ``convert_data_to_json.py`` for a COLMAP capture (`bound_by_cameras`,
+    `bound_by_sfm_points`). The training frame is the COLMAP frame shifted (and on DTU scaled), so each sphere is
+    the one found there. A scene without SfM points is a ConfigError
     naming the fix."""
     if region == "scene":
-        return np.zeros(3), float(scene.radius)
+        return np.zeros(3), float(scene.sphere)
     if region == "cameras":
         return bound_by_cameras(scene.cameras)
     if region == "sfm_points":

@@ -4,7 +4,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from gsbench.config.run_config import parse_override, resolve, run_id
+from gsbench.config.run_config import completed_config, parse_override, resolve, run_id
 from gsbench.errors import ConfigError
 
 
@@ -34,6 +34,28 @@ def test_tnt_scene_takes_tnt_dataset_layer():
     assert cfg.data.use_masks is False and cfg.data.max_size == [240, 150]
     paper = resolve("toy", "synthetic/spot-tnt", preset="paper", method_config_cls=ToyConfig)
     assert paper.data.downscale == 2.0 and paper.data.max_size == []  # the papers' -r 2
+
+
+def test_tnt_runs_train_in_the_colmap_frame_and_the_records_before_keep_theirs():
+    """docs/design.md §12.1: the TnT dataset layer selects the papers' COLMAP frame; a record made before
+    data.tnt_frame (no key) keeps its id and, completed, says it ran in the extent frame; a DTU scene has one frame."""
+    new = resolve("toy", "synthetic/tnt-rig-spot", preset="cpu", method_config_cls=ToyConfig)
+    assert new.data.tnt_frame == "colmap"
+    old = resolve("toy", "synthetic/tnt-rig-spot", preset="cpu", overrides=["data.tnt_frame=extent"],
+                  method_config_cls=ToyConfig)
+    recorded = old.to_dict()
+    del recorded["data"]["tnt_frame"]
+    assert run_id(recorded) == old.run_id != new.run_id
+    assert completed_config(recorded)["data"]["tnt_frame"] == "extent"
+    read_back = resolve("toy", "synthetic/tnt-rig-spot", preset="cpu", recorded=recorded, method_config_cls=ToyConfig)
+    assert read_back.data.tnt_frame == "extent" and read_back.run_id == old.run_id
+    dtu = resolve("toy", "synthetic/spot", preset="cpu", method_config_cls=ToyConfig)
+    assert dtu.data.tnt_frame == "extent" and run_id({**dtu.to_dict(), "data": {
+        k: v for k, v in dtu.to_dict()["data"].items() if k != "tnt_frame"}}) == dtu.run_id
+    with pytest.raises(ConfigError, match="Tanks-and-Temples layouts only"):
+        resolve("toy", "synthetic/spot", overrides=["data.tnt_frame=colmap"], method_config_cls=ToyConfig)
+    with pytest.raises(ConfigError, match="data.tnt_frame must be one of colmap, extent"):
+        resolve("toy", "synthetic/spot-tnt", overrides=["data.tnt_frame=nerfpp"], method_config_cls=ToyConfig)
 
 
 def test_set_parses_yaml_values():

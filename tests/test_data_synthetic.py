@@ -7,9 +7,12 @@ import json
 import numpy as np
 import pytest
 
+from gsbench.data.frame import cameras_extent
 from gsbench.data.loader import check_scene, load_scene
 from gsbench.data.synthetic.generator import plan_scene
 from gsbench.data.synthetic.make import make_scene
+from gsbench.data.tnt import read_log
+from gsbench.errors import DataError
 
 DTU_RES, TNT_RES = (64, 48), (64, 36)
 CASES = {  # key -> (built-in name, format, resolution)
@@ -46,7 +49,7 @@ def _gt_points_normalised(scene, count=3000):
 @pytest.mark.parametrize("key", ["dtu", "dtu-colmap", "tnt"])
 def test_round_trip_reprojection(scenes, key):
     name, fmt, res = CASES[key]
-    scene = load_scene(scenes[key])
+    scene = load_scene(scenes[key], tnt_frame="extent")  # the generator's normalisation (plan.normalised_cameras)
     plan = plan_scene(name, fmt, res)
     assert scene.fmt == (fmt or plan.fmt) and len(scene.cameras) == len(plan.cameras)
     points = _gt_points_normalised(scene)
@@ -94,8 +97,9 @@ def test_masks_match_gt_depth_and_normals(scenes):
 
 
 def test_depth_maps_match_cameras(scenes):
-    """GT depth (normalised frame) equals the camera z of the surface point it shows."""
-    scene = load_scene(scenes["tnt"])
+    """GT depth (the generator's normalised frame: a TnT scene's extent frame) equals the camera z of the surface
+    point it shows."""
+    scene = load_scene(scenes["tnt"], tnt_frame="extent")
     plan = plan_scene("synthetic/spot", "tnt", TNT_RES)
     cam = scene.cameras[5]
     depth = np.load(scene.gt.depth_maps / "000005.npy")
@@ -169,8 +173,6 @@ def test_dtu_stl_holds_only_the_observed_surface(scenes):
 def test_tnt_gt_files_layout(scenes):
     import open3d as o3d
 
-    from gsbench.data.tnt import read_log
-
     scene = load_scene(scenes["tnt"])
     gt = scene.gt
     assert gt.kind == "tnt" and gt.name == "spot" and gt.tau == pytest.approx(0.0075)
@@ -185,6 +187,30 @@ def test_tnt_gt_files_layout(scenes):
     assert poses.shape == (len(scene.cameras), 4, 4) and np.allclose(poses[:, :3, 3], centres, atol=1e-9)
 
 
+def test_tnt_frames_are_the_colmap_frame_and_its_division_by_the_extent(scenes):
+    """``data.tnt_frame`` (docs/design.md §12.1): ``colmap`` keeps COLMAP's units about the cameras' centroid (the
+    papers' frame: scale 1, settings' unit 1, the scene sphere the cameras' extent E); ``extent`` divides that by E.
+    Both map back to the COLMAP frame of the reference trajectory."""
+    colmap = load_scene(scenes["tnt"], load_images=False)
+    extent = load_scene(scenes["tnt"], load_images=False, tnt_frame="extent")
+    big_e = extent.normalisation.scale
+    centres = np.array([c.center for c in colmap.cameras])
+    assert (colmap.normalisation.scale, colmap.radius, extent.radius, extent.sphere) == (1.0, 1.0, 1.0, 1.0)
+    assert colmap.sphere == pytest.approx(big_e) and cameras_extent(centres) == pytest.approx(big_e)
+    np.testing.assert_allclose(centres.mean(axis=0), 0.0, atol=1e-9)
+    extent_centres = np.array([c.center for c in extent.cameras])
+    np.testing.assert_allclose(centres, big_e * extent_centres, atol=1e-9)
+    np.testing.assert_allclose(colmap.points, big_e * extent.points, atol=1e-6)
+    for a, b in zip(colmap.cameras, extent.cameras):
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_array_equal(a.K, b.K)
+    poses = read_log(colmap.gt.root / f"{colmap.gt.name}_COLMAP_SfM.log")
+    np.testing.assert_allclose(colmap.normalisation.apply(centres), poses[:, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(extent.normalisation.apply(extent_centres), poses[:, :3, 3], atol=1e-9)
+    with pytest.raises(DataError, match="data.tnt_frame must be one of colmap, extent"):
+        load_scene(scenes["tnt"], load_images=False, tnt_frame="nerfpp")
+
+
 @pytest.mark.parametrize("key", ["km", "far"])
 def test_hard_cases_are_normalised(scenes, key):
     scene = load_scene(scenes[key], load_images=False)
@@ -193,9 +219,9 @@ def test_hard_cases_are_normalised(scenes, key):
         assert all(np.all(np.isfinite(m)) for m in (cam.K, cam.R, cam.t))
     assert np.all(np.isfinite(points))
     centres = np.linalg.norm([c.center for c in scene.cameras], axis=1)
-    if key == "km":  # TnT: the camera sphere is the unit sphere, the huge GT offsets are gone
-        assert scene.gt.tau == pytest.approx(7.5) and 0.5 < centres.max() <= 1.0 + 1e-9
-        assert np.abs(points).max() < 1.0
+    if key == "km":  # TnT: COLMAP units about the cameras' centroid, every camera in the scene sphere; no huge offsets
+        assert scene.gt.tau == pytest.approx(7.5) and 0.5 * scene.sphere < centres.max() <= scene.sphere / 1.1 + 1e-9
+        assert np.abs(points).max() < scene.sphere
     else:  # DTU: the object is the unit sphere, cameras far away
         assert 0.8 < np.linalg.norm(points, axis=1).max() <= 1.0 and centres.min() > 8.0
 

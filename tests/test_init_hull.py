@@ -49,7 +49,7 @@ def _training_hull(scene, points, dilate_px=1):
 
 def _sphere_init(scene, cfg, n, dims):
     """The initialisation before the hull rule: random_in_sphere with the init opacity."""
-    g = Gaussians.random_in_sphere(n, scene.radius, dims=dims, max_sh_degree=cfg.raster.sh_degree, seed=cfg.seed)
+    g = Gaussians.random_in_sphere(n, scene.sphere, dims=dims, max_sh_degree=cfg.raster.sh_degree, seed=cfg.seed)
     init = cfg.method["init_opacity"]
     g.params["opacity_logits"].data.fill_(math.log(init / (1 - init)))
     return g
@@ -68,7 +68,7 @@ def test_hull_init_is_inside_the_training_hull_at_the_sphere_density(method, tin
     means = g.params["means"].detach()
     assert _training_hull(spot_scene, means.double().numpy()).all()
     # exactly the sphere init's first batch of candidates that the hull keeps (position and colour)
-    points, colors = _candidates(20000, spot_scene.radius, cfg.seed)
+    points, colors = _candidates(20000, spot_scene.sphere, cfg.seed)
     inside = _training_hull(spot_scene, points)
     assert len(g) == int(inside.sum()) < 20000 // 4
     assert torch.equal(means, torch.as_tensor(points[inside], dtype=torch.float32))
@@ -76,7 +76,7 @@ def test_hull_init_is_inside_the_training_hull_at_the_sphere_density(method, tin
     assert torch.equal(g.params["sh_dc"], sphere.params["sh_dc"][torch.as_tensor(inside)])
     assert torch.equal(g.params["opacity_logits"], sphere.params["opacity_logits"][: len(g)])
     # the count is the hull's share of the ball: an independent estimate from other candidates agrees
-    share = _training_hull(spot_scene, _candidates(20000, spot_scene.radius, 12345)[0]).mean()
+    share = _training_hull(spot_scene, _candidates(20000, spot_scene.sphere, 12345)[0]).mean()
     assert len(g) / 20000 == pytest.approx(share, abs=0.015)
 
 

@@ -71,7 +71,7 @@ def test_cameras_inside_the_scene_sphere_always_face_it(tmp_path):
     """A layout normalised around its cameras (TnT's, forward-facing captures) puts every camera inside the
     sphere: whichever way they look, they see part of the scene, and nothing is refused."""
     away = load_scene(_dtu_folder(tmp_path / "scan5", away=True), load_images=False)
-    inside = dataclasses.replace(away, normalisation=dataclasses.replace(away.normalisation, radius=10.0))
+    inside = dataclasses.replace(away, normalisation=dataclasses.replace(away.normalisation, sphere=10.0))
     assert inside.views_facing_scene() == list(range(N))
     inside.check_cameras_face_scene()
 

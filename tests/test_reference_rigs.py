@@ -9,12 +9,12 @@ import trimesh
 
 from gsbench.cli import main
 from gsbench.data.dtu import PIXEL_SHIFT, decompose_projection, read_cameras_npz, write_cameras_npz
-from gsbench.data.frame import NEAR_PLANE, frame_quantities
+from gsbench.data.frame import NEAR_PLANE, cameras_extent, frame_quantities
 from gsbench.data.loader import check_scene
 from gsbench.data.meta import read_meta
 from gsbench.data.reference_rigs import barn_rig, dtu_rig
-from gsbench.data.similarity import similarity
-from gsbench.data.synthetic.generator import RIGGED, plan_frame, plan_scene
+from gsbench.data.similarity import decompose, similarity
+from gsbench.data.synthetic.generator import RIGGED, SPECS, plan_frame, plan_scene
 from gsbench.data.synthetic.make import make_mesh_scene, make_scene
 from gsbench.errors import DataError
 from gsbench.raster.types import RasterSettings
@@ -35,6 +35,10 @@ def test_reference_rigs_read_as_published():
     assert dtu_q.fx_over_width == pytest.approx(1.8077, abs=1e-4) and dtu_q.camera_distance == pytest.approx(2.784, abs=1e-3)
     # Barn: fx = 1120 px on 1920 px; median camera 14.8 m (horizontally) from the crop centre, crop radius 11.98 m
     assert barn_q.fx_over_width == pytest.approx(1120 / 1920) and 1.2 < barn_q.camera_distance < 1.3
+    # Barn's training frame is its COLMAP frame (metres / 4.139): crop radius 2.84, cameras' extent 5.28, near/D 0.057
+    assert barn.region.radius / barn.region.training_scale == pytest.approx(2.843, abs=1e-3)
+    assert cameras_extent(np.array([c.center for c in barn.training_cameras])) == pytest.approx(5.280, abs=1e-3)
+    assert barn_q.near_over_depth == pytest.approx(0.057, abs=1e-3)
 
 
 def test_dtu_rig_is_dtus_cameras_exactly(tmp_path):
@@ -58,6 +62,23 @@ def test_frame_within_ten_percent_of_the_real_capture(name):
     plan = plan_scene(name, res=(160, 120) if name in DTU_RIGGED else (192, 108))
     for key, value in plan_frame(plan).as_dict().items():
         assert value == pytest.approx(real[key], rel=0.10), (name, key, value, real[key])
+
+
+@pytest.mark.parametrize("name", TNT_RIGGED)
+def test_tnt_rig_scenes_colmap_frame_has_barns_scale(name):
+    """In Barn's rig the GT -> COLMAP scale makes the crop radius Barn's in COLMAP units, so the scene's COLMAP
+    frame (the training frame, data.tnt_frame: colmap) is Barn's: an absolute setting acts as on Barn. The TnT
+    scenes they are made from keep their own COLMAP frames (their files are unchanged)."""
+    barn = barn_rig()
+    plan = plan_scene(name, res=(192, 108))
+    q = plan_frame(plan)
+    crop_radius = q.depth_focal / q.fx_over_width / q.camera_distance  # COLMAP units
+    assert crop_radius == pytest.approx(barn.region.radius / barn.region.training_scale, rel=1e-6)
+    extent = cameras_extent(np.array([c.center for c in plan.dataset_cameras]))
+    assert extent == pytest.approx(cameras_extent(np.array([c.center for c in barn.training_cameras])), rel=0.02)
+    old = "synthetic/" + RIGGED[name.split("/")[1]]
+    old_scale = decompose(plan_scene(old, res=(192, 108)).gt_to_dataset)[0]
+    assert old_scale == pytest.approx(SPECS[old].colmap_scale, rel=1e-12)
 
 
 def test_old_dtu_scenes_are_not_in_dtus_frame():

@@ -248,6 +248,21 @@ def test_a_finished_run_whose_config_lacks_a_later_field_is_read_back_with_its_i
     assert read.method["refinement"] == "none" and read.run_id == files.path.name == cfg.run_id
 
 
+def test_a_finished_tnt_run_from_before_the_frame_key_is_read_back_in_its_frame(tmp_path):
+    """A TnT run folder from before data.tnt_frame: read back (`gsbench depth`, the report's pictures), it is in the
+    extent frame it trained in, not the COLMAP frame configs/datasets/tnt.yaml now selects (docs/design.md §12.1)."""
+    cfg = resolve_run("2dgs", "synthetic/tnt-rig-spot", preset="quick", overrides=["data.tnt_frame=extent"])
+    old = cfg.to_dict()
+    del old["data"]["tnt_frame"]
+    files = RunFolder(tmp_path / run_id(old))
+    files.path.mkdir()
+    files.config.write_text(yaml.safe_dump(old, sort_keys=False))
+    files.final_checkpoint.write_bytes(b"")
+    read, _ = read_run_config(files.path, "test")
+    assert read.data.tnt_frame == "extent" and read.run_id == files.path.name == cfg.run_id
+    assert resolve_run("2dgs", "synthetic/tnt-rig-spot", preset="quick").data.tnt_frame == "colmap"
+
+
 def test_docs_list_every_switch_with_its_values_and_kind():
     rows = {}
     for line in (ROOT / "docs" / "switches.md").read_text().splitlines():

@@ -27,6 +27,7 @@ import trimesh
 import yaml
 from scipy.spatial import cKDTree
 
+from gsbench.config.run_config import completed_config
 from gsbench.data.loader import load_scene
 from gsbench.data.synthetic.make import ensure_scene
 from gsbench.evaluators import pointsets
@@ -40,10 +41,10 @@ MESH_SAMPLES, CURVATURE_POINTS, EXACT_SAMPLES = 40_000, 6_000, 300_000
 
 
 def _run_scene(run: Path):
-    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    cfg = completed_config(yaml.safe_load((run / "config.yaml").read_text()))
     ensure_scene(cfg["scene"])
     scene = load_scene(cfg["scene"], downscale=cfg["data"]["downscale"], max_size=cfg["data"].get("max_size", ()),
-                       load_images=False)
+                       load_images=False, tnt_frame=cfg["data"]["tnt_frame"])
     gt = trimesh.load(gt_mesh_file(scene), process=False)
     return scene, gt, pixel_footprint(scene, (gt.bounds[0] + gt.bounds[1]) / 2)
 

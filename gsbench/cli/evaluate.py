@@ -17,6 +17,9 @@ def add_parser(subparsers) -> None:
                         help="evaluator name (repeatable; default: the dataset's, those the scene can feed)")
     parser.add_argument("--frame", choices=("normalised", "dataset"), default="normalised",
                         help="frame of the mesh: normalised (what gsbench methods write) or dataset (DTU mm world, TnT COLMAP)")
+    parser.add_argument("--tnt-frame", choices=("colmap", "extent"), default="colmap",
+                        help="a TnT scene's training frame, the run's data.tnt_frame (what --frame normalised means): "
+                             "colmap (the papers', default) or extent (the runs recorded before the key)")
     parser.add_argument("--downscale", type=float, default=1.0,
                         help="load the scene's images downscaled (the run's data.downscale): sets the pixel "
                              "footprint surface_offset reports in")
@@ -50,7 +53,8 @@ def run(args) -> int:
             raise ConfigError(f"--out {args.out}: is a folder, and the results are one JSON file; fix: name a file, "
                               f"e.g. --out {Path(args.out) / 'eval.json'}")
         check_writable(Path(args.out).parent, "--out")
-    size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt}
+    size = {"downscale": args.downscale, "max_size": args.max_size or (), "gt_root": args.gt,
+            "tnt_frame": args.tnt_frame}
     ensure_scene(args.scene)
     header = load_scene(args.scene, load_images=False, **size)
     plan = plan_evaluation(header, dataset_of(args.scene), args.evaluator or (), held_out=0)

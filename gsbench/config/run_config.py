@@ -4,7 +4,8 @@ Layers, each overriding the previous (docs/design.md §9.1):
 
     code defaults <- configs/methods/<method>.yaml <- configs/datasets/<dataset>.yaml
                   <- configs/methods/<method>.<dataset>.yaml
-                  <- configs/presets/<preset>.yaml <- user YAML files <- --set a.b=c
+                  <- configs/presets/<preset>.yaml <- user YAML files
+                  <- a finished run's recorded config (``recorded``, reading a run back) <- --set a.b=c
 
 A method yaml that starts with ``extends: <base>`` is preceded by the base's method layer, and its
 ``<method>.<dataset>`` layer by the base's (`_method_layers`).
@@ -42,20 +43,22 @@ import yaml
 from gsbench.config.files import DECLARATION_KEYS, config_root, load_yaml, suggest
 from gsbench.config.suites import reject_suite_scene
 from gsbench.data.loader import BUILTIN_SCENES, detect_format, has_ground_truth
+from gsbench.data.tnt import TNT_FRAMES
 from gsbench.errors import ConfigError
 
 EXECUTION_ONLY_KEYS = ("threads", "out", "gt")
 # (method, dotted key, default) of the fields added after records of that method existed (method None: of every
 # method), the default being the value those records ran with (kept here should the field's own default change): at
 # that value a field is left out of the run id, so those records keep theirs (`completed_config` fills it into their
-# configs). SuGaR's refinement stage (docs/methods/sugar.md §6) and the points of anytime evaluation
-# (docs/training.md §9) came after the suites' records.
+# configs). SuGaR's refinement stage (docs/methods/sugar.md §6), the points of anytime evaluation
+# (docs/training.md §9) and the TnT training frame (docs/design.md §12.1) came after the suites' records.
 ADDED_AFTER_RECORDS = (
     ("sugar", "method.refinement", "none"),
     ("sugar", "method.refine_gaussians_per_triangle", 1),
     ("sugar", "method.refine_triangles", 50_000),
     (None, "eval.points", []),
     (None, "eval.dtu_sampled", True),
+    (None, "data.tnt_frame", "extent"),
 )
 HOLDOUT_WITHOUT_GT = 8  # data.holdout_every "auto" (-1) on a scene without ground truth: 3DGS --eval
 
@@ -71,7 +74,11 @@ class DataConfig:
     ``use_masks``: the scene's masks zero the depth outside the object before TSDF fusion and
     reach the loss terms (2DGS on DTU). ``mask_target``: also composite the GT image over the render
     background outside the mask, so training never sees the real background (the 2023 3DGS intent;
-    off by default: the papers train DTU on full images)."""
+    off by default: the papers train DTU on full images). ``tnt_frame``: the training frame of a
+    Tanks-and-Temples layout (`gsbench.data.tnt`): ``colmap``, the papers' (COLMAP units), which
+    configs/datasets/tnt.yaml selects, or ``extent`` (divided by the cameras' extent), the frame of the
+    records made before the key, and so its default (`ADDED_AFTER_RECORDS`; docs/design.md §12.1); a DTU
+    scene has one frame and takes the default only."""
 
     downscale: float = 1.0
     max_size: list = field(default_factory=list)
@@ -79,6 +86,7 @@ class DataConfig:
     mask_target: bool = False
     holdout_every: int = -1
     white_background: bool = False
+    tnt_frame: str = "extent"
 
 
 @dataclass
@@ -381,12 +389,16 @@ def resolve(
     method_config_cls=None,
     seed: int | None = None,
     gt: str | None = None,
+    recorded: dict | None = None,
 ) -> RunConfig:
     """Resolve every layer into a validated `RunConfig`.
 
     ``method_config_cls`` is the method plugin's ``Config`` dataclass (its defaults are the paper's);
     when None the method section is taken as given (used before a method is registered). ``gt`` is
     the ground-truth folder (``--gt``). ``data.holdout_every = -1`` is resolved here (`DataConfig`).
+    ``recorded``: a run's resolved config (its folder's ``config.yaml``, its record's), layered after the
+    user files and completed first (`completed_config`), so a layer that now sets a field added after the
+    run (``data.tnt_frame`` in the TnT dataset layer) does not change what the run was run with.
     """
     reject_suite_scene(scene)  # ``suite:<name>`` is several runs: a sweep, not one run
     root = config_root()
@@ -404,6 +416,8 @@ def resolve(
         merged = _merge(merged, _normalise_method(layer))
     for user_file in user_files:
         merged = _merge(merged, _normalise_method(load_yaml(Path(user_file))))
+    if recorded is not None:
+        merged = _merge(merged, _normalise_method(completed_config(recorded)))
     for text in overrides:
         merged = _merge(merged, _normalise_method(parse_override(text)))
     if seed is not None:
@@ -421,6 +435,12 @@ def resolve(
     if cfg.data.holdout_every < -1:
         raise ConfigError(f"data.holdout_every must be >= 0 (every k-th view held out; 0 = none) or -1 (auto), "
                           f"got {cfg.data.holdout_every}")
+    if cfg.data.tnt_frame not in TNT_FRAMES:
+        raise ConfigError(f"data.tnt_frame must be one of {', '.join(TNT_FRAMES)}, got '{cfg.data.tnt_frame}' "
+                          "(docs/design.md §12.1)")
+    if dataset != "tnt" and cfg.data.tnt_frame != DataConfig.tnt_frame:
+        raise ConfigError(f"data.tnt_frame={cfg.data.tnt_frame} applies to Tanks-and-Temples layouts only; scene "
+                          f"'{scene}' is a {dataset} layout, which has one training frame; fix: drop the key")
     if cfg.data.holdout_every == -1:
         cfg.data.holdout_every = 0 if has_ground_truth(cfg.scene, cfg.gt or None) else HOLDOUT_WITHOUT_GT
     return cfg

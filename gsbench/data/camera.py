@@ -5,8 +5,9 @@ Conventions (docs/design.md §2.1):
 - ``K`` is the 3x3 pinhole matrix in pixels. Pixel (i, j) (column i, row j) has its centre at
   ``(i + 0.5, j + 0.5)`` in the coordinates K maps to, so a principal point ``cx = W/2`` is the
   image centre. The ray through pixel (i, j) in camera space is ``((i+0.5-cx)/fx, (j+0.5-cy)/fy, 1)``.
-- A Scene is normalised for training (object inside a unit-ish sphere); ``normalisation`` holds the
-  similarity back to the dataset's ground-truth frame (DTU: mm world; TnT: the COLMAP frame).
+- A Scene is in its training frame (DTU: IDR's sphere; TnT: the COLMAP frame, `gsbench.data.tnt`);
+  ``normalisation`` holds the similarity back to the dataset's ground-truth frame (DTU: mm world; TnT:
+  the COLMAP frame).
 """
 
 from __future__ import annotations
@@ -111,13 +112,18 @@ class Camera:
 class Normalisation:
     """Similarity from the normalised training frame to the dataset's GT frame: ``x_gt = s x + c``.
 
-    ``s`` is a scalar scale, ``center`` the translation. ``radius`` is the scene radius in the
-    normalised frame (about 1); length-like hyper-parameters are relative to it.
+    ``s`` is a scalar scale, ``center`` the translation. ``radius`` is the unit the length-like
+    hyper-parameters are multiplied by (near and far planes, TSDF lengths, neighbour distances), in
+    training units: 1 in the papers' frames (IDR's sphere on DTU, COLMAP's units on TnT), so a setting
+    acts as the paper's. ``sphere`` is the radius of the sphere about the training frame's origin that
+    holds the scene (DTU: the object's, 1; TnT: every camera's, 3DGS's ``cameras_extent``): where
+    random points start and what a camera must look at.
     """
 
     scale: float = 1.0
     center: np.ndarray = field(default_factory=lambda: np.zeros(3))
     radius: float = 1.0
+    sphere: float = 1.0
 
     @property
     def to_dataset(self) -> np.ndarray:
@@ -146,7 +152,8 @@ class GroundTruth:
     ``root/{name}_COLMAP_SfM.log``; ``tau`` is the F-score threshold in GT units (metres).
     ``normal_maps`` (optional): folder of GT normal maps for synthetic scenes (``{image_stem}.npy``,
     HxWx3 float32, camera-space unit normals, zero outside the object).
-    ``depth_maps`` (optional): likewise, ``{image_stem}.npy`` HxW camera z in the normalised frame.
+    ``depth_maps`` (optional): likewise, ``{image_stem}.npy`` HxW camera z in the generator's normalised frame
+    (DTU: the training frame; TnT: 3DGS's ``getNerfppNorm`` frame, the training frame of ``data.tnt_frame: extent``).
     """
 
     kind: str
@@ -196,6 +203,10 @@ class Scene:
         return self.normalisation.radius
 
     @property
+    def sphere(self) -> float:
+        return self.normalisation.sphere
+
+    @property
     def train_views(self) -> list[int]:
         """Indices of the views trained on (class docstring: all but every ``holdout_every``-th)."""
         return [i for i in range(len(self.cameras)) if not self._held_out(i)]
@@ -209,12 +220,12 @@ class Scene:
         return self.holdout_every > 0 and view % self.holdout_every == 0
 
     def views_facing_scene(self) -> list[int]:
-        """Indices of the cameras that see the scene: the scene sphere (radius r about the origin of the normalised
-        frame, where the object lies) reaches into the camera's view pyramid, i.e. its centre lies less than r behind
+        """Indices of the cameras that see the scene: the scene sphere (radius r = ``sphere`` about the origin of the
+        training frame, where the object lies) reaches into the camera's view pyramid, i.e. its centre lies less than r behind
         each of the pyramid's five planes (the camera plane z = 0 and the four through the picture's edges). A camera
         inside the sphere passes all five (every camera of a layout normalised around its cameras, as TnT's is, so a
         turned camera there is not found); `Camera.sees_sphere`."""
-        return [i for i, cam in enumerate(self.cameras) if cam.sees_sphere(np.zeros(3), self.radius)]
+        return [i for i, cam in enumerate(self.cameras) if cam.sees_sphere(np.zeros(3), self.sphere)]
 
     def check_cameras_face_scene(self) -> str:
         """DataError when fewer than `MIN_TRAIN_VIEWS_SEEING` of the training cameras see the scene
@@ -225,7 +236,7 @@ class Scene:
         train = self.train_views
         train_away = [i for i in train if i not in facing]
         seeing = len(train) - len(train_away)
-        sphere = f"the sphere of radius {self.radius:.4g} about the origin of the normalised frame"
+        sphere = f"the sphere of radius {self.sphere:.4g} about the origin of the training frame"
         fix = ("fix: check the camera poses (world-to-camera versus camera-to-world, the sign of the viewing axis) and "
                "the normalisation")
         if seeing < MIN_TRAIN_VIEWS_SEEING * len(train):

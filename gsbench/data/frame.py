@@ -8,7 +8,9 @@ A scene's *object region* is a centre and a radius in the GT frame:
 - Tanks and Temples: the crop volume, horizontally (its prism axis is the GT z): centre the middle of the
   crop polygon's bounding box, radius the largest distance of a polygon vertex from it; distances are
   measured in the horizontal plane, because the crop's z range bounds the scan, not the object (Barn's runs
-  11 m below the ground). The training frame is 3DGS's ``getNerfppNorm`` of the cameras.
+  11 m below the ground). The training frame is the COLMAP frame (the papers'; ``data.tnt_frame: colmap``,
+  `gsbench.data.tnt`): Barn's is the GT frame's metres / 4.139 (``Barn_trans.txt``), a synthetic scene's
+  its GT frame times its ``colmap_scale``. A scene loaded in the older ``extent`` frame is measured in it.
 
 From the cameras (in the GT frame) and that region:
 
@@ -19,8 +21,8 @@ From the cameras (in the GT frame) and that region:
   depth spread by (near / (depth · fx))²;
 - ``scene_radius``: 3DGS's ``cameras_extent`` (1.1 × the largest distance of a camera centre from their
   mean), the length its densification and learning rates scale with, in region radii;
-- ``near_over_depth``: the near plane 0.2 of 2DGS/GOF's rasterizers (training frame) over the median
-  camera-to-centre distance in that frame.
+- ``near_over_depth``: the near plane 0.2 of 2DGS/GOF's rasterizers (training units, as their code has it)
+  over the median camera-to-centre distance in that frame.
 """
 
 from __future__ import annotations

@@ -76,7 +76,7 @@ def _check_gt_root(gt_root) -> None:
 
 
 def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images: bool = True, gt_root=None,
-               holdout_every: int = 0) -> Scene:
+               holdout_every: int = 0, tnt_frame: str = "colmap") -> Scene:
     """Load a scene folder or built-in name; the images are divided by
     `gsbench.data.resolution.fit_downscale` of ``downscale`` (>= 1) and ``max_size`` ([long, short] px).
 
@@ -84,6 +84,8 @@ def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images
     ``mask_paths`` set). ``gt_root`` (``--gt``) is the folder holding the ground truth when it is not
     beside the scene: DTU ``Points/`` and ``ObsMask/`` (the official SampleSet), or a TnT scene's four
     GT files. ``holdout_every`` is the view split the scene carries (`Scene.train_views`, 0: train on all).
+    ``tnt_frame``: the training frame of a TnT layout (``data.tnt_frame``, `gsbench.data.tnt`; the papers'
+    ``colmap`` unless a run says otherwise); the DTU layouts have one.
     """
     if downscale < 1.0:
         raise DataError(f"downscale must be >= 1 (it divides the image size), got {downscale}")
@@ -92,7 +94,10 @@ def load_scene(path_or_name, *, downscale: float = 1.0, max_size=(), load_images
     fmt = detect_format(root)
     kwargs = {"downscale": downscale, "max_size": tuple(max_size or ()), "load_images": load_images,
               "gt_root": Path(gt_root) if gt_root else None}
-    scene = (load_tnt if fmt == "tnt" else load_dtu if fmt == "dtu" else load_dtu_colmap)(root, **kwargs)
+    if fmt == "tnt":
+        scene = load_tnt(root, frame=tnt_frame, **kwargs)
+    else:
+        scene = (load_dtu if fmt == "dtu" else load_dtu_colmap)(root, **kwargs)
     scene.holdout_every = int(holdout_every)
     return scene
 

@@ -16,10 +16,19 @@ damaged ground truth fails before training rather than at evaluation.
 folder name. tau is the meta file's ``tau``, else the official value for the scene name (config.py of
 the TnT toolbox), else None.
 
-Normalisation (3DGS ``getNerfppNorm``): centre = mean of the camera centres, extent = 1.1 x the largest
-distance of a centre to it. The training frame is ``x = (x_colmap - centre) / extent`` so every
-camera lies inside the unit sphere (object usually well inside): ``Normalisation(scale=extent,
-center=centre, radius=1.0)``, whose dataset frame is the COLMAP frame.
+The training frame (``frame``, the run's ``data.tnt_frame``; `TNT_FRAMES`), with centre = the mean of the
+camera centres and extent E = 1.1 x the largest distance of a centre from it (3DGS ``getNerfppNorm``):
+
+- ``colmap``: the papers' frame. 2DGS, GOF, RaDe-GS, PGSR and GGGS train a TnT scene in its COLMAP frame
+  and units; ``getNerfppNorm`` only gives ``cameras_extent`` for the learning rates and densification.
+  ``x = x_colmap - centre`` (the translation changes no setting): ``Normalisation(scale=1, center=centre,
+  radius=1, sphere=E)``, so an absolute length (near plane 0.2, TSDF voxel, neighbour distances) is the
+  papers' number of COLMAP units.
+- ``extent``: ``x = (x_colmap - centre) / E``, every camera inside the unit sphere:
+  ``Normalisation(scale=E, center=centre, radius=1, sphere=1)``; the frame of the records made before
+  ``data.tnt_frame`` existed (docs/design.md §12.1), in which those lengths act E times the papers'.
+
+Either way the dataset frame is the COLMAP frame.
 """
 
 from __future__ import annotations
@@ -42,16 +51,28 @@ from gsbench.errors import DataError
 TNT_TAU = {"Barn": 0.01, "Caterpillar": 0.005, "Church": 0.025, "Courthouse": 0.025, "Ignatius": 0.003,
            "Meetingroom": 0.01, "Truck": 0.005}
 GT_SUFFIXES = (".ply", ".json", "_trans.txt", "_COLMAP_SfM.log")
+TNT_FRAMES = ("colmap", "extent")  # data.tnt_frame (module docstring)
 
 
 def nerfpp_normalisation(centers: np.ndarray) -> Normalisation:
-    """3DGS ``getNerfppNorm``: centre = mean camera centre, scale = 1.1 x max distance to it."""
+    """3DGS ``getNerfppNorm``: centre = mean camera centre, scale = 1.1 x max distance to it (the ``extent`` frame)."""
     centers = np.asarray(centers, dtype=np.float64)
     center = centers.mean(axis=0)
     extent = 1.1 * float(np.max(np.linalg.norm(centers - center, axis=1)))
     if not np.isfinite(extent) or extent <= 0:
         raise DataError(f"camera centres span no volume (extent {extent}); fix: a scene needs cameras at distinct positions")
     return Normalisation(scale=extent, center=center, radius=1.0)
+
+
+def tnt_normalisation(centers: np.ndarray, frame: str) -> Normalisation:
+    """The training frame ``frame`` of `TNT_FRAMES` for cameras at ``centers`` (COLMAP frame; module docstring)."""
+    norm = nerfpp_normalisation(centers)
+    if frame == "extent":
+        return norm
+    if frame != "colmap":
+        raise DataError(f"unknown TnT training frame {frame!r}; fix: data.tnt_frame must be one of "
+                        f"{', '.join(TNT_FRAMES)}")
+    return Normalisation(scale=1.0, center=norm.center, radius=1.0, sphere=norm.scale)
 
 
 def normalise_cameras(cameras: list[Camera], norm: Normalisation) -> list[Camera]:
@@ -123,8 +144,9 @@ def check_tnt_ground_truth(files: dict[str, Path]) -> None:
 
 
 def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bool = True,
-             gt_root: Path | None = None) -> Scene:
-    """Load a TnT-layout scene (see the module docstring); cameras and SfM points are normalised.
+             gt_root: Path | None = None, frame: str = "colmap") -> Scene:
+    """Load a TnT-layout scene (see the module docstring); cameras and SfM points are in the training frame
+    ``frame`` (`TNT_FRAMES`).
 
     ``gt_root`` (``--gt``): the folder holding the four GT files when it is not the scene folder (the
     official ``GT/{scene}/`` download); the images are divided by `fit_downscale` of ``downscale``
@@ -135,7 +157,7 @@ def load_tnt(root: Path, *, downscale: float = 1.0, max_size=(), load_images: bo
     size = (model.cameras[0].width, model.cameras[0].height)
     downscale = fit_downscale(*size, downscale, max_size)
     images, _ = read_views(paths, None, [(c.width, c.height) for c in model.cameras], downscale, load_images)
-    norm = nerfpp_normalisation(np.array([c.center for c in model.cameras]))
+    norm = tnt_normalisation(np.array([c.center for c in model.cameras]), frame)
     cameras = normalise_cameras(model.cameras, norm)
     if downscale != 1.0:
         cameras = [c.scaled(1.0 / downscale) for c in cameras]

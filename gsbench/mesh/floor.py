@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from gsbench.data.camera import Scene
 from gsbench.data.meta import read_meta
+from gsbench.data.similarity import decompose
 from gsbench.data.synthetic.generator import plan_from_meta
 from gsbench.data.synthetic.render import Renderer
 from gsbench.evaluators.api import evaluate_mesh_file
@@ -27,13 +28,15 @@ from gsbench.runs.runner import load_run_scene, make_run_scene, plan_run_evaluat
 
 
 def exact_depth_maps(scene: Scene, views=None) -> list[np.ndarray]:
-    """Camera-z depth of the cameras ``views`` of ``scene`` (default: all; normalised frame, the scene's loaded
-    resolution)."""
+    """Camera-z depth of the cameras ``views`` of ``scene`` (default: all) in the frame and at the resolution the
+    scene was loaded with (a TnT scene's ``data.tnt_frame``: object-frame depth x the object-to-dataset scale /
+    the scene's normalisation scale)."""
     plan = plan_from_meta(read_meta(scene.root), scene.root)
     factor = scene.cameras[0].width / plan.cameras[0].width
     renderer = Renderer(plan.rendered, specular=plan.spec.specular)  # the object and its surroundings
     cameras = [plan.cameras[i].scaled(factor) for i in (range(len(plan.cameras)) if views is None else views)]
-    return [renderer.depth(cam) * plan.depth_scale
+    to_training = decompose(plan.obj_to_dataset)[0] / scene.normalisation.scale
+    return [renderer.depth(cam) * to_training
             for cam in tqdm(cameras, desc="exact depth", unit="view", disable=None, leave=False)]
 
 

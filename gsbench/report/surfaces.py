@@ -37,7 +37,7 @@ from gsbench.geometry.depth import world_rays
 from gsbench.report import png
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import check_folder_identity
-from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
+from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_recorded
 
 PICTURE_WIDTH = 320  # pixels across one panel, as drawn
 STORED_SCALE = 0.75  # the stored PNG's size against the drawn figure's (with a palette: 10-75 KiB a picture)
@@ -165,7 +165,7 @@ def surface_picture(run_dir, title: str | None = None) -> Picture:
                                "<out>/<dataset>/<scene>/<method>/<run_id> of a run that wrote its mesh")
     check_folder_identity(files)
     resolved = yaml.safe_load(files.config.read_text())
-    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(files.config,))
+    cfg = resolve_recorded(resolved)
     make_run_scene(cfg)
     scene = load_run_scene(cfg, load_images=False)
     mesh = trimesh.load(files.mesh, process=False, force="mesh")

@@ -16,7 +16,7 @@ from gsbench.errors import GsbenchError, one_line
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import check_folder_identity
-from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
+from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_recorded
 from gsbench.training.trainer import load_checkpoint
 
 
@@ -40,7 +40,7 @@ def read_run_config(folder, command: str, checkpoints: tuple[str, ...] = (RunFol
         raise GsbenchError(f"{files.config}: not a run's resolved config (needs method.name, scene and preset); fix: pass "
                            "the folder gsbench run wrote, whose config.yaml it wrote itself")
     check_folder_identity(files)
-    cfg = resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], user_files=(files.config,))
+    cfg = resolve_recorded(resolved)
     return cfg, found[0]
 
 

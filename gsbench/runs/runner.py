@@ -82,11 +82,17 @@ POINT_METRICS_SHOWN = 3  # metrics in a point's progress line
 
 
 def resolve_run(method: str, scene: str, *, preset: str = "cpu", user_files=(), overrides=(),
-                seed: int | None = None, gt: str | None = None) -> RunConfig:
+                seed: int | None = None, gt: str | None = None, recorded: dict | None = None) -> RunConfig:
     """`gsbench.config.run_config.resolve` with the method plugin's ``Config`` (its paper defaults)."""
     cls = METHODS.get(method)
     return resolve(method, scene, preset=preset, user_files=user_files, overrides=overrides,
-                   method_config_cls=cls.Config, seed=seed, gt=gt)
+                   method_config_cls=cls.Config, seed=seed, gt=gt, recorded=recorded)
+
+
+def resolve_recorded(resolved: dict) -> RunConfig:
+    """The `RunConfig` a finished run was run with, from the resolved config it wrote (``config.yaml``), the
+    fields added after it at the values it ran with (`resolve`'s ``recorded``)."""
+    return resolve_run(resolved["method"]["name"], resolved["scene"], preset=resolved["preset"], recorded=resolved)
 
 
 def make_run_scene(cfg: RunConfig) -> None:
@@ -99,10 +105,11 @@ def make_run_scene(cfg: RunConfig) -> None:
 
 
 def load_run_scene(cfg: RunConfig, *, load_images: bool = True):
-    """The scene of ``cfg`` at its resolution (``data.downscale``, ``data.max_size``) with its ``--gt``; a built-in
-    scene must have been made (`make_run_scene`)."""
+    """The scene of ``cfg`` at its resolution (``data.downscale``, ``data.max_size``), in its training frame
+    (``data.tnt_frame``), with its ``--gt``; a built-in scene must have been made (`make_run_scene`)."""
     return load_scene(cfg.scene, downscale=cfg.data.downscale, max_size=cfg.data.max_size,
-                      load_images=load_images, gt_root=cfg.gt or None, holdout_every=cfg.data.holdout_every)
+                      load_images=load_images, gt_root=cfg.gt or None, holdout_every=cfg.data.holdout_every,
+                      tnt_frame=cfg.data.tnt_frame)
 
 
 def plan_run_evaluation(cfg: RunConfig, scene):

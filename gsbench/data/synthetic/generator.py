@@ -81,7 +81,7 @@ from tqdm import tqdm
 from gsbench.data.camera import Camera, Normalisation
 from gsbench.data.colmap import write_colmap_model
 from gsbench.data.dtu import normalisation_from_scale_mat, write_cameras_npz
-from gsbench.data.frame import FrameQuantities, Region, cameras_extent, crop_region, frame_quantities
+from gsbench.data.frame import FrameQuantities, Region, crop_region, frame_quantities
 from gsbench.data.images import write_mask, write_rgb
 from gsbench.data.meta import write_meta
 from gsbench.data.reference_rigs import barn_rig, dtu_rig
@@ -163,7 +163,7 @@ class SyntheticSpec:
     Fresnel reflection, total internal reflection, bounded bounces); None: opaque.
     ``size``/``offset``/``units`` and the COLMAP frame (GT -> COLMAP: scale ``colmap_scale``,
     rotation ``colmap_euler`` (xyz degrees), object centre at ``colmap_center``) apply only when the
-    scene is written in its own layout ``fmt``.
+    scene is written in its own layout ``fmt``; in Barn's rig the scale is Barn's instead (`plan_spec`).
     """
 
     shape: str = "spot"
@@ -442,6 +442,9 @@ def plan_spec(name: str, spec: SyntheticSpec, fmt: str, res, seed: int, scan: in
         plan.scan = scan
     else:
         cs = spec.colmap_scale if own else SyntheticSpec.colmap_scale
+        if rig == "barn":  # Barn's COLMAP frame: the crop radius is Barn's in COLMAP units, so the cameras' extent too
+            barn_region = barn_rig().region
+            cs = barn_region.radius / barn_region.training_scale / (_crop_region(surface, world).radius * size)
         rot = Rotation.from_euler("xyz", spec.colmap_euler, degrees=True).as_matrix()
         center = np.asarray(spec.colmap_center if own else SyntheticSpec.colmap_center)
         plan.gt_to_dataset = similarity(cs, rot, center - cs * rot @ np.asarray(offset))
@@ -462,7 +465,8 @@ def _crop_region(surface: Surface, world: World | None) -> Region:
 
 
 def plan_frame(plan: ScenePlan) -> FrameQuantities:
-    """The frame quantities (`gsbench.data.frame`) of a planned scene, in its GT frame."""
+    """The frame quantities (`gsbench.data.frame`) of a planned scene, in its GT frame; a TnT layout's training
+    frame is its COLMAP frame (``data.tnt_frame: colmap``)."""
     gt_cameras = [transform_camera(c, plan.obj_to_gt) for c in plan.cameras]
     scale = decompose(plan.obj_to_gt)[0]
     if plan.fmt.startswith("dtu"):
@@ -470,8 +474,8 @@ def plan_frame(plan: ScenePlan) -> FrameQuantities:
         return frame_quantities(gt_cameras, Region(norm.center, norm.scale, False, norm.scale))
     local = _crop_region(plan.surface, plan.world)
     centre = transform_points(plan.obj_to_gt, local.centre[None])[0]
-    extent = cameras_extent(np.array([c.center for c in gt_cameras]))
-    return frame_quantities(gt_cameras, Region(centre, local.radius * scale, True, extent))
+    colmap_unit = 1.0 / decompose(plan.gt_to_dataset)[0]  # GT units per COLMAP unit: the training frame's
+    return frame_quantities(gt_cameras, Region(centre, local.radius * scale, True, colmap_unit))
 
 
 def plan_meta(plan: ScenePlan) -> dict:
