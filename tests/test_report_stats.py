@@ -298,8 +298,9 @@ def test_claims_are_read_from_the_method_files(tmp_path, monkeypatch):
 
 
 def test_suites_list_the_protocols_scenes():
-    assert suite_names() == ["dtu-framed", "dtu-like", "glass", "tnt-like"]
-    for name, fmt in (("dtu-framed", "dtu"), ("dtu-like", "dtu"), ("glass", "dtu"), ("tnt-like", "tnt")):
+    assert suite_names() == ["dtu-framed", "dtu-like", "dtu-rig", "glass", "tnt-like", "tnt-rig"]
+    for name, fmt in (("dtu-framed", "dtu"), ("dtu-like", "dtu"), ("dtu-rig", "dtu"), ("glass", "dtu"), ("tnt-like", "tnt"),
+                      ("tnt-rig", "tnt")):
         suite = load_suite(name)
         assert suite.seeds == (0, 1, 2)
         assert all(BUILTIN_SCENES[s].format == fmt for s in suite.scenes)
@@ -326,9 +327,9 @@ def test_suites_expand_in_sweeps(tmp_path):
 
 
 def test_unknown_suite_is_an_error_listing_the_suites(tmp_path):
-    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-framed, dtu-like, glass, tnt-like"):
+    with pytest.raises(ConfigError, match="unknown suite 'dtu-lik'.*did you mean 'dtu-like'.*dtu-framed, dtu-like, dtu-rig, glass, tnt-like, tnt-rig"):
         load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-lik\n"))
-    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-framed, dtu-like, glass, tnt-like"):
+    with pytest.raises(ConfigError, match="unknown suite 'nope'; available suites: dtu-framed, dtu-like, dtu-rig, glass, tnt-like, tnt-rig"):
         with_suite({"base": {"method": "3dgs"}}, "nope")
     with pytest.raises(ConfigError, match="'suite'.*or 'scenes', not both"):
         load_sweep(_sweep(tmp_path, "base: {method: 3dgs}\nsuite: dtu-like\nscenes: [synthetic/spot]\n"))
