@@ -341,7 +341,7 @@ def test_a_suite_as_one_scene_points_to_the_sweep(capsys):
     assert main(["config", "--method", "3dgs", "--scene", "suite:dtu-like"]) == 2
     assert "gsbench sweep FILE --suite dtu-like" in capsys.readouterr().err
     assert main(["run", "--method", "3dgs", "--scene", "suite:nope"]) == 2
-    assert "available suites: dtu-framed, dtu-like, glass, tnt-like" in capsys.readouterr().err
+    assert "available suites: dtu-framed, dtu-like, dtu-rig, glass, tnt-like, tnt-rig" in capsys.readouterr().err
 
 
 def test_cpu_time_is_shown_only_when_every_run_of_the_row_recorded_it(tmp_path):
