@@ -33,7 +33,7 @@ from gsbench.config.run_config import completed_config
 from gsbench.errors import GsbenchError
 from gsbench.report.records_file import board_file, read_board
 from gsbench.run_folder import RunFolder
-from gsbench.runs.records import final_point
+from gsbench.runs.records import final_point, flatten
 
 RECORD_NAME = RunFolder.RECORD
 # Identity and execution keys: they never distinguish two configurations of one method (the evaluation points
@@ -156,17 +156,6 @@ def read_source(path) -> Source:
     records, record_warnings = _read_json(path, RECORD_NAME, "record")
     manifests, manifest_warnings = _read_json(path, "sweeps/*.json", "sweep manifest")
     return Source(str(path), records, manifests, record_warnings, manifest_warnings, runs_dir=path)
-
-
-def flatten(mapping: dict, prefix: str = "") -> dict:
-    """Nested mappings -> ``{dotted.key: leaf}``."""
-    flat = {}
-    for key, value in mapping.items():
-        if isinstance(value, dict) and value:
-            flat.update(flatten(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
 
 
 def _number(value):

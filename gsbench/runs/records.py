@@ -302,18 +302,18 @@ def _unreadable(path: Path, why: str) -> ConfigError:
 def _differences(mine: dict, theirs: dict) -> list[tuple[str, object, object]]:
     """(dotted key, value in ``mine``, value in ``theirs``) of every setting the two resolved configurations give
     different values (a field one predates at its default, `completed_config`; execution-only keys left out)."""
-    flat_mine, flat_theirs = _flat(completed_config(mine)), _flat(completed_config(theirs))
+    flat_mine, flat_theirs = flatten(completed_config(mine)), flatten(completed_config(theirs))
     pairs = {key: (flat_mine.get(key, _ABSENT), flat_theirs.get(key, _ABSENT))
              for key in set(flat_mine) | set(flat_theirs) if key.split(".")[0] not in EXECUTION_ONLY_KEYS}
     return [(key, mine, theirs) for key, (mine, theirs) in sorted(pairs.items()) if mine != theirs]
 
 
-def _flat(settings: dict, prefix: str = "") -> dict:
-    """``{"data": {"max_size": [64, 48]}}`` as ``{"data.max_size": [64, 48]}``."""
+def flatten(settings: dict, prefix: str = "") -> dict:
+    """Nested mappings as dotted keys: ``{"data": {"max_size": [64, 48]}}`` -> ``{"data.max_size": [64, 48]}``."""
     flat = {}
     for key, value in settings.items():
         if isinstance(value, dict) and value:
-            flat.update(_flat(value, f"{prefix}{key}."))
+            flat.update(flatten(value, f"{prefix}{key}."))
         else:
             flat[f"{prefix}{key}"] = value
     return flat
