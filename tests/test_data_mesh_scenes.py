@@ -193,7 +193,8 @@ def test_framing_gives_the_share_asked_for():
         plan_scene("synthetic/dtu-spot", res=RES, framing=0.95)
 
 
-@pytest.mark.parametrize("name", ["synthetic/spot", "synthetic/dtu-stool", "synthetic/tnt-yard", "synthetic/dtu-bunny"])
+@pytest.mark.parametrize("name", ["synthetic/spot", "synthetic/dtu-stool", "synthetic/tnt-yard", "synthetic/dtu-bunny",
+                                  "synthetic/dtu-rig-bunny", "synthetic/tnt-rig-spot", "synthetic/tnt-rig-yard"])
 def test_listed_share_is_measured(name):
     plan = plan_scene(name, res=(160, 120) if BUILTIN_SCENES[name].format == "dtu" else (192, 108))
     assert abs(object_share(Renderer(plan.surface), plan.cameras) - BUILTIN_SCENES[name].share) < 0.0015

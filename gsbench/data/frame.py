@@ -27,9 +27,9 @@ From the cameras (in the GT frame) and that region:
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
-
 import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -80,6 +80,12 @@ def crop_region(polygon_xy: np.ndarray, z_range: tuple[float, float], training_s
     return Region(np.array([*centre_xy, 0.5 * (z_range[0] + z_range[1])]), radius, True, training_scale)
 
 
+def crop_file_region(path: Path, training_scale: float) -> Region:
+    """`crop_region` of a TnT crop volume file (open3d ``SelectionPolygonVolume`` JSON)."""
+    crop = json.loads(Path(path).read_text())
+    return crop_region(np.asarray(crop["bounding_polygon"]), (crop["axis_min"], crop["axis_max"]), training_scale)
+
+
 def frame_quantities(cameras: list[Camera], region: Region) -> FrameQuantities:
     """The quantities of ``cameras`` (GT frame) about ``region`` (module docstring)."""
     centres = np.array([c.center for c in cameras])
@@ -102,11 +108,10 @@ def scene_frame(scene: Scene) -> dict:
         region = Region(np.zeros(3), 1.0, False, 1.0)
         return {"region": "the normalisation sphere", **frame_quantities(scene.cameras, region).as_dict()}
     if scene.gt is None or scene.gt.kind != "tnt":
-        return {"missing": "the crop volume ({scene}.json) is not found: the object region of a TnT scene is its crop"}
+        return {"missing": f"the object region of a TnT scene is its crop volume, in its ground truth: {scene.gt_missing}"}
     files = gt_files(scene.gt.root, scene.gt.name)
     fix = "restore the scene's TnT ground truth files"
     training_to_gt = read_matrix4_text(files["_trans.txt"], fix) @ scene.normalisation.to_dataset
-    crop = json.loads(files[".json"].read_text())
-    region = crop_region(np.asarray(crop["bounding_polygon"]), (crop["axis_min"], crop["axis_max"]), decompose(training_to_gt)[0])
+    region = crop_file_region(files[".json"], decompose(training_to_gt)[0])
     cameras = [transform_camera(c, training_to_gt) for c in scene.cameras]
     return {"region": "the crop volume, horizontally", **frame_quantities(cameras, region).as_dict()}

@@ -15,7 +15,6 @@ Sources, commits and blob hashes: README.md in this folder. The files are the pu
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from gsbench.data.camera import Camera
 from gsbench.data.dtu import PIXEL_SHIFT, decompose_projection, read_cameras_npz
-from gsbench.data.frame import Region, crop_region
+from gsbench.data.frame import Region, crop_file_region
 from gsbench.data.similarity import decompose, similarity, transform_camera, transform_points
 from gsbench.data.tnt import read_log
 
@@ -77,9 +76,7 @@ def barn_rig() -> ReferenceRig:
         w2c = np.linalg.inv(c2w)
         cam = Camera(K=K, R=w2c[:3, :3], t=w2c[:3, 3], width=width, height=height, name=f"{i:06d}.jpg")
         cameras.append(transform_camera(cam, colmap_to_gt))
-    crop = json.loads(BARN_CROP.read_text())
-    region = crop_region(np.asarray(crop["bounding_polygon"]), (crop["axis_min"], crop["axis_max"]),
-                         decompose(colmap_to_gt)[0])
+    region = crop_file_region(BARN_CROP, decompose(colmap_to_gt)[0])
     gt_to_colmap = np.linalg.inv(colmap_to_gt)
     centroid = transform_points(gt_to_colmap, np.array([c.center for c in cameras])).mean(axis=0)
     return ReferenceRig("Tanks and Temples Barn", cameras, region, similarity(1.0, None, -centroid) @ gt_to_colmap)

@@ -129,16 +129,16 @@ def barn_cameras(reference: ReferenceRig, region: Region, views: int, width: int
     ``round(linspace(0, n - 1, views))``, each at its horizontal offset from Barn's crop centre scaled by the
     ratio of the crop radii, at the ``ring`` rig's elevation above the object's centre (the origin), looking
     at the origin plus a seeded offset of scale ``jitter``; Barn's intrinsics scaled to ``width``."""
+    first = reference.cameras[0]
+    K = first.scaled(width / first.width).K  # Barn's one lens
+    if round(first.height * width / first.width) != height:
+        raise DataError(f"image size {width}x{height}: Barn's frames are {first.width}x{first.height}; fix: a 16:9 size")
     picks = np.round(np.linspace(0, len(reference.cameras) - 1, views)).astype(int)
     elevations = np.arcsin(_ring(views)[:, 2])
     cameras = []
     for k, (i, elevation) in enumerate(zip(picks, elevations)):
-        source = reference.cameras[i]
-        offset = (source.center - reference.region.centre)[:2] / reference.region.radius * region.radius
-        eye = np.array([*(region.centre[:2] + offset), np.linalg.norm(region.centre[:2] + offset) * np.tan(elevation)])
-        R, t = look_at(eye, rng.normal(scale=jitter, size=3))
-        scaled = source.scaled(width / source.width)
-        if scaled.height != height:
-            raise DataError(f"image size {width}x{height}: Barn's frames are {source.width}x{source.height}; fix: a 16:9 size")
-        cameras.append(Camera(K=scaled.K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png"))
+        offset = (reference.cameras[i].center - reference.region.centre)[:2] / reference.region.radius * region.radius
+        ground = region.centre[:2] + offset
+        R, t = look_at(np.array([*ground, np.linalg.norm(ground) * np.tan(elevation)]), rng.normal(scale=jitter, size=3))
+        cameras.append(Camera(K=K, R=R, t=t, width=width, height=height, name=f"{k:06d}.png"))
     return cameras
