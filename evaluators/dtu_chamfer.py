@@ -27,6 +27,10 @@ from gsbench.evaluators.geometry import load_geometry, to_dataset_frame, to_norm
 from gsbench.resources import available_memory_bytes, memory_size
 
 
+SAMPLE_BYTES = 48 + pointsets.DOWNSAMPLE_BYTES["point"]  # a sample: its row, its copy beside the vertices, and its
+# share of the downsampling before any pair (its pairs are checked once the points exist)
+
+
 @dataclass(frozen=True)
 class DTUOptions:
     """Protocol parameters (defaults = DTUeval-python CLI defaults + 2DGS culling)."""
@@ -41,7 +45,7 @@ class DTUOptions:
     visualize_threshold: float = 10  # mm, colour scale of the vis plys
     vis_dir: str | None = None  # write vis_{scan}_d2s.ply / _s2d.ply here
     min_inside_fraction: float = 0.1  # warn (units/frame) when fewer vertices lie in the GT box
-    max_sample_points: int = 50_000_000  # refuse meshes whose sampling would exceed this (memory guard)
+    max_sample_points: int | None = None  # refuse meshes sampling more points; None: what memory holds (sample_limit)
     sample_oversample: float = 4.0  # area samples per downsample_density² of surface (sampled protocol)
     sampled: bool = True  # mode "mesh": also score area samples (*_sampled); False: the official steps only
 
@@ -84,6 +88,17 @@ class _Scored:
     d2s: np.ndarray
     s2d: np.ndarray
     counts: dict
+
+
+def sample_limit(limit: int | None, available: int | None = None) -> int | None:
+    """``limit`` if given, else the samples the memory available holds (`gsbench.resources.available_memory_bytes`
+    unless given) at `SAMPLE_BYTES` each; None where that is not known. A mesh's samples are bounded by its
+    area, and a method's mesh may be far larger than the object (a Poisson surface closed around the
+    background); only memory stops it, and `check_downsample_memory` then checks the downsampling's pairs."""
+    if limit is not None:
+        return limit
+    available = available_memory_bytes() if available is None else available
+    return None if available is None else available // SAMPLE_BYTES
 
 
 def check_downsample_memory(data: np.ndarray, density: float, label: str, available: int | None = None) -> None:
@@ -194,7 +209,7 @@ class DTUChamfer(Evaluator):
         with diag.phase("sample"):
             if opts.mode == "mesh":
                 samples = pointsets.barycentric_grid_samples(verts, faces, opts.downsample_density,
-                                                             opts.max_sample_points)
+                                                             sample_limit(opts.max_sample_points))
                 data = np.concatenate([verts, samples], axis=0)
             else:
                 data = verts
@@ -207,7 +222,7 @@ class DTUChamfer(Evaluator):
         if opts.mode == "mesh" and opts.sampled:
             with diag.phase("sampled_draw"):
                 area = pointsets.area_samples(verts, faces, opts.downsample_density, opts.seed, opts.sample_oversample,
-                                              opts.max_sample_points)
+                                              sample_limit(opts.max_sample_points))
             if len(area) == 0:
                 raise EvaluationError(f"dtu_chamfer: {geo.label} has no surface area left after culling")
             sampled = _score(area, gt, trees, opts, geo.label, str(files["ObsMask"]), diag, "sampled_")

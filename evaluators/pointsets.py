@@ -65,8 +65,9 @@ def barycentric_grid_samples(vertices: np.ndarray, faces: np.ndarray, density: f
     bound = int(((n1 + 1) * (n2 + 1)).sum() // 2)
     if max_points is not None and bound > max_points:
         raise EvaluationError(
-            f"the mesh would give ~{bound:,} samples at density {density} (limit {max_points:,}): its surface "
-            f"area is {area2.sum() / 2:.4g} squared units, implausible for the GT; wrong units or frame?"
+            f"the mesh would give ~{bound:,} samples at density {density} (limit {max_points:,}, from the memory "
+            f"available unless set): its surface area is {area2.sum() / 2:.4g} squared units; wrong units or frame, "
+            "or a surface far larger than the object? fix: crop the mesh to the object, or run it on a larger machine"
         )
     key = n1 * (int(n2.max()) + 1) + n2
     order = np.argsort(key, kind="stable")

@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 from gsbench.errors import EvaluationError
-from gsbench.evaluators.dtu_chamfer import DTUChamfer, dtu_gt_files
+from gsbench.evaluators.dtu_chamfer import SAMPLE_BYTES, DTUChamfer, dtu_gt_files, sample_limit
 
 # Sampling floor: mean NN distance to points ~0.2 mm apart is ~0.38 x spacing (hexagonal packing);
 # completeness is a little larger because the greedy 0.2 mm downsampling leaves gaps up to 0.4 mm.
@@ -103,6 +103,15 @@ def test_wrong_units_warns_then_fails_before_allocating(scene):
     with pytest.warns(UserWarning, match="wrong units or frame"):
         with pytest.raises(EvaluationError, match="samples at density 0.2.*wrong units"):
             DTUChamfer().evaluate(big, scene, cull="none")
+
+
+def test_sample_limit_is_what_memory_holds_unless_set(scene):
+    """A Poisson surface closed around the background (SuGaR on dtu-rig-spot: 3.2e6 mm², ~80 M samples) is the
+    method's output, not wrong units: only the memory available bounds its samples."""
+    assert sample_limit(None, available=1000 * SAMPLE_BYTES + SAMPLE_BYTES - 1) == 1000
+    assert sample_limit(12, available=10**12) == 12
+    with pytest.raises(EvaluationError, match="limit 1,000, from the memory available"):
+        DTUChamfer().evaluate(F.dtu_sphere_mesh(), scene, cull="none", max_sample_points=1000)
 
 
 def test_wrong_frame_warns_then_names_the_obsmask(scene):
