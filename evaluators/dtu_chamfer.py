@@ -101,6 +101,19 @@ def sample_limit(limit: int | None, available: int | None = None) -> int | None:
     return None if available is None else available // SAMPLE_BYTES
 
 
+def check_sample_counts(verts: np.ndarray, faces: np.ndarray, opts: DTUOptions) -> None:
+    """Both point sets of mode ``mesh`` (the official grid samples and, if ``opts.sampled``, the area samples)
+    checked against `sample_limit` before any work, so a mesh too large for either fails in seconds."""
+    limit = sample_limit(opts.max_sample_points)
+    bound, _ = pointsets.barycentric_grid_counts(verts, faces, opts.downsample_density)
+    area = float(pointsets.face_normals(verts, faces)[1].sum())
+    pointsets.check_sample_count(bound, f"samples at density {opts.downsample_density}", limit, area)
+    if opts.sampled:
+        pointsets.check_sample_count(
+            pointsets.area_sample_count(area, opts.downsample_density, opts.sample_oversample),
+            f"area samples at spacing {opts.downsample_density:.4g}", limit, area)
+
+
 def check_downsample_memory(data: np.ndarray, density: float, label: str, available: int | None = None) -> None:
     """EvaluationError when the greedy downsampling of ``data`` at ``density`` needs more than the memory available:
     it holds every pair of points closer than ``density`` (`pointsets.radius_pair_estimate`,
@@ -206,6 +219,8 @@ class DTUChamfer(Evaluator):
                     f"{scene.normalisation.scale})"
                 )
 
+        if opts.mode == "mesh":
+            check_sample_counts(verts, faces, opts)
         with diag.phase("sample"):
             if opts.mode == "mesh":
                 samples = pointsets.barycentric_grid_samples(verts, faces, opts.downsample_density,

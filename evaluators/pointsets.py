@@ -32,6 +32,42 @@ def _chunks(n: int, size: int, desc: str | None = None):
         yield start, min(n, start + size)
 
 
+def check_sample_count(count: int, what: str, max_points: int | None, area: float) -> None:
+    """EvaluationError when ``count`` samples (``what``: "samples at density 0.2") exceed ``max_points``, before any
+    is allocated: a mesh in the wrong units, or a surface far larger than the object (the limit is the caller's:
+    a units guard or the memory available)."""
+    if max_points is not None and count > max_points:
+        raise EvaluationError(
+            f"the mesh would give {count:,} {what} (limit {max_points:,}): its surface area is {area:.4g} squared "
+            "units; wrong units or frame, or a surface far larger than the object? fix: crop the mesh to the object, "
+            "or run it on a larger machine")
+
+
+def barycentric_grid_counts(vertices: np.ndarray, faces: np.ndarray, density: float) -> tuple[int, float]:
+    """(bound on the samples `barycentric_grid_samples` draws, ``sum (n1+1)(n2+1)/2``; the mesh's area), without
+    drawing them."""
+    n1, n2, area2 = _grid_sizes(vertices, faces, density)[-3:]
+    return int(((n1 + 1) * (n2 + 1)).sum() // 2), float(area2.sum() / 2)
+
+
+def _grid_sizes(vertices: np.ndarray, faces: np.ndarray, density: float):
+    """(a, v1, v2, n1, n2, area2) of the triangles with samples (n1, n2 > 0); `barycentric_grid_samples` says how."""
+    tri = vertices[faces]
+    a = tri[:, 0]
+    v1 = tri[:, 1] - a
+    v2 = tri[:, 2] - a
+    l1 = np.linalg.norm(v1, axis=1)
+    l2 = np.linalg.norm(v2, axis=1)
+    area2 = np.linalg.norm(np.cross(v1, v2), axis=1)
+    nz = area2 != 0
+    a, v1, v2, l1, l2, area2 = a[nz], v1[nz], v2[nz], l1[nz], l2[nz], area2[nz]
+    thr = density * np.sqrt(l1 * l2 / area2)
+    n1 = np.floor(l1 / thr).astype(np.int64)
+    n2 = np.floor(l2 / thr).astype(np.int64)
+    has = (n1 > 0) & (n2 > 0)  # a zero count divides by 1e-7: every k >= 5e6, no sample passes
+    return a[has], v1[has], v2[has], n1[has], n2[has], area2[has]
+
+
 def barycentric_grid_samples(vertices: np.ndarray, faces: np.ndarray, density: float = 0.2,
                              max_points: int | None = None) -> np.ndarray:
     """Per-triangle barycentric grid samples (DTUeval-python eval.py step 1, mesh -> points).
@@ -46,29 +82,11 @@ def barycentric_grid_samples(vertices: np.ndarray, faces: np.ndarray, density: f
     Raises EvaluationError before allocating when the sample count bound ``sum (n1+1)(n2+1)/2``
     exceeds ``max_points`` (a mesh in the wrong units would otherwise exhaust memory).
     """
-    tri = vertices[faces]
-    a = tri[:, 0]
-    v1 = tri[:, 1] - a
-    v2 = tri[:, 2] - a
-    l1 = np.linalg.norm(v1, axis=1)
-    l2 = np.linalg.norm(v2, axis=1)
-    area2 = np.linalg.norm(np.cross(v1, v2), axis=1)
-    nz = area2 != 0
-    a, v1, v2, l1, l2, area2 = a[nz], v1[nz], v2[nz], l1[nz], l2[nz], area2[nz]
-    thr = density * np.sqrt(l1 * l2 / area2)
-    n1 = np.floor(l1 / thr).astype(np.int64)
-    n2 = np.floor(l2 / thr).astype(np.int64)
-    has = (n1 > 0) & (n2 > 0)  # a zero count divides by 1e-7: every k >= 5e6, no sample passes
-    a, v1, v2, n1, n2 = a[has], v1[has], v2[has], n1[has], n2[has]
+    a, v1, v2, n1, n2, area2 = _grid_sizes(vertices, faces, density)
     if len(a) == 0:
         return np.zeros((0, 3))
-    bound = int(((n1 + 1) * (n2 + 1)).sum() // 2)
-    if max_points is not None and bound > max_points:
-        raise EvaluationError(
-            f"the mesh would give ~{bound:,} samples at density {density} (limit {max_points:,}, from the memory "
-            f"available unless set): its surface area is {area2.sum() / 2:.4g} squared units; wrong units or frame, "
-            "or a surface far larger than the object? fix: crop the mesh to the object, or run it on a larger machine"
-        )
+    check_sample_count(int(((n1 + 1) * (n2 + 1)).sum() // 2), f"samples at density {density}", max_points,
+                       float(area2.sum() / 2))
     key = n1 * (int(n2.max()) + 1) + n2
     order = np.argsort(key, kind="stable")
     uniq, first = np.unique(key[order], return_index=True)
@@ -230,6 +248,11 @@ def uniform_in_triangles(tri: np.ndarray, rng: np.random.Generator) -> np.ndarra
     return tri[:, 0] + uv[:, :1] * (tri[:, 1] - tri[:, 0]) + uv[:, 1:] * (tri[:, 2] - tri[:, 0])
 
 
+def area_sample_count(area: float, spacing: float, oversample: float = 4.0) -> int:
+    """``ceil(oversample · A / spacing²)``, the points `area_samples` draws on a surface of area A."""
+    return int(np.ceil(oversample * area / spacing**2))
+
+
 def area_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: int, oversample: float = 4.0,
                  max_points: int | None = None) -> np.ndarray:
     """Points drawn uniformly by area on a mesh at a fixed density (the tessellation-independent protocol).
@@ -246,12 +269,8 @@ def area_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, seed: 
     area = float(face_normals(vertices, faces)[1].sum())
     if area <= 0:
         return np.zeros((0, 3))
-    n = int(np.ceil(oversample * area / spacing**2))
-    if max_points is not None and n > max_points:
-        raise EvaluationError(
-            f"the mesh would give {n:,} area samples at spacing {spacing:.4g} (limit {max_points:,}): its surface "
-            f"area is {area:.4g} squared units, implausible for the GT; wrong units or frame?"
-        )
+    n = area_sample_count(area, spacing, oversample)
+    check_sample_count(n, f"area samples at spacing {spacing:.4g}", max_points, area)
     return sample_surface(vertices, faces, n, seed)[0]
 
 
@@ -273,11 +292,7 @@ def voxel_area_samples(vertices: np.ndarray, faces: np.ndarray, voxel: float, se
     expected = oversample * area / voxel**2
     counts = np.floor(expected).astype(np.int64) + (rng.random(len(faces)) < expected % 1.0)
     total = int(counts.sum())
-    if max_points is not None and total > max_points:
-        raise EvaluationError(
-            f"the mesh would give {total:,} area samples at voxel {voxel:.4g} (limit {max_points:,}): its surface "
-            f"area is {area.sum():.4g} squared units, implausible for the GT; wrong units or frame?"
-        )
+    check_sample_count(total, f"area samples at voxel {voxel:.4g}", max_points, float(area.sum()))
     if total == 0:
         return np.zeros((0, 3))
     tri = vertices[faces]

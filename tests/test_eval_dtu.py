@@ -6,6 +6,8 @@ import pytest
 import trimesh
 
 from gsbench.errors import EvaluationError
+from gsbench.evaluators import pointsets
+from gsbench.evaluators.geometry import to_dataset_frame
 from gsbench.evaluators.dtu_chamfer import SAMPLE_BYTES, DTUChamfer, dtu_gt_files, sample_limit
 
 # Sampling floor: mean NN distance to points ~0.2 mm apart is ~0.38 x spacing (hexagonal packing);
@@ -110,8 +112,19 @@ def test_sample_limit_is_what_memory_holds_unless_set(scene):
     method's output, not wrong units: only the memory available bounds its samples."""
     assert sample_limit(None, available=1000 * SAMPLE_BYTES + SAMPLE_BYTES - 1) == 1000
     assert sample_limit(12, available=10**12) == 12
-    with pytest.raises(EvaluationError, match="limit 1,000, from the memory available"):
+    with pytest.raises(EvaluationError, match="limit 1,000\\).*larger than the object"):
         DTUChamfer().evaluate(F.dtu_sphere_mesh(), scene, cull="none", max_sample_points=1000)
+
+
+def test_area_samples_over_the_limit_fail_before_the_official_steps(scene, monkeypatch):
+    """The area-sampled variant draws 4 samples per 0.2 mm square, more than the official grid: a mesh whose grid
+    fits but whose area samples do not fails before the official steps run (not after them)."""
+    mesh = F.dtu_sphere_mesh()
+    grid, _ = pointsets.barycentric_grid_counts(to_dataset_frame(np.asarray(mesh.vertices), scene, "normalised"),
+                                                np.asarray(mesh.faces), 0.2)
+    monkeypatch.setattr(pointsets, "greedy_downsample", lambda *a, **k: pytest.fail("the official steps ran"))
+    with pytest.raises(EvaluationError, match="area samples at spacing 0.2"):
+        DTUChamfer().evaluate(mesh, scene, cull="none", max_sample_points=grid + len(mesh.vertices))
 
 
 def test_wrong_frame_warns_then_names_the_obsmask(scene):
