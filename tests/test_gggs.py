@@ -23,9 +23,11 @@ from gsbench.raster.types import RenderOutput
 from gsbench.registry import METHODS
 from gsbench.run_folder import RunFolder
 from gsbench.runs.runner import resolve_run
+from gsbench.runs.sweep import expand, load_sweep
 from gsbench.training.trainer import Trainer, load_checkpoint
 from tests.method_setup import interrupt_at
 from tests.raster_scenes import make_camera
+from tests.sweep_files import sweep_file
 
 EARLY = ["losses.gggs_normal.start=0", "losses.gggs_geo.start=0", "losses.gggs_ncc.start=0"]
 
@@ -194,3 +196,20 @@ def test_a_solid_run_keeps_its_run_id_and_record(tiny_spot):
     with pytest.raises(ConfigError, match="method.surface_depth must be one of solid, median"):
         _setup(tiny_spot, "method.surface_depth=expected")
 
+
+def test_the_claims_sweep_is_the_recipe_and_one_change_a_row_on_the_boards_runs():
+    """gggs_claims (docs/methods/gggs.md §8.2): the gggs row's runs are the dtu_rig board's (same ids); each other row
+    differs from it in its one change only."""
+    runs = expand(load_sweep(sweep_file("gggs_claims")))
+    board = {r.run_id for r in expand(load_sweep(sweep_file("dtu_rig"))) if r.label == "gggs"}
+    rows = {r.label: r.config for r in runs if r.config.seed == 0 and r.config.scene.endswith("bunny")}
+    assert {r.run_id for r in runs if r.label == "gggs"} <= board and len(runs) == 24
+    base = rows["gggs"]
+    median = rows["gggs_median_depth"]
+    assert (median.method["surface_depth"], median.mesh.depth) == ("median", "median")
+    changed = {label: {k for k, v in rows[label].losses.items() if v != base.losses[k]} for label in rows}
+    assert changed["gggs_without_multiview"] == {"gggs_geo", "gggs_ncc"}
+    assert changed["gggs_without_depth_normal"] == {"gggs_normal"} and not changed["gggs_median_depth"]
+    assert all(term["weight"] == 0 for term in (rows["gggs_without_multiview"].losses["gggs_geo"],
+                                                 rows["gggs_without_multiview"].losses["gggs_ncc"],
+                                                 rows["gggs_without_depth_normal"].losses["gggs_normal"]))
