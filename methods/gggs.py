@@ -15,7 +15,11 @@ Differences from 3DGS, after the authors' code (HKUST-SAIL, f727413; docs/method
 - densification: GOF's (`AbsGradStrategy`: abs-gradient quantile split, sampled clones, 3D filter
   recomputed), pruning by opacity < 0.05 only (no world- or screen-size pruning);
 - mesh: TSDF of the solid depth (``mesh.depth: solid``), the largest cluster kept (DTU voxel and truncation
-  in ``configs/methods/gggs.dtu.yaml``).
+  in ``configs/methods/gggs.dtu.yaml``);
+- ``surface_depth`` (docs/methods/gggs.md §3.5): ``solid`` (the paper's); ``median`` puts the median depth in place
+  of the solid depth in the three geometric terms and the multi-view planes
+  (`gsbench.methods.gggs_terms.surface_depth`), so no solid pass runs; the ablation meshes it with
+  ``mesh.depth: median``.
 
 Not implemented (docs/methods/gggs.md §5): the neighbour's depth is read from its rendered solid-depth map
 (bilinear, as PGSR's plane) rather than by a query along the warped ray; TnT's marching tetrahedra on the
@@ -37,6 +41,7 @@ from gsbench.geometry.depth import pixel_rays
 from gsbench.losses.terms import Batch
 from gsbench.methods.base import ADAM_EPS, DEPTH_OUTPUTS, MethodInfo
 from gsbench.methods.filtered import FilteredConfig, FilteredMethod
+from gsbench.methods.gggs_terms import SURFACE_OUTPUTS, surface_depth
 from gsbench.methods.multiview import NeighbourViews, check_multiview_params
 from gsbench.raster import RasterSettings
 from gsbench.raster.types import RenderOutput
@@ -61,14 +66,16 @@ class GGGSConfig(FilteredConfig):
     multi_view_patch_step: float = 0.5  # ... half a pixel apart
     multi_view_pixel_noise_th: float = 1.0  # px
     exposure_lr: float = 0.001
+    surface_depth: str = "solid"  # the depth D of the geometric terms: solid, or median (docs/methods/gggs.md §3.5)
 
 
-def solid_planes(render: RenderOutput, camera) -> tuple[torch.Tensor, torch.Tensor]:
-    """(plane distance (H, W), unit normal (H, W, 3)) of the plane through each pixel's solid-depth point D·r with
-    the rendered normal's direction: d = −D (n̂·r), so n̂·X = −d on it (PGSR's plane convention, 0 where D = 0)."""
-    normal = torch.nn.functional.normalize(render.normal, dim=-1)
-    rays = pixel_rays(camera, render.solid_depth.dtype)
-    return -render.solid_depth * (normal * rays).sum(-1), normal
+def depth_planes(depth: torch.Tensor, normal: torch.Tensor, camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """(plane distance (H, W), unit normal (H, W, 3)) of the plane through each pixel's depth point D·r with the
+    direction of the rendered ``normal``: d = −D (n̂·r), so n̂·X = −d on it (PGSR's plane convention, 0 where
+    D = 0)."""
+    unit = torch.nn.functional.normalize(normal, dim=-1)
+    rays = pixel_rays(camera, depth.dtype)
+    return -depth * (unit * rays).sum(-1), unit
 
 
 class GGGS(NeighbourViews, FilteredMethod):
@@ -76,7 +83,7 @@ class GGGS(NeighbourViews, FilteredMethod):
 
     name = "gggs"
     Config = GGGSConfig
-    INFO = MethodInfo(primitive="3d", kernel="rade", outputs=("rgb", "alpha", "normal", "solid_depth"))
+    INFO = MethodInfo(primitive="3d", kernel="rade", outputs=("rgb", "alpha", "normal", "solid_depth", "median_depth"))
     MESH_DEPTHS = ("solid", *DEPTH_OUTPUTS)
     NEIGHBOUR_OUTPUTS = ("solid_depth", "normal")
 
@@ -92,6 +99,9 @@ class GGGS(NeighbourViews, FilteredMethod):
             raise ConfigError(f"method gggs trains a per-image exposure as one more Adam group; train.optimizer "
                               f"{cfg.train.optimizer} steps only visible Gaussian rows: set train.optimizer=adam")
         check_multiview_params(p, "docs/methods/gggs.md §3")
+        if p.surface_depth not in SURFACE_OUTPUTS:
+            raise ConfigError(f"method.surface_depth must be one of {', '.join(SURFACE_OUTPUTS)}, got "
+                              f"'{p.surface_depth}'; see docs/methods/gggs.md §3.5")
         checks = [("solid_search_range", p.solid_search_range > 0), ("solid_rounds", 1 <= p.solid_rounds <= 12),
                   ("init_scale_camera_share", p.init_scale_camera_share > 0),
                   ("multi_view_patch_step", p.multi_view_patch_step > 0)]
@@ -103,6 +113,7 @@ class GGGS(NeighbourViews, FilteredMethod):
         self.new_exposure(scene)
         super().setup(scene, cfg)
         self.setup_neighbours(scene)
+        self.NEIGHBOUR_OUTPUTS = (*SURFACE_OUTPUTS[self.params.surface_depth], "normal")  # what `planes` reads
 
     def initial_gaussians(self, scene: Scene, cfg: RunConfig) -> Gaussians:
         """The base initialisation with each scale at most ``init_scale_camera_share`` × the distance from the
@@ -128,8 +139,12 @@ class GGGS(NeighbourViews, FilteredMethod):
                                    solid_search_range=p.solid_search_range * self.scene_radius)
 
     def term_params(self) -> dict[str, dict]:
-        """The L1 on the exposure-compensated render without PGSR's SSIM gate."""
-        return {"l1_exposure": {"ssim_gate": False}} if "l1_exposure" in self.cfg.losses else {}
+        """The L1 on the exposure-compensated render without PGSR's SSIM gate; the geometric terms' depth when it is
+        not the solid one (their default, so a solid run's record lists no parameter for them)."""
+        params = {"l1_exposure": {"ssim_gate": False}}
+        if self.params.surface_depth != "solid":
+            params |= {term: {"depth": self.params.surface_depth} for term in ("gggs_normal", "gggs_geo", "gggs_ncc")}
+        return {k: v for k, v in params.items() if k in self.cfg.losses}
 
     # ---- what the loss terms read -------------------------------------------------------------
     def loss_state(self) -> dict:
@@ -140,8 +155,8 @@ class GGGS(NeighbourViews, FilteredMethod):
         return None if view is None else (self.exposure[view, 0], self.exposure[view, 1])
 
     def planes(self, render: RenderOutput, camera) -> tuple[torch.Tensor, torch.Tensor]:
-        """The planes through the solid-depth points with the rendered normals (`solid_planes`)."""
-        return solid_planes(render, camera)
+        """The planes through the surface-depth points with the rendered normals (`depth_planes`)."""
+        return depth_planes(surface_depth(render, self.params.surface_depth), render.normal, camera)
 
     def patch_step(self) -> float:
         return self.params.multi_view_patch_step

@@ -51,6 +51,7 @@ from gsbench.report.views import (
     ablation_table,
     claims_tables,
     leaderboard_table,
+    method_claims_tables,
     paired_table,
     ranks_table,
     slug,
@@ -69,7 +70,8 @@ SURFACES_NOTE = ("Each row's mesh (its ok run of the lowest seed whose mesh was 
                  "(docs/report.md §4).")
 RANKS_NOTE = "Which differences between rows the seeds and scenes can tell apart (docs/report.md §5)."
 CLAIMS_NOTE = ("The papers' orderings, tested on these runs in the paper's metric; only the order is checked, at these "
-               "runs' budgets (docs/report.md §6).")
+               "runs' budgets; first, for each method with an ablation run, its paper's claims about its own parts "
+               "(docs/report.md §6).")
 TWINS_NOTE = "What one factor of a scene (glass, framing, relief) costs each method (docs/report.md §7)."
 WITHOUT_GT_NOTE = "What can be measured without ground-truth geometry (docs/report.md §8)."
 TIME_SECTION_NOTE = ("Each dataset's ranking metric against training time, from the points each run evaluated along "
@@ -308,8 +310,9 @@ def write_report(source, out, *, plots: bool = True, self_contained: bool = Fals
         if board.spec.name in (primary[board.dataset].name, PAPERS_METRIC.get(board.dataset)):
             significance.blocks += [ranks_table(board, tests[id(board)]), paired_table(board, tests[id(board)])]
     specs = metric_specs()
+    outcomes = evaluate_claims(runs, manifests, specs)
     claims = Section("papers-orderings", "The papers' orderings, tested", [CLAIMS_NOTE, PAIRED_NOTE],
-                     claims_tables(evaluate_claims(runs, manifests, specs), specs))
+                     [*method_claims_tables(outcomes), *claims_tables(outcomes, specs)])
     earlier = list(dict.fromkeys(folder / "plots" for folder in (out, source.board_dir) if folder is not None))
     surfaces = _surfaces(source, boards, made, earlier, warnings)
     twins = twin_tables(runs, specs)

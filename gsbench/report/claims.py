@@ -3,13 +3,16 @@
 The claims are data: each stands in a method's file (``configs/methods/<method>.yaml``, ``claims:``) and names its
 group in ``configs/claim_groups.yaml`` (the report's table: its heading, dataset, metric, and for an ablation the
 sweep whose rows are the sides); a side's number is its method's ``reported:`` mean unless the entry's ``paper:``
-gives it, so each paper number is written once. The metric is the one the paper used: DTU the official script's
-Chamfer (``chamfer``, mm, lower is better); Tanks and Temples the F1 on mesh vertices plus face centroids
-(``f1_centroids``, `gsbench.report.metrics.COMPANIONS`). Claims between methods are measured on the leaderboard of
-that dataset and metric (of a method's several configurations, the row with the most runs with the metric); claims
-about an ablation on the rows of the sweep that repeats it (its manifest, by sweep name and row label).
+gives it, so each paper number is written once. A row of an ablation the paper gives no number for (a removal it
+does not tabulate, a suite it did not run) is quoted as ``–``: the claim is then the paper's direction only. The
+metric is the one the paper used: DTU the official script's Chamfer (``chamfer``, mm, lower is better); Tanks and
+Temples the F1 on mesh vertices plus face centroids (``f1_centroids``, `gsbench.report.metrics.COMPANIONS`). Claims
+between methods are measured on the leaderboard of that dataset and metric (of a method's several configurations,
+the row with the most runs with the metric); claims about an ablation on the rows of the sweep that repeats it (its
+manifest, by sweep name and row label).
 
-A claim is checked with the paired test of `gsbench.report.stats` over the (scene, seed) pairs both sides share:
+A claim is checked with the paired test of `gsbench.report.stats` over the (scene, seed) pairs both sides share,
+its effect the mean paired difference with its 95% t-interval (`gsbench.report.stats.mean_interval`):
 
 - ``>``: *agrees* when the claimed side is significantly better (p < 0.05), *disagrees* when the other side is,
   *not separable* otherwise;
@@ -18,7 +21,8 @@ A claim is checked with the paired test of `gsbench.report.stats` over the (scen
 - *not measured*: a side has no runs with the metric, or the two share no (scene, seed) pair.
 
 A claim the runs contradict gets a **cause** (`Outcome.cause`): the measured one from ``experiments/findings.yaml``
-(`load_findings`), or ``unexplained``.
+(`load_findings`), or ``unexplained``. Each claim keeps the method whose file declares it (`Claim.method`), so the
+report can gather a paper's claims about its own parts, its ablations, into one table per method.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ GROUPS_FILE = "claim_groups.yaml"
 GROUP_KEYS = {"heading", "dataset", "metric", "sweep", "factor", "order"}
 ENTRY_KEYS = {"group", "claim", "source", "paper", "digits"}
 DIGITS = 2  # decimals of the paper's numbers as the report quotes them, unless an entry says otherwise
+NO_NUMBER = "–"  # a side of an ablation the paper gives no number for
 
 
 @dataclass(frozen=True)
@@ -52,9 +57,10 @@ class Claim:
     """``better`` is claimed ``relation`` (``>``, ``≥``, ``≈``) ``worse`` on ``dataset``'s ``metric``.
 
     Sides are method names, or with ``sweep`` set, row labels of that sweep (its manifest). ``paper``: the
-    paper's numbers of the two sides, as quoted; ``source``: where they are. ``factor``: the claim is about
-    scenes of one kind, so only the scenes made with that factor changed (`gsbench.report.twins`, e.g.
-    ``transparent``: the glass scenes) are paired."""
+    paper's numbers of the two sides, as quoted (`NO_NUMBER` for an ablation row it gives none for); ``source``: where
+    they are. ``factor``: the claim is about scenes of one kind, so only the scenes made with that factor changed
+    (`gsbench.report.twins`, e.g. ``transparent``: the glass scenes) are paired. ``method``: the method whose file
+    declares it."""
 
     group: str
     dataset: str
@@ -66,6 +72,7 @@ class Claim:
     relation: str = ">"
     sweep: str = ""
     factor: str = ""
+    method: str = ""
 
     @property
     def text(self) -> str:
@@ -81,18 +88,27 @@ def _parse(where: str, text) -> tuple[str, str, str]:
     return parts[0], parts[1], parts[2]
 
 
-def _number(where: str, side: str, paper: dict, dataset: str, metric: str) -> float:
+def _number(where: str, side: str, paper: dict, group: dict) -> float | None:
+    """The paper's number of ``side``: the entry's, else its method's reported mean; None for a row of an ablation
+    (a ``sweep`` group) that has neither."""
+    dataset, metric = group["dataset"], group["metric"]
     if side in paper:
         return paper[side]
     entry = reported_numbers(side).get(dataset) or {}
     if entry.get("metric") != metric or entry.get("mean") is None:
+        if group.get("sweep"):
+            return None
         raise ConfigError(f"{where}: no paper number for '{side}': it has no reported {dataset} {metric} mean "
                           f"(configs/methods/{side}.yaml); give it under paper:")
     return float(entry["mean"])
 
 
-def _entry_claims(where: str, entry, groups: dict) -> tuple[str, list[Claim]]:
-    """(group name, the claims of one ``claims:`` entry)."""
+def _quoted(value: float | None, digits: int) -> str:
+    return NO_NUMBER if value is None else f"{value:.{digits}f}"
+
+
+def _entry_claims(where: str, method: str, entry, groups: dict) -> tuple[str, list[Claim]]:
+    """(group name, the claims of one ``claims:`` entry of ``method``'s file)."""
     if not isinstance(entry, dict) or set(entry) - ENTRY_KEYS or not {"group", "claim", "source"} <= set(entry):
         raise ConfigError(f"{where}: a claims entry is a mapping with group, claim and source (optional: paper, "
                           f"digits), got {entry!r}")
@@ -110,10 +126,10 @@ def _entry_claims(where: str, entry, groups: dict) -> tuple[str, list[Claim]]:
     claims = []
     for text in texts:
         better, relation, worse = _parse(where, text)
-        a, b = (_number(where, side, paper, group["dataset"], group["metric"]) for side in (better, worse))
+        a, b = (_number(where, side, paper, group) for side in (better, worse))
         claims.append(Claim(group["heading"], group["dataset"], group["metric"], better, worse,
-                            f"{a:.{digits}f} vs {b:.{digits}f}", source, relation, group.get("sweep", ""),
-                            group.get("factor", "")))
+                            f"{_quoted(a, digits)} vs {_quoted(b, digits)}", source, relation, group.get("sweep", ""),
+                            group.get("factor", ""), method))
     return name, claims
 
 
@@ -139,7 +155,7 @@ def load_claims() -> tuple[Claim, ...]:
     found: dict[str, list[Claim]] = {name: [] for name in groups}
     for method in declared_plugins("methods"):
         for i, entry in enumerate(method_declaration(method, CLAIMS_KEY) or []):
-            name, claims = _entry_claims(f"configs/methods/{method}.yaml: claims[{i}]", entry, groups)
+            name, claims = _entry_claims(f"configs/methods/{method}.yaml: claims[{i}]", method, entry, groups)
             found[name] += claims
     return tuple(claim for name, group in groups.items()
                  for claim in (_in_order(f"{path}: groups.{name}.order", group["order"], found[name])

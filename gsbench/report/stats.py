@@ -41,6 +41,12 @@ a complete row is 1 + the number of complete rows that are significantly better 
 test: rows that no other row beats significantly share rank 1, and rows the test cannot separate
 from the same rows share a rank.
 
+**Interval of a paired difference** (`mean_interval`). The effect of a comparison is the mean paired difference
+d̄ = Σ d_j / n over its n pairs, with the 95% Student t-interval d̄ ± t_{0.975, n−1} · s_d / √n (s_d the sample
+standard deviation of the d_j; n ≥ 2), as for a cell. It assumes the pairs independent and normal; the pairs on one
+scene share that scene's effect, so it speaks for these scenes, not for scenes in general. The verdicts rest on the
+paired test above, not on it: at few pairs the two can disagree at the edge.
+
 **Pairs to decide** (`pairs_to_decide`). How many pairs a comparison that is not separable would need,
 if the true paired differences had the measured mean d̄ and standard deviation s_d: the
 normal-approximation size of a two-sided test at level α with power 1 − β,
@@ -157,6 +163,15 @@ def paired_test(differences, higher_is_better: bool) -> PairedTest:
     direction = (lean > 0) - (lean < 0)
     sd = statistics.stdev(d) if len(d) >= 2 else None
     return PairedTest(len(d), statistics.fmean(d), wins, losses, p, test, direction, sd)
+
+
+def mean_interval(test: PairedTest, confidence: float = CONFIDENCE) -> tuple[float, float] | None:
+    """(low, high) of d̄ ± t_{(1+confidence)/2, n−1} · s_d / √n, the t-interval of the mean paired difference
+    (module docstring); None for fewer than 2 pairs."""
+    if test.sd_diff is None or test.mean_diff is None:
+        return None
+    half = _t_quantile(0.5 + confidence / 2, test.n - 1) * test.sd_diff / math.sqrt(test.n)
+    return test.mean_diff - half, test.mean_diff + half
 
 
 def pairs_to_decide(test: PairedTest, power: float = POWER) -> int | None:

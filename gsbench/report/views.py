@@ -20,6 +20,7 @@ from gsbench.report.stats import (
     PairedTest,
     compare_rows,
     comparisons,
+    mean_interval,
     mean_ranks,
     pairs_to_decide,
     scene_ranks,
@@ -240,15 +241,16 @@ PAIRS_NOTE = (
 
 def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
     """One table per group of claims (`gsbench.report.claims`), one line per claim: the ordering, the
-    paper's numbers and source, the rows compared, the mean paired difference, the pairs won, the p-value,
-    the verdict, where the test did not separate the rows, the pairs it would take
-    (`gsbench.report.stats.pairs_to_decide`), and where the runs contradict the claim its measured cause or
-    "unexplained" (`gsbench.report.claims.load_findings`)."""
+    paper's numbers and source, the rows compared, the mean paired difference and its 95% interval
+    (`gsbench.report.stats.mean_interval`), the pairs won, the p-value, the verdict, where the test did not separate
+    the rows, the pairs it would take (`gsbench.report.stats.pairs_to_decide`), and where the runs contradict the claim
+    its measured cause or "unexplained" (`gsbench.report.claims.load_findings`)."""
     groups: dict[str, list] = {}
     for outcome in outcomes:
         groups.setdefault(outcome.claim.group, []).append(outcome)
-    header = ["claim", "paper", "source", "rows compared", "Δ (claimed better − other)", "better on", "p (test)",
-              "verdict", f"pairs to decide ({POWER:.0%} power at this Δ)", "cause, where it disagrees"]
+    header = ["claim", "paper", "source", "rows compared", "Δ (claimed better − other)", "95% interval of Δ",
+              "better on", "p (test)", "verdict", f"pairs to decide ({POWER:.0%} power at this Δ)",
+              "cause, where it disagrees"]
     tables = []
     for group, members in groups.items():
         rows = []
@@ -257,22 +259,65 @@ def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
             where = f"sweep {c.sweep}: " if c.sweep else ""
             compared = f"{where}{o.better_row} vs {o.worse_row}" if not o.why else o.why
             measured = t is not None and t.p is not None
-            style = {"agrees": "best", "disagrees": "bad"}.get(o.verdict, "")
             rows.append([
-                plain(c.text), plain(c.paper), plain(c.source), plain(compared),
-                TCell(f"{t.mean_diff:+.3f}" if measured else MISSING, t.mean_diff if measured else None),
+                plain(c.text), plain(c.paper), plain(c.source), plain(compared), *_effect_cells(t),
                 plain(f"{t.wins}/{t.n} pairs" if measured else MISSING),
                 TCell(f"{p_text(t.p)} ({t.test})" if measured else MISSING, t.p if measured else None),
-                TCell(o.verdict, None, style),
+                _verdict_cell(o),
                 _pairs_to_decide_cell(t) if measured and not t.significant else plain(MISSING),
                 plain(o.cause or MISSING),
             ])
         first = members[0].claim
-        spec = specs.get(first.metric)
-        metric = spec.label + f", {spec.direction}" if spec else first.metric
         anchor = f"claims-{slug(first.sweep or f'{first.dataset}-{first.metric}')}"
-        tables.append(Table(anchor, f"{group} ({first.dataset}: {metric})", header, rows, [PAIRS_NOTE]))
+        tables.append(Table(anchor, f"{group} ({first.dataset}: {_metric_label(first, specs)})", header, rows,
+                            [PAIRS_NOTE]))
     return tables
+
+
+EFFECT_NOTE = ("Δ: the mean over the pairs of the claimed-better row's value minus the other's, in the metric's units "
+               "(a better claimed side: Δ < 0 for an error, > 0 for F1 or PSNR), with its 95% t-interval over the "
+               "(scene, seed) pairs; the verdict is the paired test's (docs/report.md §6).")
+
+
+def method_claims_tables(outcomes) -> list[Table]:
+    """One table per method whose paper's claims about its own parts (its ablations: the claims on a sweep's rows,
+    `gsbench.report.claims.Claim.sweep`) have at least one measured: each such claim of its file, the sweep, dataset
+    and metric it is tested on, the paper's numbers, the effect Δ with its 95% interval, the pairs and the verdict."""
+    by_method: dict[str, list] = {}
+    for outcome in outcomes:
+        if outcome.claim.sweep:
+            by_method.setdefault(outcome.claim.method, []).append(outcome)
+    header = ["claim", "tested on", "paper", "Δ (claimed better − other)", "95% interval of Δ", "pairs", "verdict"]
+    tables = []
+    for method, members in by_method.items():
+        if all(o.test is None or o.test.p is None for o in members):
+            continue
+        rows = [[plain(o.claim.text),
+                 plain(f"sweep {o.claim.sweep}, {o.claim.dataset} {o.claim.metric}"),
+                 plain(o.claim.paper), *_effect_cells(o.test),
+                 plain(str(o.test.n) if o.test is not None and o.test.p is not None else MISSING), _verdict_cell(o)]
+                for o in members]
+        tables.append(Table(f"own-claims-{slug(method)}", f"{method}: the paper's claims about its own parts", header,
+                            rows, [EFFECT_NOTE]))
+    return tables
+
+
+def _metric_label(claim, specs: dict[str, MetricSpec]) -> str:
+    spec = specs.get(claim.metric)
+    return spec.label + f", {spec.direction}" if spec else claim.metric
+
+
+def _effect_cells(test) -> list[TCell]:
+    """[Δ, its 95% interval] of a paired test (`MISSING` without pairs; the interval needs two)."""
+    if test is None or test.p is None:
+        return [plain(MISSING), plain(MISSING)]
+    interval = mean_interval(test)
+    return [TCell(f"{test.mean_diff:+.3f}", test.mean_diff),
+            plain(MISSING) if interval is None else TCell(f"[{interval[0]:+.3f}, {interval[1]:+.3f}]", interval[0])]
+
+
+def _verdict_cell(outcome) -> TCell:
+    return TCell(outcome.verdict, None, {"agrees": "best", "disagrees": "bad"}.get(outcome.verdict, ""))
 
 
 def _pairs_to_decide_cell(test) -> TCell:
