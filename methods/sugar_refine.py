@@ -229,13 +229,15 @@ MESH_NORMAL_CONSISTENCY = loss_term("mesh_normal_consistency", mesh_normal_consi
 def check_refinement(params, cfg) -> None:
     """ConfigError for an unknown refinement or Gaussians per triangle, or a binding the budget cannot hold:
     ``refine_triangles`` x n > ``train.max_gaussians`` (before any training)."""
-    if params.refinement not in ("none", *REFINEMENT_STEPS):
-        raise ConfigError(f"method.refinement must be none, short, medium or long, got {params.refinement!r}")
+    if params.refinement not in ("none", "decimated", *REFINEMENT_STEPS):
+        raise ConfigError(f"method.refinement must be none, decimated, short, medium or long, got {params.refinement!r}")
     if params.refinement == "none":
         return
-    barycentric(params.refine_gaussians_per_triangle)
     if params.refine_triangles < 1:
         raise ConfigError(f"method.refine_triangles must be >= 1, got {params.refine_triangles}")
+    if params.refinement == "decimated":
+        return  # no Gaussians bound
+    barycentric(params.refine_gaussians_per_triangle)
     n = params.refine_gaussians_per_triangle
     wanted = MESH_PARTS * params.refine_triangles * n
     if cfg.train.max_gaussians > 0 and wanted > cfg.train.max_gaussians:
