@@ -41,9 +41,11 @@ linear estimate), hence the deviation; ``--set method.num_samples=1000000`` rest
 **Refinement** (``method.refinement``: none, short, medium, long; docs/methods/sugar.md §6,
 `gsbench.methods.sugar_refine`): after the coarse run, Gaussians bound to the coarse Poisson mesh's
 triangles, vertices and Gaussians trained jointly (`second_stage`); the refined mesh is then the evaluated
-mesh. Not reproduced: SuGaR's default ``--eval`` split (docs/methods/sugar.md §6; the benchmark trains
-every method on the same views, ``data.holdout_every``), the mesh decimation target being a vertex count
-(it is a triangle count here, as Open3D takes it), and the UV texture.
+mesh. ``decimated`` is the control without refinement: the evaluated mesh is the one the refinement would
+start from (`refinement_mesh`, decimated alike), the rendered model the coarse one (docs/methods/sugar.md §6.1).
+Not reproduced: SuGaR's default ``--eval`` split (docs/methods/sugar.md §6; the benchmark trains every method on
+the same views, ``data.holdout_every``), the mesh decimation target being a vertex count (it is a triangle count
+here, as Open3D takes it), and the UV texture.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 
 from gsbench.config.run_config import RunConfig
 from gsbench.data.camera import Scene
@@ -61,7 +64,7 @@ from gsbench.errors import ConfigError, NumericalError
 from gsbench.mesh.levelset import levelset_mesh
 from gsbench.methods import sugar_terms
 from gsbench.methods.base import DEPTH_OUTPUTS, GSConfig, Method, MethodInfo, _export_atomic
-from gsbench.methods.sugar_refine import SugarRefinement, check_refinement, refinement_config
+from gsbench.methods.sugar_refine import SugarRefinement, bound_mesh, check_refinement, refinement_config
 from gsbench.training.strategies.base import Strategy, keep_params
 from gsbench.training.strategies.default import DefaultStrategy
 from gsbench.training.trainer import scale_step
@@ -85,7 +88,8 @@ class SugarConfig(GSConfig):
     regularizer: str = "density"
     num_samples: int = sugar_terms.NUM_SAMPLES
     # the refinement stage (docs/methods/sugar.md §6), added after the suites' records: at these defaults they are
-    # left out of the run id (gsbench.config.run_config.ADDED_AFTER_RECORDS), so the coarse-only runs keep theirs
+    # left out of the run id (gsbench.config.run_config.ADDED_AFTER_RECORDS), so the coarse-only runs keep theirs;
+    # none | decimated (the control: the refinement's starting mesh, not refined) | short | medium | long
     refinement: str = "none"
     refine_gaussians_per_triangle: int = 1
     refine_triangles: int = 50_000
@@ -95,7 +99,8 @@ class SuGaR(Method):
     """SuGaR's coarse stage: 3DGS warm-up, entropy, hard prune, density/normal regularisers, Poisson mesh.
 
     The mesh (``mesh.extractor: poisson``, configs/methods/sugar.yaml) is the coarse mesh (docs/methods/sugar.md §4),
-    or with ``refinement`` on the refined one (docs/methods/sugar.md §6).
+    with ``refinement`` on the refined one (docs/methods/sugar.md §6), with ``refinement: decimated`` the refinement's
+    starting mesh (docs/methods/sugar.md §6.1).
     """
 
     name = "sugar"
@@ -167,10 +172,16 @@ class SuGaR(Method):
 
     @torch.no_grad()
     def extract_mesh(self, scene: Scene, cfg: RunConfig, out_path) -> dict:
-        """``poisson``: SuGaR's level-set points + screened Poisson (docs/methods/sugar.md §4); other extractors as `Method`."""
-        if cfg.mesh.extractor != "poisson":
+        """``poisson``: SuGaR's level-set points + screened Poisson (docs/methods/sugar.md §4); other extractors as `Method`.
+        With ``refinement: decimated``, whatever the extractor (as the refined mesh): the mesh the refinement starts
+        from, its vertices and faces as `bound_mesh` gives them (docs/methods/sugar.md §6.1)."""
+        if self.params.refinement == "decimated":
+            vertices, faces = bound_mesh(self.refinement_mesh(scene, cfg))
+            mesh = trimesh.Trimesh(vertices.double().numpy(), faces.numpy(), process=False)
+        elif cfg.mesh.extractor != "poisson":
             return super().extract_mesh(scene, cfg, out_path)
-        mesh = self.coarse_mesh(scene, cfg.mesh, cfg.seed)
+        else:
+            mesh = self.coarse_mesh(scene, cfg.mesh, cfg.seed)
         _export_atomic(mesh, Path(out_path))
         return {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces))}
 
@@ -186,13 +197,16 @@ class SuGaR(Method):
 
     # ---- the refinement (methods/sugar_refine.py) ---------------------------------------------
     def second_stage_config(self, cfg: RunConfig) -> RunConfig | None:
-        return None if self.params.refinement == "none" else refinement_config(cfg)
+        return None if self.params.refinement in ("none", "decimated") else refinement_config(cfg)
 
     def second_stage(self, scene: Scene, cfg: RunConfig, second_cfg: RunConfig) -> SugarRefinement:
-        """The coarse Poisson mesh decimated to ``refine_triangles`` triangles, Gaussians bound to it."""
+        """Gaussians bound to `refinement_mesh`."""
+        return SugarRefinement.from_coarse(self, self.refinement_mesh(scene, cfg), second_cfg)
+
+    def refinement_mesh(self, scene: Scene, cfg: RunConfig):
+        """The coarse Poisson mesh with each part decimated to ``refine_triangles`` triangles (docs/methods/sugar.md §6)."""
         mesh_cfg = dataclasses.replace(cfg.mesh, poisson_triangles=self.params.refine_triangles)
-        mesh = self.coarse_mesh(scene, mesh_cfg, cfg.seed)
-        return SugarRefinement.from_coarse(self, mesh, second_cfg)
+        return self.coarse_mesh(scene, mesh_cfg, cfg.seed)
 
     def state_dict(self) -> dict:
         return {**super().state_dict(), "knn": None if self.knn is None else self.knn.clone()}

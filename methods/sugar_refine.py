@@ -86,9 +86,7 @@ class SugarRefinement(Method):
         self.cfg, self.params, self.background = cfg, coarse.params, coarse.background  # SuGaR's own Config
         p = self.params
         self.scene_radius, self.extent = coarse.scene_radius, coarse.extent
-        vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
-        faces = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.int64)
-        faces = faces[usable_faces(vertices.double(), faces)]
+        vertices, faces = bound_mesh(mesh)
         n = p.refine_gaussians_per_triangle
         coords, _ = barycentric(n, torch.float32)
         colours = mesh.visual.vertex_colors[:, :3] / 255.0 if mesh.visual.kind == "vertex" else np.full((len(vertices), 3), 0.5)
@@ -100,7 +98,7 @@ class SugarRefinement(Method):
             log_scales=initial_log_scales(vertices.double(), faces, n).float(),
             rotation=torch.tensor([[1.0, 0.0]]).repeat(rows, 1), opacity_logits=torch.full((rows, 1), math.log(0.1 / 0.9)),
             sh_dc=((colour - 0.5) / SH_C0)[:, None, :], sh_rest=torch.zeros(rows, rest, 3))
-        self._edge_pairs = _face_pairs(faces.numpy())
+        self._face_pairs = face_pairs(faces.numpy())
         self.optimizer = self.make_optimizer(self.gaussians)
         self.sh_degree = 0
         return self
@@ -172,28 +170,57 @@ def refinement_config(cfg):
     return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, iterations=iterations), losses=losses)
 
 
-def _face_pairs(faces: np.ndarray) -> torch.Tensor:
-    """(P, 2) pairs of faces that share an edge (every pair among the faces of an edge, as pytorch3d)."""
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+def bound_mesh(mesh: trimesh.Trimesh) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mesh the refinement binds Gaussians to and starts its vertices from: (vertices (V, 3) float32, every one
+    kept; faces (F, 3) int64, the usable ones, `usable_faces`)."""
+    vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float32)
+    faces = torch.as_tensor(np.asarray(mesh.faces), dtype=torch.int64)
+    return vertices, faces[usable_faces(vertices.double(), faces)]
+
+
+def face_pairs(faces: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pairs of faces that pytorch3d's ``mesh_normal_consistency`` compares: for every edge, every pair among
+    the faces that have it (one pair on a manifold edge, k(k − 1)/2 on an edge of k faces, wherever those faces
+    stand in ``faces``), in the order of the edges (sorted vertex pairs). Returns (pairs (P, 2) int64, signs (P,)):
+    s = +1 when the pair's faces run along their edge in opposite directions (consistently wound), −1 when in the
+    same one (`mesh_normal_consistency`)."""
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = np.sort(directed, axis=1)
     owner = np.tile(np.arange(len(faces)), 3)
     order = np.lexsort((edges[:, 1], edges[:, 0]))
-    edges, owner = edges[order], owner[order]
-    same = np.all(edges[1:] == edges[:-1], axis=1)
-    pairs = np.stack([owner[:-1][same], owner[1:][same]], 1)  # consecutive faces of one edge (2 on a manifold)
-    return torch.from_numpy(pairs.astype(np.int64))
+    edges, owner, forward = edges[order], owner[order], (directed[:, 0] < directed[:, 1])[order]
+    first = np.flatnonzero(np.r_[True, np.any(edges[1:] != edges[:-1], axis=1)])  # each edge's first entry
+    count = np.diff(np.r_[first, len(edges)])
+    entries = [np.zeros((0, 2), np.int64)]
+    for k in np.unique(count[count > 1]):
+        i, j = np.triu_indices(k, 1)
+        starts = first[count == k][:, None]
+        entries.append(np.stack([(starts + i).ravel(), (starts + j).ravel()], 1))
+    entries = np.concatenate(entries)
+    entries = entries[np.lexsort((entries[:, 1], entries[:, 0]))]
+    signs = np.where(forward[entries[:, 0]] != forward[entries[:, 1]], 1.0, -1.0)
+    return torch.from_numpy(owner[entries].astype(np.int64)), torch.from_numpy(signs.astype(np.float32))
 
 
-def mesh_normal_consistency_term(render, batch: Batch, state: dict) -> torch.Tensor:
-    """L_nc = mean over pairs of faces sharing an edge of 1 − cos(n_i, n_j) (pytorch3d mesh_normal_consistency,
-    SuGaR refinement weight 0.1); 0 without pairs."""
-    method = method_state(state, "refinement", "mesh_normal_consistency")
-    g = method.gaussians
-    pairs = method._edge_pairs
-    v = g.params["vertices"][g.faces]
+def mesh_normal_consistency(vertices: torch.Tensor, faces: torch.Tensor, pairs: torch.Tensor,
+                            signs: torch.Tensor) -> torch.Tensor:
+    """pytorch3d's mesh normal consistency: the mean over ``pairs`` (`face_pairs`) of 1 − cos(n₀, n₁), with, for faces
+    f₀ and f₁ on the edge e = (v₀, v₁) and a, b their vertices off it, n₀ = e × (a − v₀) and n₁ = −e × (b − v₀): 0 for
+    coplanar faces on either side of e, 2 for faces folded flat onto each other, whatever their winding.
+    Computed as 1 − s·cos(N₀, N₁) with N the faces' own normals (v₁ − v₀) × (v₂ − v₀) and s the pair's sign (e × (a − v₀)
+    is ±N₀, + when f₀ runs along e from v₀ to v₁); 0 without pairs."""
+    v = vertices[faces]
     normal = F.normalize(torch.linalg.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), dim=-1)
     if len(pairs) == 0:
         return v.sum() * 0
-    return (1 - (normal[pairs[:, 0]] * normal[pairs[:, 1]]).sum(-1)).mean()
+    return (1 - signs.to(normal.dtype) * (normal[pairs[:, 0]] * normal[pairs[:, 1]]).sum(-1)).mean()
+
+
+def mesh_normal_consistency_term(render, batch: Batch, state: dict) -> torch.Tensor:
+    """L_nc: `mesh_normal_consistency` of the refinement's mesh (SuGaR refinement, weight 0.1)."""
+    method = method_state(state, "refinement", "mesh_normal_consistency")
+    g = method.gaussians
+    return mesh_normal_consistency(g.params["vertices"], g.faces, *method._face_pairs)
 
 
 MESH_NORMAL_CONSISTENCY = loss_term("mesh_normal_consistency", mesh_normal_consistency_term)
@@ -202,13 +229,15 @@ MESH_NORMAL_CONSISTENCY = loss_term("mesh_normal_consistency", mesh_normal_consi
 def check_refinement(params, cfg) -> None:
     """ConfigError for an unknown refinement or Gaussians per triangle, or a binding the budget cannot hold:
     ``refine_triangles`` x n > ``train.max_gaussians`` (before any training)."""
-    if params.refinement not in ("none", *REFINEMENT_STEPS):
-        raise ConfigError(f"method.refinement must be none, short, medium or long, got {params.refinement!r}")
+    if params.refinement not in ("none", "decimated", *REFINEMENT_STEPS):
+        raise ConfigError(f"method.refinement must be none, decimated, short, medium or long, got {params.refinement!r}")
     if params.refinement == "none":
         return
-    barycentric(params.refine_gaussians_per_triangle)
     if params.refine_triangles < 1:
         raise ConfigError(f"method.refine_triangles must be >= 1, got {params.refine_triangles}")
+    if params.refinement == "decimated":
+        return  # no Gaussians bound
+    barycentric(params.refine_gaussians_per_triangle)
     n = params.refine_gaussians_per_triangle
     wanted = MESH_PARTS * params.refine_triangles * n
     if cfg.train.max_gaussians > 0 and wanted > cfg.train.max_gaussians:

@@ -1,7 +1,7 @@
 """SuGaR's refinement (methods/sugar_binding.py, methods/sugar_refine.py): Gaussians stay in their triangle's plane and move with
 its vertices exactly, the complex in-plane rotation equals the quaternion path, float64 gradients through the
-binding, the hard meshes (zero-area faces, several components, empty), a quick run with refinement and the
-budget's refusal."""
+binding, the hard meshes (zero-area faces, several components, empty), a quick run with refinement (its vertices
+move from the mesh it starts from) and its decimated control (that mesh, not refined), and the budget's refusal."""
 
 from __future__ import annotations
 
@@ -16,9 +16,11 @@ import trimesh
 
 from gsbench.cli import main
 from gsbench.config.run_config import run_id
+from gsbench.data.method_scene import scene_for_method
 from gsbench.errors import ConfigError
 from gsbench.geometry.rotations import quat_multiply, rotmat_to_quat
 from gsbench.mesh import MeshError
+from gsbench.mesh.cleanup import canonical_order
 from gsbench.methods.sugar_binding import (
     BARYCENTRIC,
     barycentric,
@@ -27,9 +29,13 @@ from gsbench.methods.sugar_binding import (
     initial_log_scales,
     usable_faces,
 )
+from gsbench.methods.sugar_refine import bound_mesh
 from gsbench.raster.reference_projection import quat_to_rotmat
 from gsbench.registry import METHODS
-from gsbench.runs.runner import resolve_run
+from gsbench.runs.runner import load_run_scene, resolve_recorded, resolve_run
+from gsbench.runs.sweep import expand, load_sweep
+from gsbench.training.trainer import load_checkpoint
+from sweep_files import sweep_file
 
 
 def _two_components(dtype=torch.float64):
@@ -109,25 +115,74 @@ def test_hard_meshes():
     assert scales.shape == (6, 2) and torch.allclose(scales, torch.full((6, 2), shortest / (4 + 2 * math.sqrt(3)), dtype=torch.float64))
 
 
-def test_a_quick_run_with_refinement_ends_ok_and_moves_the_coarse_mesh(tiny_spot, tmp_path, restore_threads):
-    """sugar with refinement short on a small scene: status ok; the record states the coarse mesh's size and the
-    Gaussians bound, and the refine stage's time; the evaluated mesh is the coarse mesh's faces on the refinement's
-    final vertices (40 steps: 2 000 of SuGaR's 15 000 scaled to 300)."""
-    out = tmp_path / "runs"
-    assert main(["run", "--method", "sugar", "--scene", str(tiny_spot), "--preset", "quick", "--out", str(out),
-                 "--set", "train.iterations=300", "--set", "method.refinement=short",
-                 "--set", "method.refine_triangles=5000", "--set", "method.hard_prune_opacity=0.05"]) == 0
-    record = json.loads(next(out.rglob("record.json")).read_text())
+QUICK_REFINEMENT = ["--preset", "quick", "--threads", "1", "--set", "train.iterations=300", "--set", "method.refine_triangles=5000",
+                    "--set", "method.hard_prune_opacity=0.05"]
+
+
+@pytest.fixture(scope="module")
+def quick_runs(tiny_spot, tmp_path_factory):
+    """The records of sugar on a small scene with refinement ``short`` and ``decimated`` (the same coarse training:
+    300 steps, one thread; the short refinement's 2 000 of SuGaR's 15 000 steps scaled to 40)."""
+    before = torch.get_num_threads()
+    records = {}
+    for refinement in ("short", "decimated"):
+        out = tmp_path_factory.mktemp(f"sugar-{refinement}")
+        assert main(["run", "--method", "sugar", "--scene", str(tiny_spot), "--out", str(out), *QUICK_REFINEMENT,
+                     "--set", f"method.refinement={refinement}"]) == 0
+        records[refinement] = json.loads(next(out.rglob("record.json")).read_text())
+    torch.set_num_threads(before)
+    return records
+
+
+def starting_mesh(record: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) the refinement of ``record``'s run starts from, rebuilt from its trained coarse model the way
+    the runner builds the second stage (`SuGaR.refinement_mesh`, `bound_mesh`)."""
+    cfg = resolve_recorded(record["config"])
+    given = scene_for_method(load_run_scene(cfg), "sugar")
+    coarse = METHODS.get("sugar")()
+    coarse.setup(given, cfg)
+    coarse.load_state_dict(load_checkpoint(Path(record["mesh"]["path"]).parent / "checkpoint-final.pt")["method"])
+    vertices, faces = bound_mesh(coarse.refinement_mesh(given, cfg))
+    return vertices.double().numpy(), faces.numpy()
+
+
+def same_mesh(written: trimesh.Trimesh, vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """``written`` (a mesh file, in `canonical_order`) is exactly ``vertices`` and ``faces``."""
+    expected = canonical_order(trimesh.Trimesh(vertices, faces, process=False))
+    return np.array_equal(np.asarray(written.vertices), expected.vertices) and np.array_equal(written.faces, expected.faces)
+
+
+def test_a_quick_run_with_refinement_moves_the_vertices_of_the_mesh_it_starts_from(quick_runs):
+    """sugar with refinement short: status ok; the record states the coarse mesh's size, the Gaussians bound and the
+    refine stage's time; the evaluated mesh is the starting mesh's faces on the refinement's final vertices, and
+    those vertices moved: nearly every one, by at least 1e-5 of the cameras' extent at the median (a vertex learning
+    rate of 0 leaves them where they started)."""
+    record = quick_runs["short"]
     second = record["inputs"]["second_stage"]
     assert record["status"] == "ok" and math.isfinite(record["metrics"]["chamfer"]) and record["timings"]["refine"] > 0
     assert second["refinement"] == "short" and second["steps"] == 40 and second["bound_gaussians"] == second["coarse_mesh"]["faces"]
     assert 0 < second["coarse_mesh"]["faces"] <= 2 * 5000  # foreground and background, each at most 5000
     refined = trimesh.load(record["mesh"]["path"], process=False)
     state = torch.load(Path(record["mesh"]["path"]).parent / "refine" / "checkpoint-final.pt", weights_only=False)
-    assert len(refined.faces) == second["coarse_mesh"]["faces"]
-    written, final = np.asarray(refined.vertices), state["method"]["params"]["vertices"].double().numpy()
-    by_position = lambda v: v[np.lexsort(v.T[::-1])]  # noqa: E731  (the written mesh is in canonical order)
-    assert np.allclose(by_position(written), by_position(final), atol=1e-6)
+    final = state["method"]["params"]["vertices"].double().numpy()
+    start, faces = starting_mesh(record)
+    assert same_mesh(refined, final, faces)
+    moved = np.linalg.norm(final - start, axis=1)
+    extent = float(np.ptp(start, axis=0).max())
+    assert (moved > 0).mean() > 0.9 and np.median(moved) > 1e-5 * extent, (
+        f"the refinement left the coarse mesh's vertices in place: {(moved > 0).mean():.0%} moved, median "
+        f"{np.median(moved):.3g} (extent {extent:.3g})")
+
+
+def test_the_decimated_control_evaluates_the_mesh_the_refinement_starts_from(quick_runs):
+    """refinement decimated: no second stage; its evaluated mesh is, vertex for vertex and face for face, the mesh the
+    refinement starts from (the same coarse training), so it has the refined mesh's vertex and face counts."""
+    control, refined = quick_runs["decimated"], quick_runs["short"]
+    assert control["status"] == "ok" and "second_stage" not in control["inputs"] and "refine" not in control["timings"]
+    assert control["run_id"] not in (refined["run_id"], resolve_run("sugar", refined["scene"], preset="quick").run_id)
+    mesh = trimesh.load(control["mesh"]["path"], process=False)
+    assert same_mesh(mesh, *starting_mesh(refined))
+    assert (control["mesh"]["vertices"], control["mesh"]["faces"]) == (refined["mesh"]["vertices"], refined["mesh"]["faces"])
 
 
 def test_a_refinement_over_the_budget_is_refused_before_training():
@@ -137,7 +192,7 @@ def test_a_refinement_over_the_budget_is_refused_before_training():
                                                                          "method.refine_gaussians_per_triangle=6"])
     with pytest.raises(ConfigError, match=r"2 x 60000 triangles x 6 = 720000 Gaussians.*max_gaussians = 100000.*<= 8333"):
         METHODS.get("sugar").check_config(cfg)
-    with pytest.raises(ConfigError, match="none, short, medium or long"):
+    with pytest.raises(ConfigError, match="none, decimated, short, medium or long"):
         METHODS.get("sugar").check_config(resolve_run("sugar", "synthetic/spot", preset="cpu",
                                                       overrides=["method.refinement=forever"]))
 
@@ -154,3 +209,21 @@ def test_the_refinement_fields_are_shown_and_leave_coarse_runs_ids_unchanged():
     assert run_id(recorded) == off.run_id
     on = resolve_run("sugar", "synthetic/dtu-bunny", preset="cpu", overrides=["method.refinement=short"])
     assert on.method["refinement"] == "short" and on.run_id != off.run_id
+
+
+@pytest.mark.parametrize("suite", ["dtu", "tnt"])
+def test_the_claims_sweeps_share_the_boards_sugar_runs_and_add_the_decimated_control(suite):
+    """sugar_claims_<suite>: the coarse and refined rows are the <suite>_rig board's sugar and sugar-refined runs (the
+    same run ids, so a runs folder holds them once), the decimated row the coarse config with refinement decimated;
+    three seeds on one or two of the suite's scenes."""
+    board = {(r.label, r.config.scene, r.config.seed): r.run_id for r in expand(load_sweep(sweep_file(f"{suite}_rig")))}
+    claims = expand(load_sweep(sweep_file(f"sugar_claims_{suite}")))
+    scenes = {r.config.scene for r in claims}
+    assert 1 <= len(scenes) <= 2 and {r.config.seed for r in claims} == {0, 1, 2} and len(claims) == 3 * 3 * len(scenes)
+    for run in claims:
+        key = (run.label, run.config.scene, run.config.seed)
+        if run.label == "sugar-decimated":
+            coarse = next(r for r in claims if (r.label, r.config.scene, r.config.seed) == ("sugar", *key[1:]))
+            assert run.config.to_dict() == {**coarse.config.to_dict(), "method": {**coarse.config.method, "refinement": "decimated"}}
+        else:
+            assert run.run_id == board[key]
