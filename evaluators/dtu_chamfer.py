@@ -101,11 +101,10 @@ def sample_limit(limit: int | None, available: int | None = None) -> int | None:
     return None if available is None else available // SAMPLE_BYTES
 
 
-def check_sample_counts(verts: np.ndarray, faces: np.ndarray, opts: DTUOptions) -> None:
+def check_sample_counts(verts: np.ndarray, faces: np.ndarray, opts: DTUOptions, limit: int | None) -> None:
     """Both point sets of mode ``mesh`` (the official grid samples and, if ``opts.sampled``, the area samples)
-    checked against `sample_limit` before any work, so a mesh too large for either fails in seconds."""
-    limit = sample_limit(opts.max_sample_points)
-    bound, _ = pointsets.barycentric_grid_counts(verts, faces, opts.downsample_density)
+    checked against ``limit`` (`sample_limit`) before any work, so a mesh too large for either fails in seconds."""
+    bound = pointsets.barycentric_grid_bound(verts, faces, opts.downsample_density)
     area = float(pointsets.face_normals(verts, faces)[1].sum())
     pointsets.check_sample_count(bound, f"samples at density {opts.downsample_density}", limit, area)
     if opts.sampled:
@@ -219,12 +218,13 @@ class DTUChamfer(Evaluator):
                     f"{scene.normalisation.scale})"
                 )
 
+        limit = sample_limit(opts.max_sample_points)  # read once: the memory available moves during a run
         if opts.mode == "mesh":
-            check_sample_counts(verts, faces, opts)
+            check_sample_counts(verts, faces, opts, limit)
         with diag.phase("sample"):
             if opts.mode == "mesh":
                 samples = pointsets.barycentric_grid_samples(verts, faces, opts.downsample_density,
-                                                             sample_limit(opts.max_sample_points))
+                                                             limit)
                 data = np.concatenate([verts, samples], axis=0)
             else:
                 data = verts
@@ -237,7 +237,7 @@ class DTUChamfer(Evaluator):
         if opts.mode == "mesh" and opts.sampled:
             with diag.phase("sampled_draw"):
                 area = pointsets.area_samples(verts, faces, opts.downsample_density, opts.seed, opts.sample_oversample,
-                                              sample_limit(opts.max_sample_points))
+                                              limit)
             if len(area) == 0:
                 raise EvaluationError(f"dtu_chamfer: {geo.label} has no surface area left after culling")
             sampled = _score(area, gt, trees, opts, geo.label, str(files["ObsMask"]), diag, "sampled_")

@@ -43,11 +43,14 @@ def check_sample_count(count: int, what: str, max_points: int | None, area: floa
             "or run it on a larger machine")
 
 
-def barycentric_grid_counts(vertices: np.ndarray, faces: np.ndarray, density: float) -> tuple[int, float]:
-    """(bound on the samples `barycentric_grid_samples` draws, ``sum (n1+1)(n2+1)/2``; the mesh's area), without
-    drawing them."""
-    n1, n2, area2 = _grid_sizes(vertices, faces, density)[-3:]
-    return int(((n1 + 1) * (n2 + 1)).sum() // 2), float(area2.sum() / 2)
+def barycentric_grid_bound(vertices: np.ndarray, faces: np.ndarray, density: float) -> int:
+    """The bound ``sum (n1+1)(n2+1)/2`` on the samples `barycentric_grid_samples` draws, without drawing them."""
+    n1, n2 = _grid_sizes(vertices, faces, density)[3:5]
+    return _grid_bound(n1, n2)
+
+
+def _grid_bound(n1: np.ndarray, n2: np.ndarray) -> int:
+    return int(((n1 + 1) * (n2 + 1)).sum() // 2)
 
 
 def _grid_sizes(vertices: np.ndarray, faces: np.ndarray, density: float):
@@ -85,8 +88,7 @@ def barycentric_grid_samples(vertices: np.ndarray, faces: np.ndarray, density: f
     a, v1, v2, n1, n2, area2 = _grid_sizes(vertices, faces, density)
     if len(a) == 0:
         return np.zeros((0, 3))
-    check_sample_count(int(((n1 + 1) * (n2 + 1)).sum() // 2), f"samples at density {density}", max_points,
-                       float(area2.sum() / 2))
+    check_sample_count(_grid_bound(n1, n2), f"samples at density {density}", max_points, float(area2.sum() / 2))
     key = n1 * (int(n2.max()) + 1) + n2
     order = np.argsort(key, kind="stable")
     uniq, first = np.unique(key[order], return_index=True)

@@ -120,8 +120,8 @@ def test_area_samples_over_the_limit_fail_before_the_official_steps(scene, monke
     """The area-sampled variant draws 4 samples per 0.2 mm square, more than the official grid: a mesh whose grid
     fits but whose area samples do not fails before the official steps run (not after them)."""
     mesh = F.dtu_sphere_mesh()
-    grid, _ = pointsets.barycentric_grid_counts(to_dataset_frame(np.asarray(mesh.vertices), scene, "normalised"),
-                                                np.asarray(mesh.faces), 0.2)
+    grid = pointsets.barycentric_grid_bound(to_dataset_frame(np.asarray(mesh.vertices), scene, "normalised"),
+                                            np.asarray(mesh.faces), 0.2)
     monkeypatch.setattr(pointsets, "greedy_downsample", lambda *a, **k: pytest.fail("the official steps ran"))
     with pytest.raises(EvaluationError, match="area samples at spacing 0.2"):
         DTUChamfer().evaluate(mesh, scene, cull="none", max_sample_points=grid + len(mesh.vertices))
