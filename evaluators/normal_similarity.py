@@ -23,6 +23,7 @@ from gsbench.evaluators import culling, gt_io, pointsets
 from gsbench.evaluators.base import Diagnostics, Evaluator, MetricInfo, check_files
 from gsbench.evaluators.dtu_gt import DTUGroundTruth
 from gsbench.evaluators.geometry import load_geometry, to_dataset_frame, to_normalised_frame
+from gsbench.signals import signals_deferred
 
 
 @dataclass(frozen=True)
@@ -193,7 +194,8 @@ class NormalSimilarity(Evaluator):
             elif scene.gt is not None and scene.gt.tau:
                 gate, gate_rule = float(scene.gt.tau), "tau"
             else:
-                spacing = float(np.median(g_tree.query(g_pts, k=2, workers=-1)[0][:, 1]))
+                with signals_deferred():
+                    spacing = float(np.median(g_tree.query(g_pts, k=2, workers=-1)[0][:, 1]))
                 gate, gate_rule = opts.gate_factor * spacing, f"{opts.gate_factor} x GT spacing {spacing:.4g}"
             near_p, near_g = d_p < gate, d_g < gate
             gated = near_p.any() and near_g.any()

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from tqdm.auto import tqdm
 
 from gsbench.errors import EvaluationError
+from gsbench.signals import signals_deferred
 
 QUERY_CHUNK = 500_000  # query points per KD-tree call
 PAIR_BUDGET = 4_000_000  # (query x k) entries per KNN call
@@ -176,7 +177,8 @@ def radius_pair_estimate(points: np.ndarray, radius: float, seed: int = 0) -> in
         return 0
     picked = points[np.random.default_rng(seed).choice(n, size=min(DEGREE_SAMPLE, n), replace=False)]
     tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # built in under half the time
-    degree = float(tree.query_ball_point(picked, radius, return_length=True, workers=-1).mean()) - 1
+    with signals_deferred():
+        degree = float(tree.query_ball_point(picked, radius, return_length=True, workers=-1).mean()) - 1
     return int(n * degree / 2)
 
 
@@ -197,7 +199,8 @@ def nn_distances(queries: np.ndarray, tree: cKDTree, upper: float = np.inf, desc
     """
     out = np.empty(len(queries))
     for start, stop in _chunks(len(queries), QUERY_CHUNK, desc=desc):
-        out[start:stop], _ = tree.query(queries[start:stop], k=1, distance_upper_bound=upper, workers=workers)
+        with signals_deferred():
+            out[start:stop], _ = tree.query(queries[start:stop], k=1, distance_upper_bound=upper, workers=workers)
     return out
 
 
@@ -206,7 +209,8 @@ def nn_indices(queries: np.ndarray, tree: cKDTree, workers: int = -1) -> tuple[n
     dist = np.empty(len(queries))
     idx = np.empty(len(queries), np.int64)
     for start, stop in _chunks(len(queries), QUERY_CHUNK):
-        dist[start:stop], idx[start:stop] = tree.query(queries[start:stop], k=1, workers=workers)
+        with signals_deferred():
+            dist[start:stop], idx[start:stop] = tree.query(queries[start:stop], k=1, workers=workers)
     return dist, idx
 
 

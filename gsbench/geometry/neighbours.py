@@ -18,6 +18,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from gsbench.errors import ConfigError, NumericalError
+from gsbench.signals import signals_deferred
 
 
 def rows(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -32,7 +33,8 @@ def nearest_other(points: np.ndarray, k: int) -> np.ndarray:
     k = min(int(k), max(n - 1, 0))
     if k == 0:
         return np.zeros((n, 0), dtype=np.int64)
-    _, idx = cKDTree(points).query(points, k=k + 1, workers=-1)
+    with signals_deferred():
+        _, idx = cKDTree(points).query(points, k=k + 1, workers=-1)
     idx = np.asarray(idx, dtype=np.int64).reshape(n, k + 1)
     is_self = idx == np.arange(n)[:, None]
     drop = np.where(is_self.any(1), is_self.argmax(1), k)  # i's own column, or the farthest

@@ -30,6 +30,7 @@ from gsbench.mesh import MeshError
 from gsbench.mesh.cleanup import to_trimesh
 from gsbench.raster import RasterGaussians, RasterSettings, rasterize
 from gsbench.raster.payload import quat_to_rotmat
+from gsbench.signals import signals_deferred
 
 # Open3D's screened Poisson on more than one thread crashes (SIGSEGV) at random when the cores are busy, and
 # its mesh then depends on the thread count (Open3D issues 6828, 7229; PoissonRecon 298): one thread, always.
@@ -77,7 +78,8 @@ class DensityField:
     def neighbours(self, points: torch.Tensor) -> torch.Tensor:
         """(P, min(16, N)) indices of the centres nearest to ``points`` (P,3), nearest first."""
         k = min(KNN, len(self.means))
-        _, idx = self.tree.query(points.numpy(), k=k, workers=-1)
+        with signals_deferred():
+            _, idx = self.tree.query(points.numpy(), k=k, workers=-1)
         return torch.as_tensor(np.asarray(idx).reshape(len(points), k), dtype=torch.int64)
 
 

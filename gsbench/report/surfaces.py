@@ -38,6 +38,7 @@ from gsbench.report import png
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import check_folder_identity
 from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_recorded
+from gsbench.signals import signals_deferred
 
 PICTURE_WIDTH = 320  # pixels across one panel, as drawn
 STORED_SCALE = 0.75  # the stored PNG's size against the drawn figure's (with a palette: 10-75 KiB a picture)
@@ -145,7 +146,8 @@ def vertex_errors_mm(vertices: np.ndarray, scene: Scene, gt) -> np.ndarray | Non
     kind, value = gt
     reference = np.asarray(value.sample(200_000) if kind == "mesh" else value)
     tree = cKDTree(scene.normalisation.apply(reference))
-    return tree.query(scene.normalisation.apply(np.asarray(vertices)), workers=-1)[0]
+    with signals_deferred():
+        return tree.query(scene.normalisation.apply(np.asarray(vertices)), workers=-1)[0]
 
 
 def _mask_outline(image: np.ndarray, mask: np.ndarray) -> np.ndarray:

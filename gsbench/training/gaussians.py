@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 from gsbench.errors import DataError, NumericalError
 from gsbench.raster.sh import C0 as SH_C0
 from gsbench.raster.types import RasterGaussians
+from gsbench.signals import signals_deferred
 
 PARAMETER_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -34,7 +35,8 @@ def knn_initial_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
     if n < 2:
         return np.full(n, math.sqrt(1e-7) if n else 0.0)
     kk = min(k, n - 1)
-    dist, _ = cKDTree(points).query(points, k=kk + 1, workers=-1)
+    with signals_deferred():
+        dist, _ = cKDTree(points).query(points, k=kk + 1, workers=-1)
     mean_sq = np.mean(np.square(dist[:, 1:]), axis=1)
     return np.sqrt(np.maximum(mean_sq, 1e-7))
 
