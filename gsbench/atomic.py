@@ -6,7 +6,8 @@ target is left as it was. A write that fails because its disk is full (``ENOSPC`
 quota) is a `DiskFullError`, one line naming the file, the space left and the fix.
 
 `check_writable` and `check_writable_files` find, before any work, what would stop the writes: a file where a
-folder is needed, a symbolic link that leads nowhere, a folder or file that cannot be written.
+folder is needed, a symbolic link that leads nowhere, a folder or file that cannot be written, a file system that
+takes no folders (probed with one empty folder, removed at once).
 """
 
 from __future__ import annotations
@@ -79,8 +80,8 @@ def _size(count: int) -> str:
 def check_writable(folder, option: str) -> Path:
     """A ConfigError naming ``folder``, what is in the way and the fix (``option``: the setting that chose the
     folder) unless files can be written there: every part of its path that exists must be a folder (a symbolic
-    link must lead to one) and the deepest of them writable. Checked before any work whose results go there;
-    nothing is created."""
+    link must lead to one) and the deepest of them writable, with a folder made in it (and removed) to prove it.
+    Checked before any work whose results go there; nothing is left behind."""
     folder = Path(folder)
     existing = folder
     while not os.path.lexists(existing) and existing != existing.parent:
@@ -96,9 +97,25 @@ def check_writable(folder, option: str) -> Path:
         problem = f"{existing} is a file, not a folder; fix: move that file away, or {other}"
     elif not os.access(existing, os.W_OK | os.X_OK):
         problem = f"{existing} is not writable (read-only folder or file system); fix: {other} or make it writable"
+    elif (refused := _folder_refused(existing)) is not None:
+        full = disk_full_error(refused, existing / "x")
+        if full is not None:
+            raise full from refused
+        problem = (f"{existing} takes no new folders ({os.strerror(refused.errno).lower()}: a file system such as "
+                   f"/proc, or one that refuses this user); fix: {other}")
     else:
         return folder
     raise ConfigError(f"{folder}: cannot write there: {problem}")
+
+
+def _folder_refused(folder: Path) -> OSError | None:
+    """The OSError of making (and at once removing) an empty folder in ``folder``, or None when it can be made:
+    permission bits say nothing of a file system that refuses folders (procfs, sysfs) or of a server's own rules."""
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".gsbench-probe-", dir=folder))
+    except OSError as exc:
+        return exc
+    return None
 
 
 def _is_link_loop(path: Path) -> bool:

@@ -4,6 +4,7 @@ cannot be written. Each is one line naming the file or setting and the fix, befo
 from __future__ import annotations
 
 import dataclasses
+import errno
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ from gsbench.data.dtu import write_cameras_npz
 from gsbench.data.images import write_mask, write_rgb
 from gsbench.data.loader import check_scene, load_scene
 from gsbench.data.synthetic.rigs import look_at
-from gsbench.errors import DataError
+from gsbench.errors import ConfigError, DataError
 
 W, H, N = 16, 12, 4
 TURN = np.diag([-1.0, 1.0, -1.0])  # half a turn about the camera's y axis: same centre, looking the other way
@@ -95,6 +96,29 @@ def test_a_read_only_folder_is_refused(tmp_path, monkeypatch):
     monkeypatch.setattr(atomic.os, "access", lambda path, mode: False)  # as on a read-only file system
     with pytest.raises(Exception, match="is not writable .*fix: choose another folder with --out"):
         atomic.check_writable(tmp_path / "report", "--out")
+
+
+def test_a_file_system_that_takes_no_folders_is_refused_and_the_probe_leaves_nothing(tmp_path, monkeypatch):
+    """Permission bits pass on /proc as root, where every mkdir fails (ENOENT): `--out /proc/x` crashed with a
+    traceback in the run folder's lock before the probe."""
+    atomic.check_writable(tmp_path / "runs", "--out")
+    assert list(tmp_path.iterdir()) == []
+
+    def refuse(**_kwargs):
+        raise FileNotFoundError(2, "No such file or directory")
+
+    monkeypatch.setattr(atomic.tempfile, "mkdtemp", refuse)
+    with pytest.raises(ConfigError, match=r"takes no new folders \(no such file or directory.*--out"):
+        atomic.check_writable(tmp_path / "runs", "--out")
+
+
+def test_a_full_disk_is_named_when_the_folder_probe_finds_it(tmp_path, monkeypatch):
+    def full(**_kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.tempfile, "mkdtemp", full)
+    with pytest.raises(atomic.DiskFullError, match="the disk is full"):
+        atomic.check_writable(tmp_path / "runs", "--out")
 
 
 def test_eval_of_a_mesh_without_faces_names_the_cli_fix_and_that_fix_works(tiny_spot, tmp_path, capsys):
