@@ -1,17 +1,27 @@
 """NeuSG's hash encoding (methods/csrc/neusg_hash.cpp via `gsbench.methods.neusg_hash`) against its PyTorch
 reference: values and the tables' gradients on levels that hash and levels that do not, Instant-NGP's spatial hash
 computed independently, a dense level against ``grid_sample`` of the same grid, float64 gradchecks of both paths,
-determinism over thread counts, non-finite points, the fallbacks."""
+determinism over thread counts, non-finite points, the fallbacks; and ``method.encoding=hash`` in NeuSG (the
+coarse-to-fine levels, the config keys, a quick run)."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 import torch
 
+from gsbench.cli import main
+from gsbench.config.run_config import run_id
+from gsbench.data.loader import load_scene
 from gsbench.errors import ConfigError
+from gsbench.methods.neusg import active_levels
+from gsbench.methods.neusg_field import HashGrid
 from gsbench.methods.neusg_grid import grid_features_reference
 from gsbench.methods.neusg_hash import hash_features, hash_features_reference, vertex_rows
+from gsbench.registry import METHODS
+from gsbench.runs.runner import resolve_run
 from gsbench.switches import NEUSG_GRID
 
 TOL = {torch.float32: 1e-6, torch.float64: 1e-12}
@@ -121,3 +131,62 @@ def test_environment_and_fallbacks(monkeypatch):
     assert torch.autograd.grad(out.sum(), moving)[0].abs().sum() > 0
     with pytest.raises(ValueError, match="dtypes"):
         hash_features(tables, RESOLUTIONS, unit.float(), impl="fused")
+
+
+def _hash_method(tiny_spot, *overrides):
+    cfg = resolve_run("neusg", str(tiny_spot), preset="quick",
+                      overrides=["method.encoding=hash", "method.grid_levels=6", "method.grid_max_res=512",
+                                 "method.hash_table_log2=12", *overrides])
+    method = METHODS.get("neusg")()
+    method.setup(load_scene(cfg.scene, load_images=False), cfg)
+    return method, cfg
+
+
+def test_active_levels_follow_neuralangelos_schedule():
+    """4 levels, then one more every ``level_step`` steps after ``start`` (none added before 5 steps have passed,
+    as in Neuralangelo's max(init, ⌊(t − start) / step⌋)), at most L; every level when the step is 0."""
+    counts = [active_levels(step, 100, 10, 6) for step in (0, 100, 149, 150, 159, 160, 170, 10_000)]
+    assert counts == [4, 4, 4, 5, 5, 6, 6, 6]
+    assert active_levels(0, 0, 0, 16) == 16
+
+
+def test_the_hash_field_uses_its_active_levels_and_checkpoints_them(tiny_spot):
+    """``method.encoding=hash`` builds a `HashGrid` with tables of min((N+1)³, 2^T) rows; `update_schedules` sets the
+    active levels from the (scaled) schedule; inactive levels give 0 and get no gradient; the numerical gradient's
+    step is the finest active cell; the count is in the state dict."""
+    method, cfg = _hash_method(tiny_spot, "method.grid_level_step=3000")  # 300 steps a level at the quick scale
+    grid = method.field.sdf.grid
+    assert isinstance(grid, HashGrid) and grid.resolutions[-1] == 512
+    assert [t.shape[0] for t in grid.tables] == [min((n + 1) ** 3, 1 << 12) for n in grid.resolutions]
+    scale = cfg.train.iterations / 30000
+    method.update_schedules(0, scale)
+    assert int(grid.active) == 4 and method.field.sdf.epsilon == 2 * method.field.radius / grid.resolutions[3]
+    unit = torch.rand(50, 3, generator=torch.Generator().manual_seed(0))
+    out = grid(unit)
+    assert out.shape == (50, 12) and torch.equal(out[:, 8:], torch.zeros(50, 4)) and out[:, :8].abs().sum() > 0
+    grads = torch.autograd.grad(out.sum(), list(grid.tables), allow_unused=True)
+    assert all(g is not None for g in grads[:4]) and all(g is None for g in grads[4:])
+    method.update_schedules(round(3000 * scale) * 5, scale)
+    assert int(grid.active) == 5 and method.field.state_dict()["sdf.grid.active"] == 5
+
+
+def test_the_encoding_keys_are_checked_and_the_dense_default_keeps_the_run_id(tiny_spot):
+    dense = resolve_run("neusg", str(tiny_spot), preset="quick")
+    recorded = dense.to_dict()
+    before = {**recorded, "method": {k: v for k, v in recorded["method"].items()
+                                     if k not in ("encoding", "hash_table_log2", "grid_active_start", "grid_level_step")}}
+    assert run_id(before) == dense.run_id
+    assert resolve_run("neusg", str(tiny_spot), preset="quick", overrides=["method.encoding=hash"]).run_id != dense.run_id
+    with pytest.raises(ConfigError, match="method.encoding must be one of dense, hash"):
+        _hash_method(tiny_spot, "method.encoding=tree")
+    with pytest.raises(ConfigError, match="read by the hash encoding only"):
+        _hash_method(tiny_spot, "method.encoding=dense")
+
+
+def test_quick_hash_run_to_ok(tiny_spot, tmp_path, restore_threads):
+    assert main(["run", "--method", "neusg", "--scene", str(tiny_spot), "--preset", "quick", "--out", str(tmp_path),
+                 "--set", "train.iterations=60", "--set", "mesh.voxel_size=0.02", "--set", "method.encoding=hash",
+                 "--set", "method.hash_table_log2=14", "--set", "method.grid_levels=8",
+                 "--set", "method.grid_max_res=512", "--set", "eval.evaluators=[mesh_stats]"]) == 0
+    record = json.loads(next(tmp_path.rglob("record.json")).read_text())
+    assert record["status"] == "ok" and record["config"]["method"]["encoding"] == "hash"

@@ -1,17 +1,28 @@
 """NeuSG's two cross terms (methods/neusg.py, NeuSG eqs. 14 and 15, docs/methods/neusg.md §5.5): the value of
 `sdf_points` and `sdf_align` against their closed form on the sphere the field starts as, and which side each
 trains: L_pt moves the SDF and holds the Gaussians' centres fixed, L_align turns the Gaussians and holds the SDF's
-normal fixed."""
+normal fixed. And the marching-cubes shortcut (`sdf_volume`) on a trained field steeper than |∇f| = 1."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from gsbench.losses.terms import Batch
-from gsbench.methods.neusg import NeuSG, NeuSGConfig, sdf_align_term, sdf_points_term
-from gsbench.methods.neusg_field import ImplicitScene
+from gsbench.methods import neusg
+from gsbench.methods.neusg import (
+    COARSE,
+    NeuSG,
+    NeuSGConfig,
+    coarse_slope,
+    evaluate,
+    sdf_align_term,
+    sdf_points_term,
+    sdf_volume,
+)
+from gsbench.methods.neusg_field import HashGrid, ImplicitScene, SDFField
 from gsbench.training.gaussians import Gaussians
 
 RADIUS = 1.0  # the field's sphere; at initialisation f(x) = |x| − RADIUS / 2 exactly (methods/neusg_field.py)
@@ -107,3 +118,40 @@ def test_sdf_align_uses_the_shortest_axis_of_each_gaussian():
     method = _method(means, torch.full((2,), 0.9), _identity_quats(2), log_scales)
     loss = sdf_align_term(None, _batch(), _state(method))
     assert abs(float(loss.detach()) - 0.5) < 2e-3
+
+
+def _plate_field() -> SDFField:
+    """A hash-grid SDF trained (Adam, L1, 80 steps) towards a thin steep plate, f* = 8 (|z| − 0.02): |∇f| ≈ 8, not
+    1, and the plate lies between two layers of the meshing grid's coarse vertices (z = ±0.04 at voxel 0.02, where
+    f* = 0.16, beyond a coarse cell's diagonal 0.139), so all 8 corners of its cells are positive."""
+    field = SDFField(1.0, HashGrid(4, 16, 96, 2, 15, seed=0))
+    field.grid.set_active(4)
+    optimizer = torch.optim.Adam(field.parameters(), lr=0.01)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(80):
+        x = torch.rand(4096, 3, generator=gen) * 1.6 - 0.8
+        x[:2048, 2] = (torch.rand(2048, generator=gen) - 0.5) * 0.2  # half the points near the plate
+        loss = (field(x)[0] - 8.0 * (x[:, 2].abs() - 0.02)).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return field
+
+
+def test_the_marching_cubes_shortcut_on_a_trained_steep_field_is_the_full_evaluation(monkeypatch):
+    """`sdf_volume` evaluates exactly only near the coarse grid's zero crossings, within the slope-scaled margin
+    (`coarse_slope`); on a trained field much steeper than 1 its volume has the signs of the field evaluated at every
+    vertex, so marching cubes gives the same mesh. With the margin of |∇f| <= 1 it misses the plate."""
+    field = _plate_field()
+    with torch.no_grad():
+        values, spacing = sdf_volume(lambda x: field(x)[0], 1.0, 0.02)
+        n = values.shape[0]
+        axis = -1.0 + spacing * np.arange(n)
+        vertices = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        full = evaluate(lambda x: field(x)[0], vertices).reshape(n, n, n)
+        assert (full < 0).sum() > 5000  # the plate is there
+        assert float(coarse_slope(values[::COARSE, ::COARSE, ::COARSE], COARSE * spacing).max()) > 4
+        assert np.array_equal(values < 0, full < 0)
+        monkeypatch.setattr(neusg, "coarse_slope", lambda grid, step: np.ones([s - 1 for s in grid.shape]))
+        unscaled, _ = sdf_volume(lambda x: field(x)[0], 1.0, 0.02)
+    assert not np.array_equal(unscaled < 0, full < 0)
