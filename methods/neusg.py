@@ -130,7 +130,8 @@ class NeuSG(Method):
         items = super().memory_estimate(cfg)
         p = cls.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
         rows = 1 << p.hash_table_log2 if p.encoding == "hash" else math.inf
-        vertices = sum(min((n + 1) ** 3, rows) for n in level_resolutions(p.grid_levels, p.grid_min_res, p.grid_max_res))
+        resolutions = level_resolutions(p.grid_levels, p.grid_min_res, p.grid_max_res)
+        vertices = sum(min((n + 1) ** 3, rows) for n in resolutions)
         items["SDF grids"] = 4 * 4 * p.grid_features * vertices
         items["NeuS samples"] = p.rays * (p.coarse_samples + p.fine_samples) * 5 * 200 * 4
         return items

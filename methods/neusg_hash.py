@@ -1,5 +1,5 @@
 """NeuSG's multiresolution hash encoding (`gsbench.methods.neusg_field.HashGrid`; Instant-NGP, Müller et al. 2022,
-§3): the features of points in [0, 1]³, per level the trilinear blend of the 8 vertices of the point's cell, each
+eqs. 2–4): the features of points in [0, 1]³, per level the trilinear blend of the 8 vertices of the point's cell, each
 vertex's feature vector a row of the level's table, the levels concatenated.
 
 Level l has resolution N_l and a table (T_l, F). The cell, its weights and the border clamping are the dense grid's

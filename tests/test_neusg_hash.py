@@ -173,10 +173,11 @@ def test_the_hash_field_uses_its_active_levels_and_checkpoints_them(tiny_spot):
 def test_the_encoding_keys_are_checked_and_the_dense_default_keeps_the_run_id(tiny_spot):
     dense = resolve_run("neusg", str(tiny_spot), preset="quick")
     recorded = dense.to_dict()
-    before = {**recorded, "method": {k: v for k, v in recorded["method"].items()
-                                     if k not in ("encoding", "hash_table_log2", "grid_active_start", "grid_level_step")}}
+    later = ("encoding", "hash_table_log2", "grid_active_start", "grid_level_step")
+    before = {**recorded, "method": {k: v for k, v in recorded["method"].items() if k not in later}}
     assert run_id(before) == dense.run_id
-    assert resolve_run("neusg", str(tiny_spot), preset="quick", overrides=["method.encoding=hash"]).run_id != dense.run_id
+    hashed = resolve_run("neusg", str(tiny_spot), preset="quick", overrides=["method.encoding=hash"])
+    assert hashed.run_id != dense.run_id
     with pytest.raises(ConfigError, match="method.encoding must be one of dense, hash"):
         _hash_method(tiny_spot, "method.encoding=tree")
     with pytest.raises(ConfigError, match="read by the hash encoding only"):

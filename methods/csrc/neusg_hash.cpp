@@ -1,6 +1,6 @@
-// NeuSG's multiresolution hash encoding (Instant-NGP, Müller et al. 2022, §3; methods/neusg_field.py `HashGrid`):
-// per level a table of feature vectors addressed by the level's grid vertices, trilinear interpolation of the 8
-// vertices of a point's cell, and the backward with respect to the tables, float32 and float64. Python API and the
+// NeuSG's multiresolution hash encoding (Instant-NGP, Müller et al. 2022, its eqs. 2–4; methods/neusg_field.py
+// `HashGrid`): per level a table of feature vectors addressed by the level's grid vertices, trilinear interpolation of
+// the 8 vertices of a point's cell, and the backward with respect to the tables, float32 and float64. Python API and the
 // PyTorch reference: methods/neusg_hash.py; tests: tests/test_neusg_hash.py. Plain C ABI, OpenMP.
 //
 // Level l has resolution N = res[l] (>= 1) and a table of T = size[l] rows of F features, C-contiguous (T, F). The
