@@ -121,17 +121,19 @@ def test_sdf_align_uses_the_shortest_axis_of_each_gaussian():
 
 
 def _plate_field() -> SDFField:
-    """A hash-grid SDF trained (Adam, L1, 80 steps) towards a thin steep plate, f* = 8 (|z| − 0.02): |∇f| ≈ 8, not
+    """A hash-grid SDF trained (Adam, L1, 80 steps) towards a thin steep plate, f* = 12 (|z| − 0.02): |∇f| ≈ 12, not
     1, and the plate lies between two layers of the meshing grid's coarse vertices (z = ±0.04 at voxel 0.02, where
-    f* = 0.16, beyond a coarse cell's diagonal 0.139), so all 8 corners of its cells are positive."""
-    field = SDFField(1.0, HashGrid(4, 16, 96, 2, 15, seed=0))
+    f* = 0.24, beyond a coarse cell's diagonal 0.139), so all 8 corners of its cells are positive."""
+    with torch.random.fork_rng():  # the MLP's initial weights seeded, the global stream untouched
+        torch.manual_seed(0)
+        field = SDFField(1.0, HashGrid(4, 16, 96, 2, 15, seed=0))
     field.grid.set_active(4)
     optimizer = torch.optim.Adam(field.parameters(), lr=0.01)
     gen = torch.Generator().manual_seed(0)
     for _ in range(80):
         x = torch.rand(4096, 3, generator=gen) * 1.6 - 0.8
         x[:2048, 2] = (torch.rand(2048, generator=gen) - 0.5) * 0.2  # half the points near the plate
-        loss = (field(x)[0] - 8.0 * (x[:, 2].abs() - 0.02)).abs().mean()
+        loss = (field(x)[0] - 12.0 * (x[:, 2].abs() - 0.02)).abs().mean()
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -149,7 +151,7 @@ def test_the_marching_cubes_shortcut_on_a_trained_steep_field_is_the_full_evalua
         axis = -1.0 + spacing * np.arange(n)
         vertices = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
         full = evaluate(lambda x: field(x)[0], vertices).reshape(n, n, n)
-        assert (full < 0).sum() > 5000  # the plate is there
+        assert (full < 0).sum() > 1000  # the plate is there (a layer of the grid is 101² vertices)
         assert float(coarse_slope(values[::COARSE, ::COARSE, ::COARSE], COARSE * spacing).max()) > 4
         assert np.array_equal(values < 0, full < 0)
         monkeypatch.setattr(neusg, "coarse_slope", lambda grid, step: np.ones([s - 1 for s in grid.shape]))
