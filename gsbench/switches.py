@@ -68,8 +68,9 @@ LOCAL_COVARIANCE = Switch("GSBENCH_LOCAL_COVARIANCE", "IBGS's neighbourhood cova
                           "PyTorch", ("fused", "reference"), "fused", "result")
 SUGAR_FIELD = Switch("GSBENCH_SUGAR_FIELD", "SuGaR's density and normal field over the kNN: the fused C++ kernel, "
                      "or PyTorch", ("fused", "reference"), "fused", "result")
-NEUSG_GRID = Switch("GSBENCH_NEUSG_GRID", "NeuSG's multi-resolution grid features: the fused C++ kernel, or "
-                    "PyTorch's grid_sample", ("fused", "reference"), "fused", "result")
+NEUSG_GRID = Switch("GSBENCH_NEUSG_GRID", "NeuSG's multi-resolution grid features, dense or hashed "
+                    "(method.encoding): the fused C++ kernels, or PyTorch (grid_sample; the hash's gathers)",
+                    ("fused", "reference"), "fused", "result")
 IMAGE_CACHE = Switch("GSBENCH_IMAGE_CACHE", "the decoded-image cache (<GSBENCH_DATA>/decoded): the decoded, "
                      "downscaled images kept between runs", ON_OFF, "on", "speed")
 DATA = Switch("GSBENCH_DATA", "the scene cache: generated scenes and decoded images", (), "~/.cache/gsbench/scenes",

@@ -40,7 +40,7 @@ from gsbench.losses.terms import Batch, loss_term, method_state
 from gsbench.mesh import MeshError
 from gsbench.mesh.cleanup import canonical_order, keep_largest_clusters, to_trimesh
 from gsbench.methods.base import ADAM_EPS, GSConfig, Method, MethodInfo, _export_atomic
-from gsbench.methods.neusg_field import ImplicitScene, RayBatch
+from gsbench.methods.neusg_field import ENCODINGS, HASH_INITIAL_LEVELS, ImplicitScene, RayBatch, level_resolutions
 from gsbench.raster.reference_projection import quat_to_rotmat
 from gsbench.training.optim import make_adam
 from gsbench.training.trainer import scale_step
@@ -54,7 +54,11 @@ COARSE = 4  # fine cells per coarse cell side of the meshing grid (`sdf_volume`)
 @dataclass
 class NeuSGConfig(GSConfig):
     """3DGS defaults plus the implicit side (docs/methods/neusg.md §3, §5: which values are NeuSG's,
-    NeuS's or Neuralangelo's, and which are this benchmark's budget)."""
+    NeuS's or Neuralangelo's, and which are this benchmark's budget). ``encoding``: the SDF's grid, ``dense``
+    (`gsbench.methods.neusg_field.MultiGrid`) or ``hash`` (`HashGrid`, 2^``hash_table_log2`` rows a level); the
+    hash grid's coarse-to-fine schedule adds a level every ``grid_level_step`` steps after ``grid_active_start``
+    (steps of a 30 000-step run, scaled like every schedule; Neuralangelo's 5 000 of 500 000 is 300 of 30 000;
+    0 = every level from the start). The three hash keys are read by the hash encoding only."""
 
     rays: int = 128
     coarse_samples: int = 32
@@ -64,6 +68,10 @@ class NeuSGConfig(GSConfig):
     grid_min_res: int = 16
     grid_max_res: int = 128
     grid_features: int = 2
+    encoding: str = "dense"
+    hash_table_log2: int = 19
+    grid_active_start: int = 0
+    grid_level_step: int = 300
     background_max_res: int = 64
     field_lr: float = 0.01
     field_lr_final_ratio: float = 0.05
@@ -96,6 +104,18 @@ class NeuSG(Method):
         if p.fine_samples < 0 or p.grid_max_res < p.grid_min_res:
             raise ConfigError(f"method.fine_samples must be >= 0 and method.grid_max_res >= grid_min_res, got "
                               f"{p.fine_samples}, {p.grid_max_res} < {p.grid_min_res}")
+        if p.encoding not in ENCODINGS:
+            raise ConfigError(f"method.encoding must be one of {', '.join(ENCODINGS)}, got {p.encoding!r}")
+        if not 1 <= p.hash_table_log2 <= 31 or p.grid_active_start < 0 or p.grid_level_step < 0:
+            raise ConfigError(f"method.hash_table_log2 must be in [1, 31] and method.grid_active_start, "
+                              f"grid_level_step >= 0, got {p.hash_table_log2}, {p.grid_active_start}, "
+                              f"{p.grid_level_step}")
+        defaults = NeuSGConfig()
+        if p.encoding == "dense":
+            for name in ("hash_table_log2", "grid_active_start", "grid_level_step"):
+                if getattr(p, name) != getattr(defaults, name):
+                    raise ConfigError(f"method.{name} is read by the hash encoding only; fix: method.encoding=hash, "
+                                      f"or leave method.{name} at {getattr(defaults, name)}")
         if p.sdf_region not in SDF_REGIONS:
             raise ConfigError(f"method.sdf_region must be one of {SDF_REGIONS}, got {p.sdf_region!r}")
         if self.cfg.train.optimizer == "visible_adam":
@@ -104,12 +124,14 @@ class NeuSG(Method):
 
     @classmethod
     def memory_estimate(cls, cfg: RunConfig) -> dict[str, int]:
-        """The base estimate plus the field's grids (float32, 4 copies: values, gradient, Adam moments) and one
-        step's NeuS samples (5 evaluations each, ~200 float32 of activations and gradients)."""
+        """The base estimate plus the field's grids (float32, 4 copies: values, gradient, Adam moments; a hash level
+        holds at most 2^T of its vertices) and one step's NeuS samples (5 evaluations each, ~200 float32 of
+        activations and gradients)."""
         items = super().memory_estimate(cfg)
         p = cls.Config(**{k: v for k, v in cfg.method.items() if k != "name"})
-        growth = (p.grid_max_res / p.grid_min_res) ** (1 / max(p.grid_levels - 1, 1))
-        vertices = sum((round(p.grid_min_res * growth**level) + 1) ** 3 for level in range(p.grid_levels))
+        rows = 1 << p.hash_table_log2 if p.encoding == "hash" else math.inf
+        resolutions = level_resolutions(p.grid_levels, p.grid_min_res, p.grid_max_res)
+        vertices = sum(min((n + 1) ** 3, rows) for n in resolutions)
         items["SDF grids"] = 4 * 4 * p.grid_features * vertices
         items["NeuS samples"] = p.rays * (p.coarse_samples + p.fine_samples) * 5 * 200 * 4
         return items
@@ -120,7 +142,8 @@ class NeuSG(Method):
         centre, radius = sdf_region(scene, p.sdf_region)
         self.field = ImplicitScene(radius, cfg.seed, centre=centre, levels=p.grid_levels, min_res=p.grid_min_res,
                                    max_res=p.grid_max_res, features=p.grid_features,
-                                   background_max_res=p.background_max_res)
+                                   background_max_res=p.background_max_res, encoding=p.encoding,
+                                   table_log2=p.hash_table_log2)
         super().setup(scene, cfg)
 
     def make_optimizer(self, gaussians) -> torch.optim.Optimizer:
@@ -132,9 +155,13 @@ class NeuSG(Method):
         return make_adam(groups, self.cfg.train.optimizer, ADAM_EPS)
 
     def update_schedules(self, step: int, scale: float) -> None:
-        """The 3DGS schedules and the field's lr: linear warm-up, then cosine to ``field_lr_final_ratio``."""
+        """The 3DGS schedules, the field's lr (linear warm-up, then cosine to ``field_lr_final_ratio``) and the hash
+        grid's active levels (`active_levels`)."""
         super().update_schedules(step, scale)
         p = self.params
+        if p.encoding == "hash":
+            self.field.sdf.grid.set_active(active_levels(step, scale_step(p.grid_active_start, scale),
+                                                         scale_step(p.grid_level_step, scale), p.grid_levels))
         warmup, total = scale_step(p.field_warmup, scale), max(self.cfg.train.iterations, 1)
         if step < warmup:
             factor = step / warmup
@@ -199,6 +226,14 @@ class NeuSG(Method):
         super().load_state_dict(state)
 
 
+def active_levels(step: int, start: int, level_step: int, levels: int) -> int:
+    """Neuralangelo's coarse-to-fine count of active levels at ``step`` (its ``set_active_levels``):
+    min(L, max(`HASH_INITIAL_LEVELS`, ⌊(step − start) / level_step⌋)); every level when ``level_step`` is 0."""
+    if level_step <= 0:
+        return levels
+    return min(levels, max(HASH_INITIAL_LEVELS, (step - start) // level_step))
+
+
 def sdf_region(scene: Scene, region: str) -> tuple[np.ndarray, float]:
     """(centre, radius) of the SDF's sphere in the training frame (docs/methods/neusg.md §5.6), from what a capture
     offers, never its ground truth: ``scene``, the training frame's scene sphere (DTU's unit sphere, as IDR and
@@ -252,8 +287,11 @@ def evaluate(sdf_fn, points: np.ndarray) -> np.ndarray:
 def sdf_volume(sdf_fn, radius: float, voxel: float) -> tuple[np.ndarray, float]:
     """f on the grid of the cube [−R, R]³ with ``COARSE``·k + 1 vertices a side, spacing about ``voxel``
     (values, spacing). Evaluated exactly in the coarse cells (``COARSE`` fine cells a side) whose corners
-    change sign or come within a coarse cell's diagonal of 0; elsewhere the trilinear interpolation of the
-    coarse values, which has the same sign and no zero crossing there (|∇f| ≈ 1: the Eikonal term)."""
+    change sign or come within λ · (a coarse cell's diagonal) of 0, λ = max(1, the cell's `coarse_slope`);
+    elsewhere the trilinear interpolation of the coarse values, which has the same sign and no zero crossing
+    there: a zero inside a cell puts every corner within max |∇f| · diagonal of 0 (the cell's), and λ is that slope
+    as the coarse grid measures it around the cell (|∇f| ≈ 1 under the Eikonal term; a trained field can be
+    steeper: tests/test_neusg_terms.py)."""
     cells = max(1, int(math.ceil(2 * radius / voxel / COARSE)))
     n = COARSE * cells + 1
     spacing = 2 * radius / (n - 1)
@@ -263,13 +301,31 @@ def sdf_volume(sdf_fn, radius: float, voxel: float) -> tuple[np.ndarray, float]:
     values = torch.nn.functional.interpolate(torch.from_numpy(coarse)[None, None], size=(n, n, n), mode="trilinear",
                                              align_corners=True)[0, 0].numpy()
     corners = np.stack([coarse[i:i + cells, j:j + cells, k:k + cells] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-    near = (np.abs(corners).min(0) < COARSE * spacing * math.sqrt(3)) | (corners.min(0) < 0) & (corners.max(0) > 0)
+    margin = np.maximum(1.0, coarse_slope(coarse, COARSE * spacing)) * COARSE * spacing * math.sqrt(3)
+    near = (np.abs(corners).min(0) < margin) | (corners.min(0) < 0) & (corners.max(0) > 0)
     active = np.argwhere(near)
     if len(active):
         offsets = np.stack(np.meshgrid(*(np.arange(COARSE + 1),) * 3, indexing="ij"), -1).reshape(-1, 3)
         vertices = np.unique((active[:, None] * COARSE + offsets[None]).reshape(-1, 3), axis=0)
         values[tuple(vertices.T)] = evaluate(sdf_fn, -radius + spacing * vertices.astype(np.float64))
     return values, spacing
+
+
+def coarse_slope(values: np.ndarray, spacing: float) -> np.ndarray:
+    """Per cell of the grid of ``values`` (k+1 vertices a side, k³ cells), the largest |Δf| / ``spacing`` over the
+    grid edges that touch one of its corners (its own 12 and the 24 that leave it): the field's slope as the grid
+    measures it around the cell (a lower bound of the local max |∇f|; the edges that leave the cell see the flanks
+    of a thin feature whose cell's corners are all equal)."""
+    vertex = np.zeros_like(values)
+    for axis in range(3):
+        edge = np.abs(np.diff(values, axis=axis)) / spacing
+        before = [(0, 0)] * 3
+        before[axis] = (1, 0)
+        after = [(0, 0)] * 3
+        after[axis] = (0, 1)
+        vertex = np.maximum(vertex, np.maximum(np.pad(edge, before), np.pad(edge, after)))
+    k = values.shape[0] - 1
+    return np.max([vertex[i:i + k, j:j + k, l:l + k] for i in (0, 1) for j in (0, 1) for l in (0, 1)], axis=0)
 
 
 def sdf_mesh(sdf_fn, radius: float, voxel: float):

@@ -9,6 +9,14 @@ interpolation of the cell's 8 vertices (`gsbench.methods.neusg_grid.grid_feature
 reference); the encoding concatenates the levels.
 Entries start uniform in ±1e-4 (Instant-NGP).
 
+**Hash encoding** (`HashGrid`, ``method.encoding: hash``, NeuSG's field as published: docs/methods/neusg.md §5.1):
+the same levels, each a table of min((N_l + 1)³, 2^T) feature vectors addressed by Instant-NGP's spatial hash of
+the cell's vertices (`gsbench.methods.neusg_hash.hash_features`: a fused kernel, its PyTorch reference beside it),
+with Neuralangelo's coarse-to-fine schedule: the first `HASH_INITIAL_LEVELS` levels are active, one more every
+``method.grid_level_step`` steps after ``method.grid_active_start`` (`NeuSG.update_schedules`); an inactive level's
+features are 0, and the numerical gradient's step is the finest active level's cell (Neuralangelo's
+``set_normal_epsilon``).
+
 **SDF** (`SDFField`): f(x) = (|x| − r₀) + g(x/R, enc(x)), g an MLP (one hidden layer of 64, softplus
 β = 100, NeuS/Neuralangelo's activation) whose output layer starts at zero, so f starts as the sphere of
 radius r₀ = R/2 (NeuS's geometric initialisation, bias 0.5 in the unit sphere, written as an explicit
@@ -43,10 +51,20 @@ import torch
 import torch.nn.functional as F
 
 from gsbench.methods.neusg_grid import grid_features
+from gsbench.methods.neusg_hash import hash_features
 
 TETRAHEDRON = torch.tensor([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
 SOFTPLUS_BETA = 100.0
 UPSAMPLE_S = 64.0  # NeuS's fixed s for the importance-sampling round
+ENCODINGS = ("dense", "hash")  # method.encoding: `MultiGrid`, `HashGrid`
+HASH_INITIAL_LEVELS = 4  # levels active from the start (Neuralangelo's coarse2fine.init_active_level)
+
+
+def level_resolutions(levels: int, min_res: int, max_res: int) -> list[int]:
+    """N_l = round(N_min · b^l), b = (N_max / N_min)^(1/(L−1)) (Instant-NGP eqs. 2–3, rounded rather than floored
+    so that the finest level is N_max)."""
+    growth = (max_res / min_res) ** (1 / max(levels - 1, 1))
+    return [int(round(min_res * growth**level)) for level in range(levels)]
 
 
 class MultiGrid(torch.nn.Module):
@@ -55,8 +73,7 @@ class MultiGrid(torch.nn.Module):
 
     def __init__(self, levels: int, min_res: int, max_res: int, features: int, seed: int):
         super().__init__()
-        growth = (max_res / min_res) ** (1 / max(levels - 1, 1))
-        self.resolutions = [int(round(min_res * growth**level)) for level in range(levels)]
+        self.resolutions = level_resolutions(levels, min_res, max_res)
         gen = torch.Generator().manual_seed(seed)
         self.grids = torch.nn.ParameterList(
             torch.nn.Parameter((torch.rand(1, features, r + 1, r + 1, r + 1, generator=gen) * 2 - 1) * 1e-4)
@@ -77,6 +94,40 @@ class MultiGrid(torch.nn.Module):
         return grid_features(self.grids, unit)
 
 
+class HashGrid(torch.nn.Module):
+    """Multi-resolution hash tables over [0, 1]³ (module docstring), sampled by
+    `gsbench.methods.neusg_hash.hash_features`; ``active`` (a buffer, so checkpoints keep it) levels are used."""
+
+    def __init__(self, levels: int, min_res: int, max_res: int, features: int, table_log2: int, seed: int):
+        super().__init__()
+        self.resolutions = level_resolutions(levels, min_res, max_res)
+        gen = torch.Generator().manual_seed(seed)
+        self.tables = torch.nn.ParameterList(
+            torch.nn.Parameter((torch.rand(min((r + 1) ** 3, 1 << table_log2), features, generator=gen) * 2 - 1) * 1e-4)
+            for r in self.resolutions)
+        self.features = features
+        self.register_buffer("active", torch.tensor(min(HASH_INITIAL_LEVELS, levels)))
+
+    @property
+    def dim(self) -> int:
+        return len(self.resolutions) * self.features
+
+    def set_active(self, levels: int) -> None:
+        """Use the first ``levels`` levels (clamped to [1, L])."""
+        self.active.fill_(min(max(int(levels), 1), len(self.resolutions)))
+
+    @property
+    def finest_cell(self) -> float:
+        """The finest active level's cell, in units of the grid's side."""
+        return 1.0 / self.resolutions[int(self.active) - 1]
+
+    def forward(self, unit: torch.Tensor) -> torch.Tensor:
+        """(N, L·F) features of points ``unit`` (N,3) in [0, 1]³ (outside: the border value); 0 for inactive levels."""
+        active = int(self.active)
+        out = hash_features(self.tables[:active], self.resolutions[:active], unit)
+        return F.pad(out, (0, self.dim - out.shape[1]))
+
+
 def _softplus(x: torch.Tensor) -> torch.Tensor:
     return F.softplus(x, beta=SOFTPLUS_BETA)
 
@@ -86,7 +137,7 @@ class SDFField(torch.nn.Module):
 
     FEATURE_DIM = 15
 
-    def __init__(self, radius: float, grid: MultiGrid, hidden: int = 64):
+    def __init__(self, radius: float, grid: MultiGrid | HashGrid, hidden: int = 64):
         super().__init__()
         self.radius, self.sphere = float(radius), 0.5 * float(radius)
         self.grid = grid
@@ -104,7 +155,7 @@ class SDFField(torch.nn.Module):
 
     @property
     def epsilon(self) -> float:
-        """The numerical gradient's step: the finest grid cell, scene units."""
+        """The numerical gradient's step: the grid's finest (active) cell, scene units."""
         return 2 * self.radius * self.grid.finest_cell
 
     def with_gradient(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -202,17 +253,21 @@ class RayBatch:
 class ImplicitScene(torch.nn.Module):
     """The SDF, its colour network, the background and the NeuS variance: everything NeuSG adds.
 
+    ``encoding``: the SDF's grid, `MultiGrid` ("dense") or `HashGrid` ("hash", ``table_log2`` = T).
     The field lives in the frame of its region, the sphere of ``radius`` about ``centre`` (training frame):
     `local` maps a training-frame point into it, and `render_rays` takes training-frame rays."""
 
     def __init__(self, radius: float, seed: int, *, centre=(0.0, 0.0, 0.0), levels: int = 5, min_res: int = 16,
-                 max_res: int = 256, features: int = 2, background_levels: int = 3, background_max_res: int = 64):
+                 max_res: int = 256, features: int = 2, background_levels: int = 3, background_max_res: int = 64,
+                 encoding: str = "dense", table_log2: int = 19):
         super().__init__()
         self.radius = float(radius)
         self.register_buffer("centre", torch.as_tensor(np.asarray(centre, dtype=np.float32)))
         with torch.random.fork_rng():  # the networks' initial weights from ``seed``, the global stream untouched
             torch.manual_seed(seed)
-            self.sdf = SDFField(radius, MultiGrid(levels, min_res, max_res, features, seed))
+            grid = (HashGrid(levels, min_res, max_res, features, table_log2, seed) if encoding == "hash"
+                    else MultiGrid(levels, min_res, max_res, features, seed))
+            self.sdf = SDFField(radius, grid)
             self.colour = ColourNetwork(radius)
             self.background = BackgroundField(radius, MultiGrid(background_levels, min_res, background_max_res,
                                                                 features, seed + 1))

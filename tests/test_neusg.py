@@ -135,11 +135,18 @@ def test_quick_run_to_ok(tiny_spot, tmp_path, restore_threads):
     assert record["mesh"]["sdf_grid"] > 1 and record["mesh"]["sdf_region"] == {"centre": [0.0, 0.0, 0.0], "radius": 1.0}
 
 
-def test_resume_is_bit_identical_for_the_field_too(tiny_spot, tmp_path, monkeypatch, restore_threads):
+# the hash grid with a level added every 2 steps from step 10 (16 iterations: 3 000 of 30 000 scale to 1.6), so the
+# active levels change after the resume at step 8
+HASH_FIELD = ["method.encoding=hash", "method.grid_levels=6", "method.grid_max_res=256", "method.hash_table_log2=12",
+              "method.grid_level_step=3000"]
+
+
+@pytest.mark.parametrize("field", [[], HASH_FIELD], ids=["dense", "hash"])
+def test_resume_is_bit_identical_for_the_field_too(tiny_spot, tmp_path, monkeypatch, restore_threads, field):
     """16 steps straight vs 8 + crash + resume + 8, the cross terms active from step 1: Gaussians, the SDF's
-    grids and networks, and their Adam moments all equal."""
+    grids and networks, and their Adam moments all equal (the hash grid's active levels too)."""
     overrides = ["data.downscale=1", "train.iterations=16", "train.checkpoint_every=8", "threads=1",
-                 "losses.sdf_points.start=0", "losses.sdf_align.start=0", "method.rays=32"]
+                 "losses.sdf_points.start=0", "losses.sdf_align.start=0", "method.rays=32", *field]
 
     def trainer(run_dir):
         cfg = resolve_run("neusg", str(tiny_spot), preset="quick", overrides=overrides)
@@ -159,6 +166,8 @@ def test_resume_is_bit_identical_for_the_field_too(tiny_spot, tmp_path, monkeypa
     assert resumed.fit().resumed_from == 8
     for name, param in straight.method.field.state_dict().items():
         assert torch.equal(param, resumed.method.field.state_dict()[name]), name
+    if field:
+        assert int(resumed.method.field.sdf.grid.active) == 6  # every level by step 16, 4 at the resume
     for name, param in straight.method.gaussians.params.items():
         assert torch.equal(param, resumed.method.gaussians.params[name]), name
 

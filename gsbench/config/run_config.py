@@ -51,13 +51,17 @@ EXECUTION_ONLY_KEYS = ("threads", "out", "gt")
 # method), the default being the value those records ran with (kept here should the field's own default change): at
 # that value a field is left out of the run id, so those records keep theirs (`completed_config` fills it into their
 # configs). SuGaR's refinement stage (docs/methods/sugar.md §6), the points of anytime evaluation
-# (docs/training.md §9), the TnT training frame (docs/design.md §12.1) and GGGS's surface depth
-# (docs/methods/gggs.md §3.5) came after the suites' records.
+# (docs/training.md §9), the TnT training frame (docs/design.md §12.1), GGGS's surface depth
+# (docs/methods/gggs.md §3.5) and NeuSG's hash encoding (docs/methods/neusg.md §5.1) came after the suites' records.
 ADDED_AFTER_RECORDS = (
     ("sugar", "method.refinement", "none"),
     ("sugar", "method.refine_gaussians_per_triangle", 1),
     ("sugar", "method.refine_triangles", 50_000),
     ("gggs", "method.surface_depth", "solid"),
+    ("neusg", "method.encoding", "dense"),
+    ("neusg", "method.hash_table_log2", 19),
+    ("neusg", "method.grid_active_start", 0),
+    ("neusg", "method.grid_level_step", 300),
     (None, "eval.points", []),
     (None, "eval.dtu_sampled", True),
     (None, "data.tnt_frame", "extent"),

@@ -4,7 +4,8 @@ through.
 Each kernel's sources live with the Python module that calls it (`gsbench.raster.abi`: the rasterizer's
 binning, compositing, projection and GOF's opacity integration; `gsbench.losses.ssim`,
 `gsbench.losses.normal_consistency`; `gsbench.geometry.eigen3`, `gsbench.geometry.local_geometry`,
-`gsbench.geometry.rotations`; `gsbench.methods.sugar_field`, `gsbench.methods.neusg_grid`), each in a ``csrc/`` folder beside it. A
+`gsbench.geometry.rotations`; `gsbench.methods.sugar_field`, `gsbench.methods.neusg_grid`,
+`gsbench.methods.neusg_hash`), each in a ``csrc/`` folder beside it. A
 caller asks `load_library` for a library by name with its sources and the ctypes signatures of its entry
 points (plain C ABI); the library is compiled with ``torch.utils.cpp_extension.load`` into
 ``$GSBENCH_CACHE/native`` (default ``~/.cache/gsbench/native``) and loaded once per process. Its file name

@@ -1,5 +1,5 @@
 """Which implementation of a kernel with a fast path and a PyTorch reference runs (SSIM, the 3×3
-eigen-solver, the normal consistency, SuGaR's field, IBGS's neighbourhood covariance, NeuSG's grid): the
+eigen-solver, the normal consistency, SuGaR's field, IBGS's neighbourhood covariance, NeuSG's dense and hash grids): the
 ``impl`` argument, else its switch (`gsbench.switches`), else the fast path — and the reference for inputs the
 fast path cannot take, unless the fast path was asked for by name."""
 
