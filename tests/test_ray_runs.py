@@ -15,6 +15,7 @@ import pytest
 
 import gsbench.runs.node_runs as node_runs
 import gsbench.runs.scene_shipping as scene_shipping
+from gsbench.config.files import config_root, load_yaml, paper_methods
 from gsbench.errors import ConfigError, GsbenchError
 from gsbench.run_folder import RunFolder
 from gsbench.runs.executors import make_executor
@@ -22,10 +23,7 @@ from gsbench.runs.node_runs import NodeResult, collect_outputs, land_outputs, ru
 from gsbench.runs.run_lock import RunLockedError, run_lock
 from gsbench.runs.runner import resolve_run, run_dir
 from gsbench.runs.scene_shipping import SceneShipper, SceneTicket, check_scene_hash, folder_hash, scene_on_node
-from gsbench.runs.sweep import RunOutcome, SweepRun, eta_seconds, run_sweep
-
-pytestmark = pytest.mark.ray
-
+from gsbench.runs.sweep import RunOutcome, SweepRun, count_runs, eta_seconds, load_sweep, run_sweep
 
 def tiny_config(seed: int = 0, out: str = "runs"):
     cfg = resolve_run("3dgs", "synthetic/spot", preset="quick", seed=seed)
@@ -81,6 +79,7 @@ def unchecked(scene: str) -> SceneTicket:
     return SceneTicket(scene, "shared", cwd=os.getcwd())
 
 
+@pytest.mark.ray
 def test_outputs_arrive_at_the_driver_when_the_nodes_folder_is_deleted_after_the_task(cluster, tmp_path):
     ray = cluster.executor.ray
     cfg = tiny_config(out=str(tmp_path / "out"))
@@ -102,6 +101,7 @@ def test_outputs_arrive_at_the_driver_when_the_nodes_folder_is_deleted_after_the
     assert not files.checkpoint.exists() and not files.lock.exists()  # checkpoints stay on the node
 
 
+@pytest.mark.ray
 def test_a_run_through_the_executor_lands_in_out_and_a_retried_one_says_so(cluster, tmp_path):
     cfg = tiny_config(seed=1, out=str(tmp_path / "out"))
     future = cluster.executor.submit(fake_run(str(tmp_path / "calls"), crash_first=str(tmp_path / "crashed")), cfg)
@@ -179,6 +179,7 @@ def test_the_folder_hash_sees_a_changed_byte_and_a_renamed_file(tmp_path):
     assert len({before, changed, folder_hash(folder)}) == 3
 
 
+@pytest.mark.ray
 def test_a_restarted_driver_skips_the_finished_runs_and_submits_the_rest(cluster, tmp_path, monkeypatch):
     import gsbench.runs.sweep as sweep
 
@@ -207,3 +208,15 @@ def test_the_eta_is_the_mean_run_time_over_the_waves_left():
     assert eta_seconds([], 5, 2) is None
     assert eta_seconds([10.0, 30.0], 5, 2) == 60.0  # 20 s a run, 3 waves of 2 slots
     assert eta_seconds([10.0], 4, 4) == 10.0
+
+
+@pytest.mark.parametrize("file,dataset,runs", [("dtu_papers.yaml", "dtu", 450), ("tnt_papers.yaml", "tnt", 180)])
+def test_the_cluster_sweeps_are_the_papers_protocol(file, dataset, runs):
+    """configs/cluster/: every method of the benchmark at the papers' preset, three seeds, on the scenes of the
+    papers' own tables (2DGS's, configs/methods/2dgs.yaml), on a Ray cluster."""
+    sweep = load_sweep(config_root() / "cluster" / file)
+    assert tuple(sweep["grid"]["method"]) == paper_methods() and sweep["base"]["preset"] == "paper"
+    assert sweep["seeds"] == [0, 1, 2] and count_runs(sweep) == runs
+    papers = load_yaml(config_root() / "methods" / "2dgs.yaml")["reported"][dataset]["scenes"]
+    assert [Path(scene).name for scene in sweep["scenes"]] == list(papers)
+    assert sweep["executor"]["kind"] == "ray" and sweep["executor"]["address"] == "auto"

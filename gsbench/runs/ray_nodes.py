@@ -4,7 +4,8 @@ Node 0 is started with ``ray start --head``, the others with ``ray start --addre
 in its own process session (so that stopping it ends every process it started, and nothing else), its own
 ``--temp-dir``, its own run folder (``GSBENCH_NODE_RUNS``) and its own scene cache (``GSBENCH_DATA``), and a custom
 resource ``node-<i>`` (`node_index` tells which node a Ray node id is). Its nodes ask no authentication token
-(``RAY_AUTH_MODE=disabled``, as a driver connects by default): a test cluster of one machine. tests/test_ray_cluster.py and
+(``RAY_AUTH_MODE=disabled``, as a driver connects by default): a test cluster of one machine. Its workers run at
+the driver's priority (``RAY_worker_niceness=0``), as the Ray executor's own local cluster's do. tests/test_ray_cluster.py and
 experiments/cluster/scaling.py sweep on it (docs/cluster.md §5).
 """
 
@@ -12,10 +13,12 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -39,9 +42,10 @@ def node_resource(index: int) -> str:
 
 
 class LocalCluster:
-    """``nodes`` Ray nodes of ``cpus`` CPUs each under ``root`` (``root/node-<i>/``: ``ray/`` its temp folder,
-    ``runs/`` its run folder, ``scenes/`` its scene cache); a context manager: started on entry, stopped on exit.
-    ``address``: what ``ray.init`` / ``gsbench sweep --address`` connect to."""
+    """``nodes`` Ray nodes of ``cpus`` CPUs each under ``root`` (``root/node-<i>/``: ``runs/`` its run folder,
+    ``scenes/`` its scene cache, ``ray-start.log``; its Ray temp folder is a short one in the system's temp folder,
+    as Ray's socket paths must stay under 108 bytes, removed at stop); a context manager: started on entry, stopped
+    on exit. ``address``: what ``ray.init`` / ``gsbench sweep --address`` connect to."""
 
     def __init__(self, root, nodes: int = 2, cpus: int = 1):
         if nodes < 1 or cpus < 1:
@@ -50,6 +54,7 @@ class LocalCluster:
         self.ip = import_ray().util.get_node_ip_address()  # the address Ray gives this machine's nodes
         self.address = f"{self.ip}:{free_port(self.ip)}"
         self._processes: list[subprocess.Popen] = []
+        self._temp_dirs: list[str] = []
 
     def folder(self, index: int) -> Path:
         return self.root / node_resource(index)
@@ -83,15 +88,16 @@ class LocalCluster:
 
     def _start_node(self, index: int) -> subprocess.Popen:
         folder = self.folder(index)
-        for path in (folder / "ray", self.run_folder(index), self.scene_cache(index)):
+        for path in (self.run_folder(index), self.scene_cache(index)):
             path.mkdir(parents=True, exist_ok=True)
+        self._temp_dirs.append(tempfile.mkdtemp(prefix=f"gsbench-{node_resource(index)}-"))
         port = self.address.rsplit(":", 1)[1]
         role = ["--head", f"--port={port}", "--include-dashboard=false"] if index == 0 else [f"--address={self.address}"]
         command = [*RAY, "start", *role, "--block", f"--node-ip-address={self.ip}", f"--num-cpus={self.cpus}", "--num-gpus=0",
-                   f"--temp-dir={folder / 'ray'}", f'--resources={{"{node_resource(index)}": 1}}',
+                   f"--temp-dir={self._temp_dirs[-1]}", f'--resources={{"{node_resource(index)}": 1}}',
                    "--disable-usage-stats"]
         env = {**os.environ, NODE_RUNS.name: str(self.run_folder(index)), DATA.name: str(self.scene_cache(index)),
-               "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled"}
+               "RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled", "RAY_worker_niceness": "0"}
         log = open(folder / "ray-start.log", "wb")  # noqa: SIM115  (the node writes it until it stops)
         return subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
@@ -129,6 +135,9 @@ class LocalCluster:
                 pass
             _signal_session(process, signal.SIGKILL)
         self._processes.clear()
+        for folder in self._temp_dirs:
+            shutil.rmtree(folder, ignore_errors=True)
+        self._temp_dirs.clear()
 
 
 def _signal_session(process: subprocess.Popen, signum: int) -> None:
