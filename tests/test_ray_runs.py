@@ -159,6 +159,19 @@ def test_a_scene_too_large_to_ship_names_the_shared_option(tmp_path, monkeypatch
         SceneShipper(lambda data: data, "nfs")
 
 
+@pytest.mark.ray
+def test_a_run_whose_scene_is_too_large_to_ship_fails_unsent(cluster, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    make_scene_folder(tmp_path)
+    monkeypatch.setattr(scene_shipping, "SHIP_CAP_BYTES", 5)
+    cfg = tiny_config(out=str(tmp_path / "out"))
+    cfg.scene = "data/scan1"
+    future = cluster.executor.submit(fake_run(str(tmp_path / "calls")), cfg)
+    with pytest.raises(ConfigError, match="set executor.scene_paths: shared"):
+        future.result(timeout=60)
+    assert not (tmp_path / "calls").exists()  # never sent to a node
+
+
 def test_a_scene_read_differently_on_a_node_is_refused_before_anything_is_written(tmp_path):
     check_scene_hash("synthetic/spot", "a" * 64, "a" * 64, "n" * 40)
     with pytest.raises(GsbenchError, match=r"synthetic/spot: node nnnnnnnnnnnn read other files than the driver's"):

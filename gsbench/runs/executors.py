@@ -39,7 +39,7 @@ from concurrent.futures.process import BrokenProcessPool
 from tqdm import tqdm
 
 from gsbench.config.run_config import RunConfig
-from gsbench.errors import ConfigError, missing_dependency
+from gsbench.errors import ConfigError, GsbenchError, missing_dependency
 from gsbench.runs.node_runs import AttemptCounter, land_outputs, run_on_node
 from gsbench.runs.scene_shipping import SceneShipper
 
@@ -193,13 +193,18 @@ class RayExecutor(Executor):
 
     def _submit_run(self, fn, cfg: RunConfig) -> Future:
         """``fn(cfg)`` on a node (`run_on_node`); the Future's result is its value once its outputs are in ``cfg.out``
-        here (`land_outputs`), its exception the task's or the landing's."""
+        here (`land_outputs`), its exception the task's, the landing's, or the scene's when it cannot be sent
+        (`SceneShipper.ticket`)."""
         if self._attempts is None:
             self._attempts = self.ray.remote(num_cpus=0)(AttemptCounter).remote()
-        ticket = self.scenes.ticket(cfg.scene)
-        ref = self._run_task.remote(fn, cfg, ticket, self._attempts)
         landed = Future()
         landed.set_running_or_notify_cancel()
+        try:
+            ticket = self.scenes.ticket(cfg.scene)
+        except GsbenchError as exc:  # a scene that cannot reach the nodes: this run fails, unsent; the others go on
+            landed.set_exception(exc)
+            return landed
+        ref = self._run_task.remote(fn, cfg, ticket, self._attempts)
 
         def land(task: Future) -> None:
             try:
