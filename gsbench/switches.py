@@ -75,13 +75,15 @@ IMAGE_CACHE = Switch("GSBENCH_IMAGE_CACHE", "the decoded-image cache (<GSBENCH_D
                      "downscaled images kept between runs", ON_OFF, "on", "speed")
 DATA = Switch("GSBENCH_DATA", "the scene cache: generated scenes and decoded images", (), "~/.cache/gsbench/scenes",
               "path")
+NODE_RUNS = Switch("GSBENCH_NODE_RUNS", "a Ray node's own run folder: where a Ray task runs its run and keeps its "
+                   "checkpoints (docs/cluster.md §1)", (), "~/.cache/gsbench/node-runs", "path")
 CACHE = Switch("GSBENCH_CACHE", "the build cache: the compiled C++ libraries go to <it>/native", (), "~/.cache/gsbench",
                "path")
 UPDATE_GOLDEN = Switch("GSBENCH_UPDATE_GOLDEN", "set to anything: tests/test_report.py rewrites its golden files "
                        "instead of comparing with them", (), "", "tests")
 
 SWITCHES = (RASTER, PROJECTION, EXACT_OVERLAP, EIGEN, SSIM, NORMAL_CONSISTENCY, LOCAL_COVARIANCE, SUGAR_FIELD,
-            NEUSG_GRID, IMAGE_CACHE, DATA, CACHE, UPDATE_GOLDEN)
+            NEUSG_GRID, IMAGE_CACHE, DATA, NODE_RUNS, CACHE, UPDATE_GOLDEN)
 
 
 def result_switches() -> dict[str, str]:

@@ -38,3 +38,29 @@ def test_an_anchor_method_missing_from_the_bench_is_a_one_line_error(tmp_path):
     done = subprocess.run([sys.executable, str(TOOL), "--bench", str(bench), "--anchor", str(anchor)],
                           capture_output=True, text=True)
     assert done.returncode != 0 and "3dgs-800x600-300k" in done.stderr
+
+
+def test_the_cluster_table_counts_runs_core_and_node_hours_and_list_schedules_on_nodes(tmp_path):
+    """Anchor 3dgs at 800x600-300k: 3 600 CPU-s of training, 400 s after it. DTU (2 scenes) at that size: 3dgs
+    4 000 s a run, pgsr (twice the step) 7 600; TnT (1 scene) at 800x600-1m, pixels 1.5: 3dgs 1.2 · 3 600 · 1.5 +
+    400 = 6 880, pgsr 2.4 · 3 600 · 1.5 + 400 = 13 360. One seed, nodes of 2 cores."""
+    bench, anchor = tmp_path / "bench.json", tmp_path / "record.json"
+    results = [{"workload": w, "method": w.split("-")[0], "step_ms": s} for w, s in
+               {"3dgs-800x600-300k": 500.0, "pgsr-800x600-300k": 1000.0, "3dgs-800x600-1m": 600.0,
+                "pgsr-800x600-1m": 1200.0, "3dgs-spot": 10.0}.items()]
+    bench.write_text(json.dumps({"environment": {"cpu": "c", "git_commit": "0" * 10},
+                                 "result": {"threads": 1, "results": results}}))
+    anchor.write_text(json.dumps({"method": "3dgs", "run_id": "abc", "timings": {
+        "train_cpu": 3600.0, "extract": 300.0, "evaluate": 90.0, "load": 10.0}}))
+    command = [sys.executable, str(TOOL), "--bench", str(bench), "--anchor", str(anchor), "--suite", "dtu", "2",
+               "800x600-300k", "--suite", "tnt", "1", "800x600-1m", "1.5", "--seeds", "1", "--cores", "2",
+               "--nodes", "1", "2"]
+    out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    # dtu: runs 4000, 4000, 7600, 7600 = 23 200 s = 6.44 core-h, 3.22 node-h; longest 2.11 h; 1 node (2 slots):
+    # 7600+4000 each = 3.22 h; 2 nodes: the longest, 2.11 h
+    assert "| dtu (2 scenes × 2 methods × 1 seeds) | 4 | 6 | 3 | 2.1 | 3.2 | 2.1 |" in out
+    # all: + 6 880 and 13 360 = 43 440 s = 12.07 core-h, 6.03 node-h, longest 3.71 h; 1 node: LPT of
+    # 13360, 7600, 7600, 6880, 4000, 4000 on 2 slots: 13360+6880=20240 | 7600+7600+4000+4000=23200 → 6.44 h
+    assert "| all | 6 | 12 | 6 | 3.7 | 6.4 | 3.7 |" in out
+    skipped = subprocess.run([*command, "--skip", "pgsr"], capture_output=True, text=True, check=True).stdout
+    assert "| all | 3 | 4 | 2 | 1.9 | 2.2 | 1.9 |" in skipped  # 4000+4000+6880 = 14 880 s

@@ -23,7 +23,9 @@ from gsbench.runs.records import RunRecord, git_state
 from gsbench.runs.sweep import count_runs, expand, format_runs, load_sweep, run_sweep, with_suite
 from sweep_files import ALL, REPO, sweep_file
 
-REAL_DATA = {"dtu_scan65": "data/dtu_scan65"}  # sweeps on a real capture: the folder experiments/real_capture says to copy in
+# Sweeps on a scene folder made outside them: a real capture (the folder experiments/real_capture says to copy in),
+# the tiny scene experiments/cluster/scaling.py makes.
+REAL_DATA = {"dtu_scan65": "data/dtu_scan65", "scaling": "scenes/spot-64x48"}
 
 
 def write(tmp_path, text) -> Path:

@@ -66,7 +66,7 @@ def at_defaults(monkeypatch):
 
 def test_the_registry_names_each_switch_once_with_its_kind_and_default():
     names = [s.name for s in SWITCHES]
-    assert len(set(names)) == len(names) == 13 and all(n.startswith("GSBENCH_") for n in names)
+    assert len(set(names)) == len(names) == 14 and all(n.startswith("GSBENCH_") for n in names)
     assert all(s.kind in KINDS and s.selects for s in SWITCHES)
     assert all(s.default == s.values[0] for s in ENUMERATED)  # the fast path first (gsbench.native.impl_choice)
     assert all(len(s.values) == 2 for s in RESULT) and all(s.values == ON_OFF for s in SPEED)

@@ -53,7 +53,8 @@ def run(args) -> int:
     workers = args.workers or settings.get("workers", 1)
     threads = threads_per_run(args.threads or settings.get("threads") or max(r.config.threads for r in runs), workers)
     with make_executor(args.executor or settings.get("kind", "local"), workers=workers, threads=threads,
-                       address=args.address or settings.get("address")) as executor:
+                       address=args.address or settings.get("address"),
+                       scene_paths=settings.get("scene_paths", "ship")) as executor:
         summary = run_sweep(runs, executor, name=sweep["name"], description=sweep.get("description", ""),
                             file=args.config, out=args.out, threads=threads, other_code=args.other_code)
     return summary.exit_status

@@ -13,8 +13,14 @@ on ProcessPoolExecutor): cancel the pending tasks, stop the running ones now and
   (``ru_maxrss``, which never decreases), so a reused worker would report the largest earlier run's.
 - ``ray`` (`RayExecutor`, extra ``gsbench[ray]``): each task is a Ray task with ``num_cpus = threads``,
   on the cluster at ``address`` or on a local cluster of ``workers × threads`` CPUs started for the
-  sweep (no dashboard, usage statistics off, logs in a temp folder). Tasks write their records
-  themselves, so with a remote cluster the output folder must be shared by every node.
+  sweep (no dashboard, usage statistics off, logs in a temp folder). No disk is shared (docs/cluster.md): a
+  run runs in its node's own run folder and sends its outputs back through Ray, which the driver writes into
+  ``--out`` (`gsbench.runs.node_runs`); its scene is generated, shipped or checked on the node
+  (`gsbench.runs.scene_shipping`, ``scene_paths``). Ray retries a run whose node or worker died, up to
+  `NODE_DEATH_RETRIES` times. Its runs lock no folder in ``--out`` (``runs_elsewhere``), so the sweep holds the
+  lock of ``--out`` itself (`gsbench.runs.sweep.output_lock`): a second driver there is refused.
+
+``slots``: how many runs an executor runs at once (the sweep's progress bar and its ETA).
 """
 
 from __future__ import annotations
@@ -32,9 +38,13 @@ from concurrent.futures.process import BrokenProcessPool
 
 from tqdm import tqdm
 
-from gsbench.errors import ConfigError, missing_dependency
+from gsbench.config.run_config import RunConfig
+from gsbench.errors import ConfigError, GsbenchError, missing_dependency
+from gsbench.runs.node_runs import AttemptCounter, land_outputs, run_on_node
+from gsbench.runs.scene_shipping import SceneShipper
 
 KINDS = ("local", "ray")
+NODE_DEATH_RETRIES = 3  # Ray runs a run again, elsewhere, when its node or worker dies, at most this many times
 
 
 def cores() -> int:
@@ -54,15 +64,17 @@ def check_fits_cores(workers: int, threads: int) -> None:
             f"cores of this machine; fix: lower --workers or --threads so that workers × threads <= {cores()}")
 
 
-def make_executor(kind: str, *, workers: int, threads: int, address: str | None = None, echo=print) -> Executor:
-    """The executor ``kind`` (`KINDS`) running ``workers`` tasks at a time with ``threads`` threads each."""
+def make_executor(kind: str, *, workers: int, threads: int, address: str | None = None, scene_paths: str = "ship",
+                  echo=print) -> Executor:
+    """The executor ``kind`` (`KINDS`) running ``workers`` tasks at a time with ``threads`` threads each;
+    ``scene_paths`` (`gsbench.runs.scene_shipping.SCENE_PATHS`) says how a Ray node gets a scene folder."""
     if kind not in KINDS:
         raise ConfigError(f"unknown executor '{kind}'; choose one of: {', '.join(KINDS)}")
     for name, value in (("workers", workers), ("threads", threads)):
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ConfigError(f"executor {name} must be a positive integer, got {value!r}")
     if kind == "ray":
-        return RayExecutor(workers, threads, address=address, echo=echo)
+        return RayExecutor(workers, threads, address=address, scene_paths=scene_paths, echo=echo)
     if address:
         raise ConfigError(f"--address {address} is for the ray executor; add --executor ray or drop --address")
     return LocalExecutor(workers, threads)
@@ -85,6 +97,7 @@ class LocalExecutor(ProcessPoolExecutor):
         check_fits_cores(workers, threads)
         super().__init__(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                          initializer=_init_local_worker, initargs=(threads,), max_tasks_per_child=1)
+        self.slots = workers
 
     def _adjust_process_count(self) -> None:
         """Replace an exited worker, unless the executor is shut down: with ``max_tasks_per_child`` a worker exits
@@ -129,17 +142,20 @@ def import_ray():
 
 
 class RayExecutor(Executor):
-    """Each task a Ray task with ``num_cpus = threads`` (module docstring); its Future is ``ObjectRef.future()``.
+    """Each task a Ray task with ``num_cpus = threads`` (module docstring). A task whose one argument is a
+    `RunConfig` is a run: it runs on its node by `run_on_node` (retried up to `NODE_DEATH_RETRIES` times when its
+    node or worker dies), and its Future ends once the driver has written its outputs (`land_outputs`). Another task's
+    Future is ``ObjectRef.future()``, and it is not retried."""
 
-    A task is not retried when its worker dies (a crashed run is reported failed; re-running the sweep
-    resumes it from its checkpoint).
-    """
+    runs_elsewhere = True
 
-    def __init__(self, workers: int, threads: int, *, address: str | None = None, echo=print):
+    def __init__(self, workers: int, threads: int, *, address: str | None = None, scene_paths: str = "ship",
+                 echo=print):
         self.ray = import_ray()
         self.threads = threads
         self._remote_fns: dict = {}
         self._tasks: list = []  # (ObjectRef, Future)
+        self._attempts = None
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no network calls from the cluster
         quiet = {"logging_level": logging.WARNING, "log_to_driver": False}
         if address:
@@ -154,6 +170,9 @@ class RayExecutor(Executor):
             self.ray.init(address="local", num_cpus=workers * threads, include_dashboard=False, _temp_dir=logs,
                           _system_config={"worker_niceness": 0}, **quiet)
             echo(f"ray: local cluster with {workers * threads} CPUs, logs in {logs}")
+        self.scenes = SceneShipper(self.ray.put, scene_paths)
+        self._run_task = self.ray.remote(num_cpus=threads, max_retries=NODE_DEATH_RETRIES, max_calls=1)(run_on_node)
+        self.slots = max(1, int(self.ray.cluster_resources().get("CPU", threads) // threads))
 
     def _check_a_node_fits(self, address: str) -> None:
         largest = max((node["Resources"].get("CPU", 0) for node in self.ray.nodes() if node["Alive"]), default=0)
@@ -163,12 +182,40 @@ class RayExecutor(Executor):
                               f"(the largest has {largest:g}); fix: lower --threads")
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
+        if len(args) == 1 and not kwargs and isinstance(args[0], RunConfig):
+            return self._submit_run(fn, args[0])
         if fn not in self._remote_fns:
             self._remote_fns[fn] = self.ray.remote(num_cpus=self.threads, max_retries=0, max_calls=1)(fn)
         ref = self._remote_fns[fn].remote(*args, **kwargs)
         future = ref.future()
         self._tasks.append((ref, future))
         return future
+
+    def _submit_run(self, fn, cfg: RunConfig) -> Future:
+        """``fn(cfg)`` on a node (`run_on_node`); the Future's result is its value once its outputs are in ``cfg.out``
+        here (`land_outputs`), its exception the task's, the landing's, or the scene's when it cannot be sent
+        (`SceneShipper.ticket`)."""
+        if self._attempts is None:
+            self._attempts = self.ray.remote(num_cpus=0)(AttemptCounter).remote()
+        landed = Future()
+        landed.set_running_or_notify_cancel()
+        try:
+            ticket = self.scenes.ticket(cfg.scene)
+        except GsbenchError as exc:  # a scene that cannot reach the nodes: this run fails, unsent; the others go on
+            landed.set_exception(exc)
+            return landed
+        ref = self._run_task.remote(fn, cfg, ticket, self._attempts)
+
+        def land(task: Future) -> None:
+            try:
+                landed.set_result(land_outputs(task.result(), cfg, ticket.content_hash))
+            except BaseException as exc:  # noqa: BLE001  (the task's error, or the landing's, ends the run's Future)
+                landed.set_exception(exc)
+
+        task = ref.future()
+        task.add_done_callback(land)
+        self._tasks.append((ref, task))
+        return landed
 
     def _cancel_unfinished(self, *, force: bool) -> None:
         for ref, future in self._tasks:

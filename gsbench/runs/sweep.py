@@ -14,6 +14,7 @@ A sweep file (``configs/sweeps/*.yaml``)::
     suite: dtu-like                  # optional, instead of scenes: configs/suites/dtu-like.yaml
     seeds: [0]                       # optional; default: the suite's seeds, else [base seed or 0]
     executor: {kind: local, workers: 1, threads: 2, address: null}  # optional defaults of the CLI options
+    # and, for the ray executor, scene_paths: ship (default) or shared (gsbench.runs.scene_shipping)
 
 Every key other than ``method``, ``scene``, ``preset`` and ``seed`` is a config path (dotted, or
 nested mappings that are flattened to dotted paths) applied as a ``--set`` override after the
@@ -58,11 +59,12 @@ from gsbench.config.suites import SUITE_PREFIX, load_suite
 from gsbench.errors import ConfigError, Interrupted
 from gsbench.run_folder import RunFolder
 from gsbench.runs.records import RunRecord, code_version, git_state, write_json_atomic
+from gsbench.runs.run_lock import run_lock
 from gsbench.runs.runner import ERROR_TAIL_LINES, resolve_run, run, run_dir
 
 SWEEP_KEYS = ("name", "description", "base", "variants", "grid", "zip", "scenes", "suite", "seeds", "executor")
 IDENTITY_KEYS = ("method", "scene", "preset", "seed")
-EXECUTOR_KEYS = ("kind", "workers", "threads", "address")
+EXECUTOR_KEYS = ("kind", "workers", "threads", "address", "scene_paths")
 # The sweep waits for runs in slices of this many seconds: a SIGINT the kernel delivers to another
 # thread (torch's, tqdm's) only sets CPython's flag, and an untimed wait would never look at it.
 SIGNAL_POLL_SECONDS = 0.5
@@ -437,23 +439,43 @@ def _outcome(future, sweep_run: SweepRun) -> RunOutcome:
         return RunOutcome(sweep_run.run_id, "failed", 0.0, f"{type(exc).__name__}: {exc}")
 
 
-class _Tally:
-    """A running sweep's counts, failures and unfinished runs, mirrored to the manifest, the bar and ``echo``."""
+def eta_seconds(run_seconds: list[float], left: int, slots: int) -> float | None:
+    """The time the ``left`` runs still take on ``slots`` slots, from the finished runs' own measured times:
+    mean(run_seconds) · ⌈left / slots⌉ (None before a run has finished)."""
+    if not run_seconds:
+        return None
+    return sum(run_seconds) / len(run_seconds) * math.ceil(left / max(1, slots))
 
-    def __init__(self, todo: list[SweepRun], skipped: int, manifest: Manifest, name: str, echo):
+
+class _Tally:
+    """A running sweep's counts, failures and unfinished runs, mirrored to the manifest, ``echo`` and one progress
+    bar: runs done, running (at most the executor's ``slots``) and failed, and the `eta_seconds` of the rest."""
+
+    def __init__(self, todo: list[SweepRun], skipped: int, manifest: Manifest, name: str, echo, slots: int = 1):
         self.counts = {"ok": 0, "skipped": skipped, "failed": 0, "cancelled": 0}
         self.failures: list = []
         self.unfinished = {sweep_run.run_id: sweep_run for sweep_run in todo}
-        self.manifest, self.echo = manifest, echo
+        self.manifest, self.echo, self.slots = manifest, echo, slots
+        self.run_seconds: list[float] = []
         self.bar = tqdm(total=len(todo), desc=f"sweep {name}", unit="run", disable=None)
+        self._show()
+
+    def _show(self) -> None:
+        left = len(self.unfinished)
+        eta = eta_seconds(self.run_seconds, left, self.slots)
+        self.bar.set_postfix_str(f"running {min(left, self.slots)}, failed {self.counts['failed']}, ETA "
+                                 f"{'?' if eta is None else tqdm.format_interval(eta)}")
 
     def finish(self, sweep_run: SweepRun, outcome: RunOutcome) -> None:
         del self.unfinished[sweep_run.run_id]
         self.counts[outcome.status] += 1
         if outcome.status == "failed":
             self.failures.append((sweep_run, outcome))
+        elif outcome.status == "ok":
+            self.run_seconds.append(outcome.seconds)
         self.manifest.set(sweep_run.run_id, outcome.status)
         self.bar.update()
+        self._show()
         cfg = sweep_run.config
         self.echo(f"{outcome.status:<6} {cfg.method['name']} on {cfg.scene}, seed {cfg.seed} ({sweep_run.label}), "
                   f"run {cfg.run_id}, {outcome.seconds:.1f} s")
@@ -482,11 +504,12 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
     """Run ``runs`` on ``executor`` (a `concurrent.futures.Executor`, see `gsbench.runs.executors`) and return
     the summary, also echoed.
 
-    ``out`` and ``threads`` replace every run's own; ``out`` is made absolute, so that workers elsewhere
-    write to the same (shared) folder. Runs whose record has status ok are skipped, so re-running a
+    ``out`` and ``threads`` replace every run's own; ``out`` is made absolute (the Ray executor writes each run's
+    outputs there as they come back from its node). Runs whose record has status ok are skipped, so re-running a
     sweep resumes it, when the records were made by this code; ``other_code`` says what happens to those made
     by another (`settle_other_code`). A failing run is recorded and the others go on. The manifest (`Manifest`) is
-    written when the sweep starts and updated as runs finish.
+    written when the sweep starts and updated as runs finish. With an executor that runs elsewhere the sweep holds
+    ``out``'s lock (`output_lock`), so a second such sweep into ``out`` is refused.
 
     Ctrl-C, SIGTERM or SIGHUP (`stop_signals_raised`): the runs not started are cancelled and the running ones
     are stopped at once (``executor.terminate_workers()``; an executor without it lets them finish). A stopped run
@@ -496,13 +519,35 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
     """
     start = time.perf_counter()
     runs = _apply(runs, out, threads)
+    root = Path(runs[0].config.out)
+    with output_lock(executor, root):
+        tally, stopped_by = _sweep(runs, executor, root, name, description, file, other_code, echo)
+    summary = SweepSummary(name, tally.counts, time.perf_counter() - start, tally.failures, stopped_by)
+    echo(summary.format())
+    return summary
+
+
+@contextmanager
+def output_lock(executor, root: Path):
+    """``root``'s lock (`gsbench.runs.run_lock`) held for the block when ``executor`` runs elsewhere
+    (``executor.runs_elsewhere``: the Ray executor), so a second sweep there is refused, `RunLockedError` naming
+    the first; nothing for a local one, whose runs lock their own folders."""
+    if not getattr(executor, "runs_elsewhere", False):
+        yield
+        return
+    with run_lock(root):
+        yield
+
+
+def _sweep(runs: list[SweepRun], executor, root: Path, name: str, description: str, file: str, other_code: str,
+           echo) -> tuple["_Tally", str]:
+    """`run_sweep` once ``runs`` are settled: (its tally, the signal that stopped it or "")."""
     finished = {sweep_run.run_id for sweep_run in runs if is_finished(sweep_run.config)}
     finished = settle_other_code(runs, finished, other_code, echo)
     todo = [sweep_run for sweep_run in runs if sweep_run.run_id not in finished]
-    root = Path(runs[0].config.out)
     manifest = Manifest(root / "sweeps" / f"{name}.json", name=name, description=description, file=str(file),
                         runs=runs, out=root, finished=finished)
-    tally = _Tally(todo, len(finished), manifest, name, echo)
+    tally = _Tally(todo, len(finished), manifest, name, echo, getattr(executor, "slots", 1))
     futures: dict = {}
     stopped_by = ""
     with stop_signals_raised():
@@ -529,9 +574,7 @@ def run_sweep(runs: list[SweepRun], executor, *, name: str = "sweep", descriptio
             tally.cancel_unfinished()
         finally:
             tally.bar.close()
-    summary = SweepSummary(name, tally.counts, time.perf_counter() - start, tally.failures, stopped_by)
-    echo(summary.format())
-    return summary
+    return tally, stopped_by
 
 
 @contextmanager
