@@ -62,24 +62,32 @@ def grid_features_reference(grids, unit: torch.Tensor) -> torch.Tensor:
                       .reshape(grid.shape[1], -1).t() for grid in grids], dim=-1)
 
 
-def _unsupported(grids: list[torch.Tensor], unit: torch.Tensor) -> str | None:
-    tensors = [unit, *grids]
-    if not grids:
-        return "no level"
+def levels_unsupported(levels: list[torch.Tensor], unit: torch.Tensor) -> str | None:
+    """What the dense and the hash kernels both refuse in the points ``unit`` and the ``levels`` (feature dim 1),
+    else None."""
+    tensors = [unit, *levels]
     if unit.requires_grad:
-        return "the points require a gradient (the kernel gives the grids' only)"
+        return "the points require a gradient (the kernel gives the levels' only)"
     if any(t.device.type != "cpu" for t in tensors):
         return "a tensor is not on the CPU"
-    if unit.dtype not in (torch.float32, torch.float64) or any(t.dtype != unit.dtype for t in grids):
+    if unit.dtype not in (torch.float32, torch.float64) or any(t.dtype != unit.dtype for t in levels):
         return f"dtypes {sorted({str(t.dtype) for t in tensors})}: one of float32, float64 for all"
     if unit.dim() != 2 or unit.shape[1] != 3:
         return f"points of shape {tuple(unit.shape)}, not (P, 3)"
+    if len({level.shape[1] for level in levels}) > 1:
+        return "the levels have different feature counts"
+    return None
+
+
+def _unsupported(grids: list[torch.Tensor], unit: torch.Tensor) -> str | None:
+    if not grids:
+        return "no level"
+    if (problem := levels_unsupported(grids, unit)) is not None:
+        return problem
     for grid in grids:
         shape = tuple(grid.shape)
         if len(shape) != 5 or shape[0] != 1 or shape[2] < 2 or not shape[2] == shape[3] == shape[4]:
             return f"a grid of shape {shape}, not (1, F, N+1, N+1, N+1) with N >= 1"
-    if len({grid.shape[1] for grid in grids}) > 1:
-        return "the levels have different feature counts"
     return None
 
 

@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 from torch.autograd.function import once_differentiable
 
+from gsbench.methods.neusg_grid import levels_unsupported
 from gsbench.native.build import load_library, omp_threads
 from gsbench.native.impl_choice import choose_impl
 from gsbench.switches import NEUSG_GRID
@@ -90,22 +91,11 @@ def hash_features_reference(tables, resolutions, unit: torch.Tensor) -> torch.Te
 
 
 def _unsupported(tables: list[torch.Tensor], resolutions: list[int], unit: torch.Tensor) -> str | None:
-    tensors = [unit, *tables]
     if not tables or len(tables) != len(resolutions):
         return f"{len(tables)} tables for {len(resolutions)} resolutions"
-    if unit.requires_grad:
-        return "the points require a gradient (the kernel gives the tables' only)"
-    if any(t.device.type != "cpu" for t in tensors):
-        return "a tensor is not on the CPU"
-    if unit.dtype not in (torch.float32, torch.float64) or any(t.dtype != unit.dtype for t in tables):
-        return f"dtypes {sorted({str(t.dtype) for t in tensors})}: one of float32, float64 for all"
-    if unit.dim() != 2 or unit.shape[1] != 3:
-        return f"points of shape {tuple(unit.shape)}, not (P, 3)"
     if any(t.dim() != 2 or not 1 <= t.shape[0] <= 1 << 31 for t in tables) or any(n < 1 for n in resolutions):
         return "a table not of shape (T, F) with 1 <= T <= 2^31, or a resolution < 1"
-    if len({t.shape[1] for t in tables}) > 1:
-        return "the levels have different feature counts"
-    return None
+    return levels_unsupported(tables, unit)
 
 
 def _library() -> ctypes.CDLL:

@@ -23,6 +23,7 @@ from gsbench.methods.neusg_hash import hash_features, hash_features_reference, v
 from gsbench.registry import METHODS
 from gsbench.runs.runner import resolve_run
 from gsbench.switches import NEUSG_GRID
+from test_neusg_grid import assert_relative
 
 TOL = {torch.float32: 1e-6, torch.float64: 1e-12}
 RESOLUTIONS = (2, 7, 40)  # with 64 rows: 3³ = 27 vertices fit (dense), 8³ and 41³ do not (hashed)
@@ -46,13 +47,6 @@ def value_and_grads(impl, tables, resolutions, unit):
     out = hash_features(tables, resolutions, unit, impl=impl)
     weights = torch.linspace(-1.0, 2.0, out.numel(), dtype=out.dtype).reshape(out.shape)
     return [out.detach(), *torch.autograd.grad((out * weights).sum(), tables)]
-
-
-def assert_relative(got, want, tol):
-    for a, b in zip(got, want, strict=True):
-        assert a.shape == b.shape
-        scale = max(float(b.abs().max()), 1e-30)
-        assert float((a.double() - b.double()).abs().max()) <= tol * scale
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
