@@ -23,22 +23,10 @@
 #include <cstring>
 #include <omp.h>
 
+#include "neusg_cell.h"
+
 namespace {
 
-// Fewer points than this run on the calling thread (a parallel region costs more than they do).
-constexpr int64_t MIN_PARALLEL = 2048;
-
-struct Axis {
-    int64_t i;   // cell index in [0, N − 1]
-    double t;    // position in the cell, [0, 1]
-};
-
-inline Axis axis(double u, int64_t n) {
-    const double s = std::min(std::max(u * double(n), 0.0), double(n));
-    int64_t i = (int64_t)std::floor(s);
-    i = std::min(std::max(i, int64_t(0)), n - 1);
-    return {i, s - double(i)};
-}
 
 // The cell's 8 vertex offsets (in the level's flattened (N+1)³ index) and weights, corner (a, b, c) at a + 2b + 4c.
 inline void corners(const double* u, int64_t n, int64_t* offset, double* weight) {

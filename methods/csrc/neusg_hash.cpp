@@ -23,23 +23,11 @@
 #include <cstring>
 #include <omp.h>
 
+#include "neusg_cell.h"
+
 namespace {
 
-// Fewer points than this run on the calling thread (a parallel region costs more than they do).
-constexpr int64_t MIN_PARALLEL = 2048;
 constexpr uint32_t PRIME_Y = 2654435761u, PRIME_Z = 805459861u;  // Instant-NGP's π₂, π₃ (π₁ = 1)
-
-struct Axis {
-    int64_t i;   // cell index in [0, N − 1]
-    double t;    // position in the cell, [0, 1]
-};
-
-inline Axis axis(double u, int64_t n) {
-    const double s = std::min(std::max(u * double(n), 0.0), double(n));
-    int64_t i = (int64_t)std::floor(s);
-    i = std::min(std::max(i, int64_t(0)), n - 1);
-    return {i, s - double(i)};
-}
 
 inline int64_t vertex_index(int64_t x, int64_t y, int64_t z, int64_t n, int64_t size) {
     const int64_t side = n + 1;
