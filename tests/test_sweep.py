@@ -23,9 +23,16 @@ from gsbench.runs.records import RunRecord, git_state
 from gsbench.runs.sweep import count_runs, expand, format_runs, load_sweep, run_sweep, with_suite
 from sweep_files import ALL, REPO, sweep_file
 
-# Sweeps on a scene folder made outside them: a real capture (the folder experiments/real_capture says to copy in),
-# the tiny scene experiments/cluster/scaling.py makes.
-REAL_DATA = {"dtu_scan65": "data/dtu_scan65", "scaling": "scenes/spot-64x48"}
+
+
+def folder_scene(path: Path) -> str | None:
+    """The scene folder a sweep runs on when it is made outside it (a real capture the user copies in, the tiny scene
+    experiments/cluster/scaling.py makes), None for a sweep on built-in scenes."""
+    scene = load_sweep(path).get("base", {}).get("scene")
+    return None if scene is None or str(scene).startswith("synthetic/") else str(scene)
+
+
+REAL_DATA = {p.stem: folder_scene(p) for p in ALL if folder_scene(p)}
 
 
 def write(tmp_path, text) -> Path:
