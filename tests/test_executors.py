@@ -15,7 +15,7 @@ import pytest
 
 import gsbench.runs.executors
 from gsbench.errors import ConfigError, GsbenchError
-from gsbench.runs.executors import LocalExecutor, make_executor, threads_per_run
+from gsbench.runs.executors import LocalExecutor, RayExecutor, make_executor, threads_per_run
 
 
 def test_workers_times_threads_must_fit_the_cores(monkeypatch):
@@ -158,6 +158,12 @@ def test_local_executor_runs_two_tiny_runs_survives_a_failure_and_resumes(tiny_s
     sweep_twice(tiny_spot, tmp_path, capsys)
 
 
+def test_a_process_that_ran_a_local_ray_cluster_is_refused_a_cluster_with_the_fix(monkeypatch):
+    monkeypatch.setattr(RayExecutor, "local_sessions_in_process", 1)
+    with pytest.raises(GsbenchError, match=r"has run a local Ray cluster before.*fix: run the sweep in a new process"):
+        make_executor("ray", workers=1, threads=1, address="127.0.0.1:1")
+
+
 @pytest.mark.ray
 @pytest.mark.slow
 def test_ray_executor_runs_two_tiny_runs_on_a_local_cluster(tiny_spot, tmp_path, capsys, restore_threads):
@@ -170,6 +176,7 @@ def test_ray_runs_each_task_in_a_fresh_worker_at_the_drivers_priority(restore_th
     def pid_and_niceness() -> tuple[int, int]:  # local, so Ray pickles it by value (workers cannot import the test module)
         return os.getpid(), os.nice(0)
 
+    environment = dict(os.environ)
     executor = make_executor("ray", workers=1, threads=1, echo=lambda *_: None)
     try:
         seen = [executor.submit(pid_and_niceness).result(timeout=120) for _ in range(3)]
@@ -177,3 +184,4 @@ def test_ray_runs_each_task_in_a_fresh_worker_at_the_drivers_priority(restore_th
         assert {niceness for _, niceness in seen} == {os.nice(0)}  # not Ray's default 15: runs are timed
     finally:
         executor.shutdown()
+    assert dict(os.environ) == environment  # no RAY_AUTH_MODE=token left for the nodes and drivers started later

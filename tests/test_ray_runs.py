@@ -83,9 +83,7 @@ def unchecked(scene: str) -> SceneTicket:
 def test_outputs_arrive_at_the_driver_when_the_nodes_folder_is_deleted_after_the_task(cluster, tmp_path):
     ray = cluster.executor.ray
     cfg = tiny_config(out=str(tmp_path / "out"))
-    counter = ray.remote(num_cpus=0)(node_runs.AttemptCounter).remote()
-    ref = ray.remote(num_cpus=1)(run_on_node).remote(fake_run(str(tmp_path / "calls")), cfg, unchecked(cfg.scene),
-                                                     counter)
+    ref = ray.remote(num_cpus=1)(run_on_node).remote(fake_run(str(tmp_path / "calls")), cfg, unchecked(cfg.scene), 1)
     ray.wait([ref])
     node_folder = run_dir(tiny_config(out=str(cluster.node)))
     assert (node_folder / "record.json").is_file()  # the task ran in the node's folder

@@ -16,8 +16,8 @@ on ProcessPoolExecutor): cancel the pending tasks, stop the running ones now and
   sweep (no dashboard, usage statistics off, logs in a temp folder). No disk is shared (docs/cluster.md): a
   run runs in its node's own run folder and sends its outputs back through Ray, which the driver writes into
   ``--out`` (`gsbench.runs.node_runs`); its scene is generated, shipped or checked on the node
-  (`gsbench.runs.scene_shipping`, ``scene_paths``). Ray retries a run whose node or worker died, up to
-  `NODE_DEATH_RETRIES` times. Its runs lock no folder in ``--out`` (``runs_elsewhere``), so the sweep holds the
+  (`gsbench.runs.scene_shipping`, ``scene_paths``). The driver sends a run again when its node or worker died, up
+  to `NODE_DEATH_RETRIES` times, telling each task its attempt number. Its runs lock no folder in ``--out`` (``runs_elsewhere``), so the sweep holds the
   lock of ``--out`` itself (`gsbench.runs.sweep.output_lock`): a second driver there is refused.
 
 ``slots``: how many runs an executor runs at once (the sweep's progress bar and its ETA).
@@ -40,11 +40,11 @@ from tqdm import tqdm
 
 from gsbench.config.run_config import RunConfig
 from gsbench.errors import ConfigError, GsbenchError, missing_dependency
-from gsbench.runs.node_runs import AttemptCounter, land_outputs, run_on_node
+from gsbench.runs.node_runs import land_outputs, run_on_node
 from gsbench.runs.scene_shipping import SceneShipper
 
 KINDS = ("local", "ray")
-NODE_DEATH_RETRIES = 3  # Ray runs a run again, elsewhere, when its node or worker dies, at most this many times
+NODE_DEATH_RETRIES = 3  # a run is sent again, to any node, when its node or worker dies, at most this many times
 
 
 def cores() -> int:
@@ -143,9 +143,20 @@ def import_ray():
 
 class RayExecutor(Executor):
     """Each task a Ray task with ``num_cpus = threads`` (module docstring). A task whose one argument is a
-    `RunConfig` is a run: it runs on its node by `run_on_node` (retried up to `NODE_DEATH_RETRIES` times when its
+    `RunConfig` is a run: it runs on its node by `run_on_node` (sent again up to `NODE_DEATH_RETRIES` times when its
     node or worker dies), and its Future ends once the driver has written its outputs (`land_outputs`). Another task's
-    Future is ``ObjectRef.future()``, and it is not retried."""
+    Future is ``ObjectRef.future()``, and it is not retried.
+
+    The driver counts the attempts itself (it sees each task end), so nothing but the runs is placed on the cluster.
+
+    A process that has started a local Ray cluster is refused a connection to an external one afterwards: Ray 2.60
+    then kills that process's actors at creation ("all references to the actor were removed") and loses its objects
+    on some nodes (``OwnerDiedError``). One connection after another is fine (experiments/cluster/scaling.py). The
+    local cluster also sets ``RAY_AUTH_MODE=token`` in the process's environment and leaves it there: inherited by
+    the nodes and drivers the process starts later, it breaks them the same way, so shutdown puts the environment
+    back as it was."""
+
+    local_sessions_in_process = 0  # local Ray clusters this process has started
 
     runs_elsewhere = True
 
@@ -155,10 +166,13 @@ class RayExecutor(Executor):
         self.threads = threads
         self._remote_fns: dict = {}
         self._tasks: list = []  # (ObjectRef, Future)
-        self._attempts = None
+        self._runs: list[Future] = []  # each run's landed Future, across its attempts
+        self._closing = False
+        self._environ = dict(os.environ)  # put back at shutdown: Ray leaves RAY_AUTH_MODE=token behind (class doc)
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no network calls from the cluster
         quiet = {"logging_level": logging.WARNING, "log_to_driver": False}
         if address:
+            self._check_no_local_session_before(address)
             self.ray.init(address=address, **quiet)
             echo(f"ray: connected to the cluster at {address}")
             self._check_a_node_fits(address)
@@ -169,10 +183,20 @@ class RayExecutor(Executor):
             # timings with them. The local cluster runs them at the driver's priority.
             self.ray.init(address="local", num_cpus=workers * threads, include_dashboard=False, _temp_dir=logs,
                           _system_config={"worker_niceness": 0}, **quiet)
+            RayExecutor.local_sessions_in_process += 1
             echo(f"ray: local cluster with {workers * threads} CPUs, logs in {logs}")
         self.scenes = SceneShipper(self.ray.put, scene_paths)
-        self._run_task = self.ray.remote(num_cpus=threads, max_retries=NODE_DEATH_RETRIES, max_calls=1)(run_on_node)
+        self._run_task = self.ray.remote(num_cpus=threads, max_retries=0, max_calls=1)(run_on_node)
+        self._node_deaths = (self.ray.exceptions.WorkerCrashedError, self.ray.exceptions.NodeDiedError,
+                             self.ray.exceptions.LocalRayletDiedError)
         self.slots = max(1, int(self.ray.cluster_resources().get("CPU", threads) // threads))
+
+    @classmethod
+    def _check_no_local_session_before(cls, address: str) -> None:
+        if cls.local_sessions_in_process:
+            raise GsbenchError(f"this Python process has run a local Ray cluster before, and Ray cannot then connect "
+                               f"it to the cluster at {address} reliably (its actors and objects die); fix: run the "
+                               "sweep in a new process (the gsbench command starts one)")
 
     def _check_a_node_fits(self, address: str) -> None:
         largest = max((node["Resources"].get("CPU", 0) for node in self.ray.nodes() if node["Alive"]), default=0)
@@ -195,27 +219,42 @@ class RayExecutor(Executor):
         """``fn(cfg)`` on a node (`run_on_node`); the Future's result is its value once its outputs are in ``cfg.out``
         here (`land_outputs`), its exception the task's, the landing's, or the scene's when it cannot be sent
         (`SceneShipper.ticket`)."""
-        if self._attempts is None:
-            self._attempts = self.ray.remote(num_cpus=0)(AttemptCounter).remote()
         landed = Future()
         landed.set_running_or_notify_cancel()
+        self._runs.append(landed)
         try:
             ticket = self.scenes.ticket(cfg.scene)
         except GsbenchError as exc:  # a scene that cannot reach the nodes: this run fails, unsent; the others go on
             landed.set_exception(exc)
             return landed
-        ref = self._run_task.remote(fn, cfg, ticket, self._attempts)
+        self._send(fn, cfg, ticket, landed, attempt=1)
+        return landed
+
+    def _send(self, fn, cfg: RunConfig, ticket, landed: Future, attempt: int) -> None:
+        """Attempt ``attempt`` of a run; when its node or worker dies it is sent again (``attempt + 1``) up to
+        `NODE_DEATH_RETRIES` times, unless the executor is shutting its tasks down."""
+        ref = self._run_task.remote(fn, cfg, ticket, attempt)
 
         def land(task: Future) -> None:
             try:
-                landed.set_result(land_outputs(task.result(), cfg, ticket.content_hash))
-            except BaseException as exc:  # noqa: BLE001  (the task's error, or the landing's, ends the run's Future)
+                result = task.result()
+            except self._node_deaths as exc:
+                if attempt <= NODE_DEATH_RETRIES and not self._closing:
+                    self._send(fn, cfg, ticket, landed, attempt + 1)
+                else:
+                    landed.set_exception(exc)
+                return
+            except BaseException as exc:  # noqa: BLE001  (the task's own error ends the run's Future)
+                landed.set_exception(exc)
+                return
+            try:
+                landed.set_result(land_outputs(result, cfg, ticket.content_hash))
+            except BaseException as exc:  # noqa: BLE001  (so does the landing's)
                 landed.set_exception(exc)
 
         task = ref.future()
-        task.add_done_callback(land)
         self._tasks.append((ref, task))
-        return landed
+        task.add_done_callback(land)
 
     def _cancel_unfinished(self, *, force: bool) -> None:
         for ref, future in self._tasks:
@@ -228,13 +267,20 @@ class RayExecutor(Executor):
         if not self.ray.is_initialized():
             return
         if cancel_futures:
+            self._closing = True
             self._cancel_unfinished(force=False)
         if wait:
-            wait_for([future for _, future in self._tasks])
+            wait_for([future for _, future in self._tasks] + self._runs)
         self.ray.shutdown()
+        for key in set(os.environ) | set(self._environ):
+            if key not in self._environ:
+                del os.environ[key]
+            elif os.environ.get(key) != self._environ[key]:
+                os.environ[key] = self._environ[key]
 
     def terminate_workers(self) -> None:
         """Cancel the queued tasks, kill the running ones (their futures end with a Ray error), shut down."""
         if self.ray.is_initialized():
+            self._closing = True
             self._cancel_unfinished(force=True)
             self.shutdown(wait=True)

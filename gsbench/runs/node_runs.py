@@ -6,7 +6,7 @@ checkpoints and the lock (`collect_outputs`: the record, the mesh, ``eval.json``
 ``config.yaml`` and the points, what the report and its pictures read), at most `OUTPUTS_CAP_BYTES` in all. The
 driver writes them into its own run folder (`land_outputs`), each file atomically and the record last, with the
 node's folder replaced by the driver's in the text files, so the records of a Ray sweep are a local sweep's; the
-record's ``environment.ray`` says which node ran it, after how many attempts (`AttemptCounter`).
+record's ``environment.ray`` says which node ran it, after how many attempts (the driver counts them).
 
 The checkpoints stay on the node. A run sent again (a retry after a node died, a driver restarted) resumes from its
 checkpoint when it lands on the node that holds its folder, and starts again elsewhere.
@@ -57,30 +57,17 @@ class NodeResult:
     scene_hash: str | None
 
 
-class AttemptCounter:
-    """A Ray actor on the driver's cluster counting each run's starts: the task asks for its attempt number when it
-    starts, so a task Ray retries after its node died knows it is the second."""
-
-    def __init__(self):
-        self.starts: dict = {}
-
-    def start(self, run_id: str) -> int:
-        self.starts[run_id] = self.starts.get(run_id, 0) + 1
-        return self.starts[run_id]
-
-
 def node_run_root() -> Path:
     """This node's run folder root, ``$GSBENCH_NODE_RUNS`` (default ``~/.cache/gsbench/node-runs``)."""
     return Path(NODE_RUNS.value()).expanduser().resolve()
 
 
-def run_on_node(fn, cfg: RunConfig, ticket: SceneTicket, attempts) -> NodeResult:
+def run_on_node(fn, cfg: RunConfig, ticket: SceneTicket, attempt: int) -> NodeResult:
     """The Ray task of a run: ``fn(cfg)`` with ``cfg.out`` set to this node's run root, its scene placed by
-    ``ticket`` (`scene_on_node`), and its outputs collected (`collect_outputs`). ``attempts``: the `AttemptCounter`
-    actor."""
+    ``ticket`` (`scene_on_node`), and its outputs collected (`collect_outputs`). ``attempt``: 1 for the first start,
+    counted by the driver (`gsbench.runs.executors.RayExecutor`)."""
     import ray  # noqa: PLC0415  (inside a Ray task: installed)
 
-    attempt = ray.get(attempts.start.remote(cfg.run_id))
     root = node_run_root()
     on_node = copy.deepcopy(cfg)
     on_node.out = str(root)
