@@ -13,6 +13,7 @@ from types import SimpleNamespace
 
 import pytest
 
+import gsbench.runs.executors as executors
 import gsbench.runs.node_runs as node_runs
 import gsbench.runs.scene_shipping as scene_shipping
 from gsbench.config.files import config_root, load_yaml, paper_methods
@@ -107,6 +108,22 @@ def test_a_run_through_the_executor_lands_in_out_and_a_retried_one_says_so(clust
     ray_env = json.loads(RunFolder(run_dir(cfg)).record.read_text())["environment"]["ray"]
     assert ray_env["attempts"] == 2 and ray_env["retried"] is True and ray_env["node_id"]
     assert (tmp_path / "crashed").exists()
+
+
+@pytest.mark.ray
+def test_a_run_whose_worker_always_dies_is_sent_at_most_the_retries_again(cluster, tmp_path, monkeypatch):
+    starts = tmp_path / "starts"
+
+    def always_crash(cfg):  # local, so Ray pickles it by value; each start leaves a line, then kills its worker
+        with open(starts, "a") as fh:
+            fh.write(cfg.run_id + "\n")
+        os._exit(1)
+
+    monkeypatch.setattr(executors, "NODE_DEATH_RETRIES", 1)
+    future = cluster.executor.submit(always_crash, tiny_config(seed=2, out=str(tmp_path / "out")))
+    with pytest.raises(cluster.executor.ray.exceptions.WorkerCrashedError):
+        future.result(timeout=300)
+    assert len(starts.read_text().splitlines()) == 2  # the first start and one retry
 
 
 def test_outputs_above_the_cap_are_a_clear_error(tmp_path, monkeypatch):

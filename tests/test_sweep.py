@@ -24,7 +24,6 @@ from gsbench.runs.sweep import count_runs, expand, format_runs, load_sweep, run_
 from sweep_files import ALL, REPO, sweep_file
 
 
-
 def folder_scene(path: Path) -> str | None:
     """The scene folder a sweep runs on when it is made outside it (a real capture the user copies in, the tiny scene
     experiments/cluster/scaling.py makes), None for a sweep on built-in scenes."""
@@ -32,7 +31,7 @@ def folder_scene(path: Path) -> str | None:
     return None if scene is None or str(scene).startswith("synthetic/") else str(scene)
 
 
-REAL_DATA = {p.stem: folder_scene(p) for p in ALL if folder_scene(p)}
+REAL_DATA = {p.stem: scene for p in ALL if (scene := folder_scene(p))}
 
 
 def write(tmp_path, text) -> Path:

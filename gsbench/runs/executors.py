@@ -17,8 +17,9 @@ on ProcessPoolExecutor): cancel the pending tasks, stop the running ones now and
   run runs in its node's own run folder and sends its outputs back through Ray, which the driver writes into
   ``--out`` (`gsbench.runs.node_runs`); its scene is generated, shipped or checked on the node
   (`gsbench.runs.scene_shipping`, ``scene_paths``). The driver sends a run again when its node or worker died, up
-  to `NODE_DEATH_RETRIES` times, telling each task its attempt number. Its runs lock no folder in ``--out`` (``runs_elsewhere``), so the sweep holds the
-  lock of ``--out`` itself (`gsbench.runs.sweep.output_lock`): a second driver there is refused.
+  to `NODE_DEATH_RETRIES` times, telling each task its attempt number. Its runs lock no folder in ``--out``
+  (``runs_elsewhere``), so the sweep holds the lock of ``--out`` itself (`gsbench.runs.sweep.output_lock`): a second
+  driver there is refused.
 
 ``slots``: how many runs an executor runs at once (the sweep's progress bar and its ETA).
 """
@@ -237,19 +238,13 @@ class RayExecutor(Executor):
 
         def land(task: Future) -> None:
             try:
-                result = task.result()
+                landed.set_result(land_outputs(task.result(), cfg, ticket.content_hash))
             except self._node_deaths as exc:
                 if attempt <= NODE_DEATH_RETRIES and not self._closing:
                     self._send(fn, cfg, ticket, landed, attempt + 1)
                 else:
                     landed.set_exception(exc)
-                return
-            except BaseException as exc:  # noqa: BLE001  (the task's own error ends the run's Future)
-                landed.set_exception(exc)
-                return
-            try:
-                landed.set_result(land_outputs(result, cfg, ticket.content_hash))
-            except BaseException as exc:  # noqa: BLE001  (so does the landing's)
+            except BaseException as exc:  # noqa: BLE001  (the task's error, or the landing's, ends the run's Future)
                 landed.set_exception(exc)
 
         task = ref.future()
