@@ -85,6 +85,14 @@ def test_rate_counts_only_the_steps_of_this_process_after_a_resume():
     assert out.getvalue() == "train 3dgs: step 80/100 (80%) 5 it/s ETA 4s\n"
 
 
+def test_a_count_of_views_says_view():
+    out, clock = io.StringIO(), FakeClock()
+    p = ProgressLines("rendering spot", 49, interval=0, stream=out, clock=clock, unit="view")
+    clock.now += 7
+    p.update(7)
+    assert out.getvalue() == "rendering spot: view 7/49 (14%) 1 it/s ETA 42s\n"
+
+
 def test_nothing_on_a_terminal():
     out = Tty()
     p = ProgressLines("train 3dgs", 10, interval=0, stream=out)

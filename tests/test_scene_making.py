@@ -3,6 +3,7 @@ missing one first, in its own step (`make_run_scene`, the function ``gsbench sce
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
@@ -42,7 +43,9 @@ def test_the_runner_makes_a_missing_builtin_scene_once_then_loads_it(tmp_path, m
     monkeypatch.setattr(generator, "DEFAULT_RES", TINY_RES)
     cfg = resolve_run("3dgs", "synthetic/spot", preset="quick", overrides=["data.downscale=1"])
     make_run_scene(cfg)
-    assert "gsbench: making synthetic/spot (first use" in capsys.readouterr().err
+    err = capsys.readouterr().err  # not a terminal: tqdm is silent, the rendering's progress lines are not
+    assert "gsbench: making synthetic/spot (first use" in err
+    assert re.search(r"^rendering \S*spot: view 49/49 \(100%\) .* done in \S+$", err, re.M), err
     folder = cache / "synthetic" / "spot"
     meta = (folder / "gsbench_scene.json").stat().st_mtime_ns
     scene = load_run_scene(cfg, load_images=False)

@@ -51,12 +51,13 @@ class ProgressLines:
 
     ``total``: the last step; ``initial``: the step training starts from (a resume); ``interval``:
     seconds between lines (0: a line every update); ``stream``: default ``sys.stderr`` (looked up
-    when constructed); ``enabled``: default ``not is_terminal(stream)``.
+    when constructed); ``enabled``: default ``not is_terminal(stream)``; ``unit``: what is counted
+    (``step``; a scene's rendering counts ``view``).
     """
 
     def __init__(self, desc: str, total: int, initial: int = 0, interval: float = DEFAULT_INTERVAL,
-                 stream=None, enabled: bool | None = None, clock=time.perf_counter):
-        self.desc, self.total, self.initial = desc, int(total), int(initial)
+                 stream=None, enabled: bool | None = None, clock=time.perf_counter, unit: str = "step"):
+        self.desc, self.total, self.initial, self.unit = desc, int(total), int(initial), unit
         self.interval = float(interval)
         self.stream = sys.stderr if stream is None else stream
         self.enabled = (not is_terminal(self.stream)) if enabled is None else bool(enabled)
@@ -69,7 +70,7 @@ class ProgressLines:
         self.closed = False
 
     def rate(self, now: float | None = None) -> float:
-        """Steps per second since construction (0 before the first step)."""
+        """Units (steps) per second since construction (0 before the first)."""
         elapsed = (self.clock() if now is None else now) - self.start
         done = self.step - self.initial
         return done / elapsed if done > 0 and elapsed > 0 else 0.0
@@ -78,7 +79,7 @@ class ProgressLines:
         now = self.clock() if now is None else now
         rate = self.rate(now)
         pct = 100.0 * self.step / self.total if self.total > 0 else 100.0
-        parts = [f"{self.desc}: step {self.step}/{self.total} ({pct:.0f}%)", f"{rate:.3g} it/s"]
+        parts = [f"{self.desc}: {self.unit} {self.step}/{self.total} ({pct:.0f}%)", f"{rate:.3g} it/s"]
         if self.loss is not None:
             parts.append(f"loss {self.loss:.4g}")
         if self.num_gaussians is not None:

@@ -106,6 +106,7 @@ from gsbench.data.synthetic.rigs import REAL_RIGS, barn_cameras, dtu_cameras, ma
 from gsbench.data.synthetic.shapes import NAMED_ALBEDOS, make_surface, named_albedo
 from gsbench.data.tnt import nerfpp_normalisation, write_crop_json, write_log
 from gsbench.errors import DataError, RegistryError
+from gsbench.training.progress import ProgressLines
 
 GENERATOR_VERSION = 8
 DEFAULT_RES = 0.25
@@ -538,7 +539,9 @@ def write_scene(plan: ScenePlan, out: Path) -> None:
     renderer = Renderer(plan.rendered, specular=plan.spec.specular, supersample=plan.supersample,
                         glass_ior=plan.spec.glass_ior)
     depths = []
-    for k, cam in enumerate(tqdm(plan.cameras, desc=f"rendering {plan.name}", unit="view", disable=None)):
+    desc = f"rendering {plan.name}"
+    lines = ProgressLines(desc, len(plan.cameras), unit="view")  # a log file's progress, where tqdm is silent
+    for k, cam in enumerate(tqdm(plan.cameras, desc=desc, unit="view", disable=None)):
         view = renderer.render(cam)
         stem = Path(cam.name).stem
         write_rgb(image_dir / cam.name, view.rgb)
@@ -547,6 +550,8 @@ def write_scene(plan: ScenePlan, out: Path) -> None:
         np.save(out / "gt_depth" / f"{stem}.npy", (view.depth * plan.depth_scale).astype(np.float32))
         np.save(out / "gt_normal" / f"{stem}.npy", view.normal)
         depths.append(view.depth)
+        lines.update(k + 1)
+    lines.close()
     if plan.fmt == "tnt":
         _write_tnt(plan, out)
     else:
