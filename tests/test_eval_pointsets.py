@@ -49,6 +49,26 @@ def test_nn_distances_chunked_and_bounded(monkeypatch):
     np.testing.assert_allclose(d, [1.0, np.inf, np.inf] * 5)  # >= upper -> inf (strict)
 
 
+def test_queries_in_spatial_order_answer_each_point_as_a_plain_query(monkeypatch):
+    """`spatial_order` only reorders the work: every query point gets its own answer back, in chunks too."""
+    monkeypatch.setattr(pointsets, "QUERY_CHUNK", 97)
+    rng = np.random.default_rng(3)
+    ref = rng.normal(size=(2000, 3)) * [50.0, 20.0, 5.0]
+    queries = rng.normal(size=(1000, 3)) * [60.0, 25.0, 6.0]
+    tree = cKDTree(ref)
+    order = pointsets.spatial_order(queries)
+    assert np.array_equal(np.sort(order), np.arange(len(queries))) and not np.array_equal(order, np.arange(1000))
+    plain_dist, plain_idx = tree.query(queries, k=1)
+    dist, idx = pointsets.nn_indices(queries, tree)
+    np.testing.assert_array_equal(dist, plain_dist)
+    np.testing.assert_array_equal(idx, plain_idx)
+    np.testing.assert_array_equal(pointsets.nn_distances(queries, tree, upper=4.0),
+                                  tree.query(queries, k=1, distance_upper_bound=4.0)[0])
+    first = queries[order[:20]]  # the first cell's points: all in the low corner
+    assert np.all(first <= queries.min(0) + np.ptp(queries, axis=0).max() / 2)
+    assert pointsets.spatial_order(np.zeros((0, 3))).shape == (0,)
+
+
 def test_pca_normals_of_a_plane_and_sample_surface():
     rng = np.random.default_rng(0)
     plane = np.c_[rng.random((2000, 2)), np.zeros(2000)]
