@@ -139,6 +139,10 @@ def test_a_known_difference_is_significant(tmp_path):
     assert "| 2dgs | – | +0.102, 0/9 better, p=0.004 \\* |" in matrix
     claims = md[md.index("## The papers' orderings"):md.index("## Speed")]
     assert "| gof better than 2dgs | 0.74 vs 0.80 |" in claims and "| 0.004 (wilcoxon) | **agrees** | – |" in claims
+    assert "| radegs better than gof |" in claims  # a group with a side on the board shows every claim of it
+    left_out = next(line for line in claims.splitlines() if line.startswith("Left out, no run of any"))
+    assert "GGGS > PGSR, RaDe-GS (DTU Chamfer, mm)" in left_out and "### GGGS > PGSR" not in claims
+    assert "DTU Chamfer (mm) 3DGS > SuGaR" not in left_out
     assert 'id="paired-dtu"' in (tmp_path / "out" / "index.html").read_text()
 
 

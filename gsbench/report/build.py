@@ -56,6 +56,7 @@ from gsbench.report.views import (
     ranks_table,
     slug,
     speed_table,
+    unmeasured_groups,
 )
 from gsbench.run_folder import RunFolder
 
@@ -311,7 +312,9 @@ def write_report(source, out, *, plots: bool = True, self_contained: bool = Fals
             significance.blocks += [ranks_table(board, tests[id(board)]), paired_table(board, tests[id(board)])]
     specs = metric_specs()
     outcomes = evaluate_claims(runs, manifests, specs)
-    claims = Section("papers-orderings", "The papers' orderings, tested", [CLAIMS_NOTE, PAIRED_NOTE],
+    unmeasured = unmeasured_groups(outcomes)
+    left_out = [f"Left out, no run of any of their methods here: {'; '.join(unmeasured)}."] if unmeasured else []
+    claims = Section("papers-orderings", "The papers' orderings, tested", [CLAIMS_NOTE, PAIRED_NOTE, *left_out],
                      [*method_claims_tables(outcomes), *claims_tables(outcomes, specs)])
     earlier = list(dict.fromkeys(folder / "plots" for folder in (out, source.board_dir) if folder is not None))
     surfaces = _surfaces(source, boards, made, earlier, warnings)

@@ -239,15 +239,33 @@ PAIRS_NOTE = (
     f"small.")
 
 
+def claim_groups(outcomes) -> dict[str, list]:
+    """The outcomes by claim group, in order."""
+    groups: dict[str, list] = {}
+    for outcome in outcomes:
+        groups.setdefault(outcome.claim.group, []).append(outcome)
+    return groups
+
+
+def _has_a_side(members) -> bool:
+    """Whether some claim of a group found a row of the board for either of its sides."""
+    return any(o.better_row or o.worse_row for o in members)
+
+
+def unmeasured_groups(outcomes) -> list[str]:
+    """The claim groups none of whose claims has a row on the board for either side: `claims_tables` leaves them
+    out (a board of a few methods would otherwise print every paper's ordering as "not measured")."""
+    return [group for group, members in claim_groups(outcomes).items() if not _has_a_side(members)]
+
+
 def claims_tables(outcomes, specs: dict[str, MetricSpec]) -> list[Table]:
-    """One table per group of claims (`gsbench.report.claims`), one line per claim: the ordering, the
+    """One table per group of claims (`gsbench.report.claims`) with a row on the board for a side of one of its
+    claims (`unmeasured_groups`), one line per claim: the ordering, the
     paper's numbers and source, the rows compared, the mean paired difference and its 95% interval
     (`gsbench.report.stats.mean_interval`), the pairs won, the p-value, the verdict, where the test did not separate
     the rows, the pairs it would take (`gsbench.report.stats.pairs_to_decide`), and where the runs contradict the claim
     its measured cause or "unexplained" (`gsbench.report.claims.load_findings`)."""
-    groups: dict[str, list] = {}
-    for outcome in outcomes:
-        groups.setdefault(outcome.claim.group, []).append(outcome)
+    groups = {group: members for group, members in claim_groups(outcomes).items() if _has_a_side(members)}
     header = ["claim", "paper", "source", "rows compared", "Δ (claimed better − other)", "95% interval of Δ",
               "better on", "p (test)", "verdict", f"pairs to decide ({POWER:.0%} power at this Δ)",
               "cause, where it disagrees"]
