@@ -47,3 +47,19 @@ def test_each_grids_baseline_row_is_its_boards_ibgs_runs(ablation, board, row):
     assert len(baseline) == 6 and baseline <= board_ids
     assert {r.config.seed for r in runs} == {0, 1, 2} and len({r.config.scene for r in runs}) == 2
     assert not {r.run_id for r in runs if r.label != row} & board_ids
+
+
+def test_the_budget_switch_changes_only_sadc_beside_the_boards_runs():
+    """experiments/gaussian_budget/ibgs_sadc_rig.yaml: its ibgs and radegs rows are the dtu_rig board's runs; its
+    switched row is the board's ibgs configuration with SADC off and nothing else changed."""
+    runs = expand(load_sweep(sweep_file("ibgs_sadc_rig")))
+    board = {r.run_id: r for r in expand(load_sweep(sweep_file("dtu_rig"))) if r.label in ("ibgs", "radegs")}
+    assert {r.run_id for r in runs if r.label in ("ibgs", "radegs")} == set(board)
+    board_ibgs = {(r.config.scene, r.config.seed): r.config.to_dict() for r in board.values() if r.label == "ibgs"}
+    switched = [r for r in runs if r.label == "ibgs-without-sadc"]
+    assert len(switched) == len(board_ibgs) and not {r.run_id for r in switched} & set(board)
+    for run in switched:
+        config = run.config.to_dict()
+        assert config["method"]["sadc"] is False
+        config["method"]["sadc"] = True
+        assert config == board_ibgs[(run.config.scene, run.config.seed)]
