@@ -13,7 +13,8 @@ import trimesh
 import gsbench.runs.runner as runner
 from gsbench.cli import main
 from gsbench.data.loader import load_scene
-from gsbench.data.synthetic import generator
+from gsbench.data.meta import write_meta
+from gsbench.data.synthetic import generator, make
 from gsbench.data.synthetic.make import ensure_scene, make_scene
 from gsbench.errors import DataError
 from gsbench.runs.runner import load_run_scene, make_run_scene, resolve_run
@@ -55,6 +56,28 @@ def test_the_runner_makes_a_missing_builtin_scene_once_then_loads_it(tmp_path, m
     assert make_scene("synthetic/spot") == folder == ensure_scene("synthetic/spot")  # `gsbench scene make`'s folder
     assert ensure_scene(str(tmp_path)) == tmp_path  # a folder is left as it is
     assert sorted(p.name for p in (cache / "synthetic").iterdir()) == ["spot"]  # no temporary folder left
+
+
+def test_a_maker_that_finishes_second_leaves_the_first_makers_folder_untouched(tmp_path, monkeypatch):
+    """Two sweep workers make one scene: the one finishing first renames its folder into place and starts
+    reading it; the second must discard its own copy, not swap the folder out from under the first's reader."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("GSBENCH_DATA", str(cache))
+    folder = cache / "synthetic" / "spot"
+    writes = []
+
+    def write_meta_only(plan, into):  # the scene's meta and one image stand in for the rendering
+        if not writes:  # while the second maker writes, the first one finishes and its reader opens a file
+            writes.append(into)
+            make_scene("synthetic/spot")
+            (folder / "open-in-the-first-reader").touch()
+        write_meta(into, make.plan_meta(plan))
+        (into / "000000.png").touch()
+
+    monkeypatch.setattr(make, "write_scene", write_meta_only)
+    assert make_scene("synthetic/spot") == folder
+    assert (folder / "open-in-the-first-reader").is_file()
+    assert sorted(p.name for p in (cache / "synthetic").iterdir()) == ["spot"]  # the second copy is gone
 
 
 def test_run_makes_the_scene_before_it_reads_it(tmp_path, monkeypatch):

@@ -10,7 +10,8 @@ Cache folders (`gsbench.data.cache.scene_dir`): ``<cache>/synthetic/<name>`` (pl
 stem>`` (plus ``-<W>x<H>``, ``-s<seed>``, ``-ss<n>``). A folder already holding the same scene (the same
 ``gsbench_scene.json``) is left as it is. Writing is atomic: the scene is written into a temporary sibling
 folder which is then renamed, so two makers of one scene (two sweep workers) each write their own, and the
-one that loses the race keeps the winner's folder.
+one that finishes second discards its copy and keeps the first one's folder untouched (the first maker may
+already be reading it).
 """
 
 from __future__ import annotations
@@ -99,6 +100,8 @@ def _write_plan(plan: ScenePlan, out, custom_size: bool, supersample: int | None
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
         write_scene(plan, tmp)
+        if read_meta(out) == meta:  # a concurrent maker finished first: its folder may be open in its reader
+            return out
         if out.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             out.rename(old / out.name)
