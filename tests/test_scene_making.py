@@ -64,14 +64,14 @@ def test_a_maker_that_finishes_second_leaves_the_first_makers_folder_untouched(t
     cache = tmp_path / "cache"
     monkeypatch.setenv("GSBENCH_DATA", str(cache))
     folder = cache / "synthetic" / "spot"
-    writes = []
+    first_maker = {"finished": False}
 
     def write_meta_only(plan, into):  # the scene's meta and one image stand in for the rendering
-        if not writes:  # while the second maker writes, the first one finishes and its reader opens a file
-            writes.append(into)
+        if not first_maker["finished"]:  # while the second maker writes, the first finishes and its reader opens a file
+            first_maker["finished"] = True
             make_scene("synthetic/spot")
             (folder / "open-in-the-first-reader").touch()
-        write_meta(into, make.plan_meta(plan))
+        write_meta(into, generator.plan_meta(plan))
         (into / "000000.png").touch()
 
     monkeypatch.setattr(make, "write_scene", write_meta_only)
