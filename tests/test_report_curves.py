@@ -40,6 +40,7 @@ from gsbench.report.collect import RunPoint, label_variants, load_runs, merge_re
 from gsbench.report.joins import curves, joins
 from gsbench.report.metrics import MetricSpec
 from gsbench.report.pareto import step_points
+from gsbench.report.plots import legend_labels
 
 FIXTURE = Path(__file__).parent / "fixtures" / "report" / "anytime"
 CHAMFER = MetricSpec("chamfer", False, "mm")
@@ -242,3 +243,18 @@ def test_the_report_draws_the_curves_and_lists_the_tables(tmp_path):
            "| 1000 s |" in section
     picture = (out / "plots" / "curves-dtu.png").read_bytes()
     assert picture.startswith(b"\x89PNG") and len(picture) < 150 * 1024  # docs/results/README.md's budget
+
+
+def test_the_curves_legend_keeps_rows_apart_that_differ_only_in_the_middle_of_their_names():
+    """The gggs_claims board's rows: an elided name (start … end) made three of the four read alike."""
+    rows = ["gggs [losses.gggs_geo.weight=0.0, losses.gggs_ncc.weight=0.0, losses.gggs_normal.weight=0.05, "
+            "mesh.depth=solid, method.surface_depth=solid]",
+            "gggs [losses.gggs_geo.weight=0.02, losses.gggs_ncc.weight=0.6, losses.gggs_normal.weight=0.0, "
+            "mesh.depth=solid, method.surface_depth=solid]",
+            "gggs [losses.gggs_geo.weight=0.02, losses.gggs_ncc.weight=0.6, losses.gggs_normal.weight=0.05, "
+            "mesh.depth=solid, method.surface_depth=solid]"]
+    texts, columns = legend_labels(rows)
+    assert columns == 1 and len(set(texts)) == 3
+    assert [text.replace("\n", " ") for text in texts] == rows  # whole, wrapped at spaces
+    assert all(len(line) <= 110 for text in texts for line in text.splitlines())
+    assert legend_labels(["3dgs", "radegs [preset=long]"]) == (["3dgs", "radegs [preset=long]"], 2)

@@ -9,13 +9,15 @@ without pyplot, so no global backend state or display is touched.
 - `variants_figure`: a sweep of named rows, the metric per row (one marker per scene, std bars).
 - `curves_figure`: per dataset, the metric against training CPU-seconds (log scale), a panel per scene and one
   for the mean over scenes, one curve per `gsbench.report.joins.Curve` with its min–max band over seeds
-  (docs/report.md §10.1), the time budgets dotted, the steps on the Pareto front ringed.
+  (docs/report.md §10.1), the time budgets dotted, the steps on the Pareto front ringed; its legend names each
+  curve whole (`legend_labels`).
 """
 
 from __future__ import annotations
 
 import io
 import math
+import textwrap
 
 from gsbench.errors import missing_dependency
 from gsbench.report.aggregate import Board
@@ -26,6 +28,8 @@ from gsbench.report.png import compact
 
 SCALE = {"train_rss": 1 / 2**20}  # bytes -> MiB on the memory axis
 LABEL_CHARS = 40
+LEGEND_CHARS = 110  # a wrapped legend line of the curves figure, at 7 pt about 6 inches
+LEGEND_LINE_INCHES = 0.16
 
 
 def _figure(width: float, height: float):
@@ -52,6 +56,22 @@ def _short(text: str) -> str:
         return text
     head = LABEL_CHARS // 3
     return text[:head] + "…" + text[-(LABEL_CHARS - head - 1):]
+
+
+def legend_labels(labels: list[str]) -> tuple[list[str], int]:
+    """(the legend's texts, its columns): each label whole when every one fits in `LABEL_CHARS` (two columns),
+    else each wrapped at `LEGEND_CHARS` in one column. Never elided: rows of one method that differ only in the
+    middle of their names (their start and end alike) would read as one."""
+    if all(len(label) <= LABEL_CHARS for label in labels):
+        return list(labels), 2
+    return [textwrap.fill(label, LEGEND_CHARS, break_on_hyphens=False) for label in labels], 1
+
+
+def _legend_inches(texts: list[str], columns: int) -> float:
+    """The height of the legend of `legend_labels`' texts in ``columns`` columns."""
+    if columns == 1:
+        return LEGEND_LINE_INCHES * sum(text.count("\n") + 1 for text in texts)
+    return LEGEND_LINE_INCHES * math.ceil(len(texts) / columns)
 
 
 def _metric_axis(board: Board) -> str:
@@ -158,7 +178,9 @@ def curves_figure(board: Board) -> bytes | None:
         return None
     columns = 2 if len(panels) == 4 else min(3, len(panels))
     lines = math.ceil(len(panels) / columns)
-    figure = _figure(PANEL_INCHES[0] * columns, PANEL_INCHES[1] * lines + 0.4 + 0.16 * math.ceil(len(made) / 2))
+    legend_texts, legend_columns = legend_labels([curve.label for curve in made])
+    figure = _figure(PANEL_INCHES[0] * columns,
+                     PANEL_INCHES[1] * lines + 0.4 + _legend_inches(legend_texts, legend_columns))
     axes = figure.subplots(lines, columns, squeeze=False).ravel()
     styles = _curve_styles(made)
     handles, wall = {}, False
@@ -188,9 +210,9 @@ def curves_figure(board: Board) -> bytes | None:
     for ax in axes[len(panels):]:
         ax.axis("off")
     figure.supylabel(f"{board.spec.label} ({board.spec.direction})", fontsize=8)
-    labels = [curve.label for curve in made if curve.label in handles]
-    figure.legend([handles[label] for label in labels], [_short(label) for label in labels], loc="outside lower center",
-                  ncols=2, fontsize=7, frameon=False)
+    shown = [(handles[curve.label], text) for curve, text in zip(made, legend_texts) if curve.label in handles]
+    figure.legend([handle for handle, _ in shown], [text for _, text in shown], loc="outside lower center",
+                  ncols=legend_columns, fontsize=7, frameon=False)
     figure.suptitle(f"{board.dataset}: error against training time; band: min–max over seeds; dotted: "
                     f"{', '.join(f'{b / 60:g}' for b in BUDGETS)} min; red rings: Pareto front"
                     + ("\nhollow markers: wall seconds (the record has no CPU seconds)" if wall else ""), fontsize=9)
