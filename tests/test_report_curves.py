@@ -40,7 +40,7 @@ from gsbench.report.collect import RunPoint, label_variants, load_runs, merge_re
 from gsbench.report.joins import curves, joins
 from gsbench.report.metrics import MetricSpec
 from gsbench.report.pareto import step_points
-from gsbench.report.plots import legend_labels
+from gsbench.report.plots import LEGEND_CHARS, legend_labels
 
 FIXTURE = Path(__file__).parent / "fixtures" / "report" / "anytime"
 CHAMFER = MetricSpec("chamfer", False, "mm")
@@ -256,5 +256,5 @@ def test_the_curves_legend_keeps_rows_apart_that_differ_only_in_the_middle_of_th
     texts, columns = legend_labels(rows)
     assert columns == 1 and len(set(texts)) == 3
     assert [text.replace("\n", " ") for text in texts] == rows  # whole, wrapped at spaces
-    assert all(len(line) <= 110 for text in texts for line in text.splitlines())
+    assert all(len(line) <= LEGEND_CHARS for text in texts for line in text.splitlines())
     assert legend_labels(["3dgs", "radegs [preset=long]"]) == (["3dgs", "radegs [preset=long]"], 2)

@@ -68,10 +68,8 @@ def legend_labels(labels: list[str]) -> tuple[list[str], int]:
 
 
 def _legend_inches(texts: list[str], columns: int) -> float:
-    """The height of the legend of `legend_labels`' texts in ``columns`` columns."""
-    if columns == 1:
-        return LEGEND_LINE_INCHES * sum(text.count("\n") + 1 for text in texts)
-    return LEGEND_LINE_INCHES * math.ceil(len(texts) / columns)
+    """The height of the legend of `legend_labels`' texts in ``columns`` columns (its lines shared among them)."""
+    return LEGEND_LINE_INCHES * math.ceil(sum(text.count("\n") + 1 for text in texts) / columns)
 
 
 def _metric_axis(board: Board) -> str:
