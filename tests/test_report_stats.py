@@ -292,6 +292,8 @@ def test_claims_are_read_from_the_method_files(tmp_path, monkeypatch):
                                     " digits: 3}\n", ", order: [b ≈ x, a > b]")
     assert [(c.text, c.paper, c.source, c.group) for c in load_claims()] == [
         ("b as good as x", "0.750 vs 1.000", "s1; s2", "A > B"), ("a better than b", "0.500 vs 0.750", "s1; s2", "A > B")]
+    _configs(tmp_path / "withheld", monkeypatch, "claims:\n  - {group: g, claim: a > b, source: s, paper: {b: null}}\n", "")
+    assert [c.paper for c in load_claims()] == ["0.50 vs –"]  # null: the paper has no number for this row of b
     for case, (claims, order, message) in enumerate((
             ("{group: h, claim: a > b, source: s}", "", "a.yaml: claims.0.: unknown group 'h'"),
             ("{group: g, claim: a > y, source: s}", "", "no paper number for 'y'.*give it under paper:"),

@@ -4,7 +4,8 @@ The claims are data: each stands in a method's file (``configs/methods/<method>.
 group in ``configs/claim_groups.yaml`` (the report's table: its heading, dataset, metric, and for an ablation the
 sweep whose rows are the sides); a side's number is its method's ``reported:`` mean unless the entry's ``paper:``
 gives it, so each paper number is written once. A row of an ablation the paper gives no number for (a removal it
-does not tabulate, a suite it did not run) is quoted as ``–``: the claim is then the paper's direction only. The
+does not tabulate, a suite it did not run; or ``null`` under ``paper:``, a row named after its method at a budget the
+paper did not run) is quoted as ``–``: the claim is then the paper's direction only. The
 metric is the one the paper used: DTU the official script's Chamfer (``chamfer``, mm, lower is better); Tanks and
 Temples the F1 on mesh vertices plus face centroids (``f1_centroids``, `gsbench.report.metrics.COMPANIONS`). Claims
 between methods are measured on the leaderboard of that dataset and metric (of a method's several configurations,
@@ -89,8 +90,9 @@ def _parse(where: str, text) -> tuple[str, str, str]:
 
 
 def _number(where: str, side: str, paper: dict, group: dict) -> float | None:
-    """The paper's number of ``side``: the entry's, else its method's reported mean; None for a row of an ablation
-    (a ``sweep`` group) that has neither."""
+    """The paper's number of ``side``: the entry's (None where it is ``null``: a row named after a method, at a budget
+    the paper did not run), else its method's reported mean; None for a row of an ablation (a ``sweep`` group) that
+    has neither."""
     dataset, metric = group["dataset"], group["metric"]
     if side in paper:
         return paper[side]
@@ -119,7 +121,8 @@ def _entry_claims(where: str, method: str, entry, groups: dict) -> tuple[str, li
     texts = [entry["claim"]] if isinstance(entry["claim"], str) else entry["claim"]
     source = entry["source"] if isinstance(entry["source"], str) else "; ".join(entry["source"])
     try:
-        paper = {str(label): float(value) for label, value in (entry.get("paper") or {}).items()}
+        paper = {str(label): None if value is None else float(value)
+                 for label, value in (entry.get("paper") or {}).items()}
         digits = int(entry.get("digits", DIGITS))
     except (AttributeError, TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: paper must map sides to numbers and digits be an integer ({exc})") from exc
