@@ -3,14 +3,14 @@
 The claims are data: each stands in a method's file (``configs/methods/<method>.yaml``, ``claims:``) and names its
 group in ``configs/claim_groups.yaml`` (the report's table: its heading, dataset, metric, and for an ablation the
 sweep whose rows are the sides); a side's number is its method's ``reported:`` mean unless the entry's ``paper:``
-gives it, so each paper number is written once. A row of an ablation the paper gives no number for (a removal it
-does not tabulate, a suite it did not run; or ``null`` under ``paper:``, a row named after its method at a budget the
-paper did not run) is quoted as ``–``: the claim is then the paper's direction only. The
-metric is the one the paper used: DTU the official script's Chamfer (``chamfer``, mm, lower is better); Tanks and
-Temples the F1 on mesh vertices plus face centroids (``f1_centroids``, `gsbench.report.metrics.COMPANIONS`). Claims
-between methods are measured on the leaderboard of that dataset and metric (of a method's several configurations,
-the row with the most runs with the metric); claims about an ablation on the rows of the sweep that repeats it (its
-manifest, by sweep name and row label).
+gives it, so each paper number is written once. A row of an ablation the paper gives no number for (a removal it does
+not tabulate, a suite it did not run; or ``null`` under ``paper:``, a row named after its method at a budget the paper
+did not run) is quoted as ``–``: the claim is then the paper's direction only. The metric is the one the paper used:
+DTU the official script's Chamfer (``chamfer``, mm, lower is better); Tanks and Temples the F1 on mesh vertices plus
+face centroids (``f1_centroids``, `gsbench.report.metrics.COMPANIONS`). Claims between methods are measured on the
+leaderboard of that dataset and metric (of a method's several configurations, the row with the most runs with the
+metric); claims about an ablation on the rows of the sweep that repeats it (its manifest, by sweep name and row
+label).
 
 A claim is checked with the paired test of `gsbench.report.stats` over the (scene, seed) pairs both sides share,
 its effect the mean paired difference with its 95% t-interval (`gsbench.report.stats.mean_interval`):
@@ -125,7 +125,7 @@ def _entry_claims(where: str, method: str, entry, groups: dict) -> tuple[str, li
                  for label, value in (entry.get("paper") or {}).items()}
         digits = int(entry.get("digits", DIGITS))
     except (AttributeError, TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: paper must map sides to numbers and digits be an integer ({exc})") from exc
+        raise ConfigError(f"{where}: paper must map sides to numbers (or null) and digits be an integer ({exc})") from exc
     claims = []
     for text in texts:
         better, relation, worse = _parse(where, text)
