@@ -17,7 +17,7 @@ from gsbench.bench.train import PAPER_METHODS
 from gsbench.config import files
 from gsbench.config.files import CLAIMS_KEY, config_root, declared_plugins, load_yaml, method_declaration, reported_numbers
 from gsbench.errors import ConfigError
-from gsbench.report.claims import GROUPS_FILE
+from gsbench.report.claims import GROUPS_FILE, quoted_numbers
 
 REPO = Path(__file__).resolve().parent.parent
 SOURCE = [p for folder in ("gsbench", "methods", "evaluators") for p in sorted((REPO / folder).rglob("*.py"))]
@@ -42,8 +42,7 @@ def paper_numbers() -> list[tuple[str, str, float, str, str]]:
         for entry in method_declaration(method, CLAIMS_KEY) or []:
             source = entry["source"] if isinstance(entry["source"], str) else "; ".join(entry["source"])
             metric = groups[entry["group"]]["metric"]
-            found += [(file, metric, float(v), source, str(side)) for side, v in (entry.get("paper") or {}).items()
-                      if v is not None]  # null: the paper has no number for that side
+            found += [(file, metric, v, source, side) for side, v in quoted_numbers(entry).items() if v is not None]
     return found
 
 
@@ -59,10 +58,9 @@ def test_a_claim_reads_the_reported_number_it_quotes():
     for method in declared_plugins("methods"):
         for i, entry in enumerate(method_declaration(method, CLAIMS_KEY) or []):
             group = groups[entry["group"]]
-            for label, value in (entry.get("paper") or {}).items():
-                reported = reported_numbers(str(label)).get(group["dataset"]) or {}
-                quoted = None if value is None else float(value)  # null: the paper has no number for that side
-                if quoted is not None and reported.get("metric") == group["metric"] and reported.get("mean") == quoted:
+            for label, value in quoted_numbers(entry).items():
+                reported = reported_numbers(label).get(group["dataset"]) or {}
+                if value is not None and reported.get("metric") == group["metric"] and reported.get("mean") == value:
                     typed_again.append(f"configs/methods/{method}.yaml claims[{i}].paper.{label} = {value}")
     assert not typed_again, f"numbers the sides' reported: already hold (drop them from paper:): {typed_again}"
 

@@ -109,6 +109,11 @@ def _quoted(value: float | None, digits: int) -> str:
     return NO_NUMBER if value is None else f"{value:.{digits}f}"
 
 
+def quoted_numbers(entry: dict) -> dict[str, float | None]:
+    """A claims entry's ``paper:``, side → the paper's number; None where it is ``null`` (no number for that side)."""
+    return {str(label): None if value is None else float(value) for label, value in (entry.get("paper") or {}).items()}
+
+
 def _entry_claims(where: str, method: str, entry, groups: dict) -> tuple[str, list[Claim]]:
     """(group name, the claims of one ``claims:`` entry of ``method``'s file)."""
     if not isinstance(entry, dict) or set(entry) - ENTRY_KEYS or not {"group", "claim", "source"} <= set(entry):
@@ -121,8 +126,7 @@ def _entry_claims(where: str, method: str, entry, groups: dict) -> tuple[str, li
     texts = [entry["claim"]] if isinstance(entry["claim"], str) else entry["claim"]
     source = entry["source"] if isinstance(entry["source"], str) else "; ".join(entry["source"])
     try:
-        paper = {str(label): None if value is None else float(value)
-                 for label, value in (entry.get("paper") or {}).items()}
+        paper = quoted_numbers(entry)
         digits = int(entry.get("digits", DIGITS))
     except (AttributeError, TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: paper must map sides to numbers (or null) and digits be an integer ({exc})") from exc
